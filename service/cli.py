@@ -1,0 +1,57 @@
+"""The ``meniscope`` command: one dispatcher over the verbs of shared/spec/cli.md.
+
+Each module of ``service.verbs`` exposes ``register(subparsers)`` and is found by itself; ``training`` adds its verbs
+through the ``meniscope.verbs`` entry-point group, so the runtime never imports it.
+"""
+from __future__ import annotations
+
+import argparse
+import importlib
+import pkgutil
+import sys
+from importlib.metadata import entry_points
+from typing import Callable, Sequence
+
+from service.errors import MeniscopeError
+
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The full parser: built-in verbs plus those that installed plugins register."""
+    parser = argparse.ArgumentParser(prog="meniscope", description=__doc__.splitlines()[0])
+    sub = parser.add_subparsers(dest="verb", required=True, metavar="VERB")
+    import service.verbs as verbs
+
+    for info in sorted(pkgutil.iter_modules(verbs.__path__), key=lambda m: m.name):
+        importlib.import_module(f"{verbs.__name__}.{info.name}").register(sub)
+    for ep in entry_points(group="meniscope.verbs"):
+        try:
+            register: Callable[[argparse._SubParsersAction], None] = ep.load()
+        except ImportError as exc:  # a plugin whose extras are not installed
+            sub.add_parser(ep.name, help=f"unavailable: {exc}").set_defaults(
+                func=lambda _a, exc=exc, n=ep.name: _unavailable(n, exc)
+            )
+            continue
+        register(sub)
+    return parser
+
+
+def _unavailable(name: str, exc: Exception) -> int:
+    raise MeniscopeError(name, f"this verb needs the training extras (pip install 'meniscope[train]'): {exc}")
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point: run one verb; user errors print one line and exit 2."""
+    args = build_parser().parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except MeniscopeError as exc:
+        print(f"meniscope {args.verb}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"meniscope {args.verb}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,1 @@
+"""CLI verbs: one module per family, each exposing ``register(subparsers)``."""
