@@ -27,17 +27,11 @@ def build_parser() -> argparse.ArgumentParser:
     for ep in entry_points(group="meniscope.verbs"):
         try:
             register: Callable[[argparse._SubParsersAction], None] = ep.load()
-        except ImportError as exc:  # a plugin whose extras are not installed
-            sub.add_parser(ep.name, help=f"unavailable: {exc}").set_defaults(
-                func=lambda _a, exc=exc, n=ep.name: _unavailable(n, exc)
-            )
+        except ImportError as exc:  # a plugin whose package or extras are missing
+            print(f"meniscope: verbs of {ep.value} unavailable: {exc}", file=sys.stderr)
             continue
         register(sub)
     return parser
-
-
-def _unavailable(name: str, exc: Exception) -> int:
-    raise MeniscopeError(name, f"this verb needs the training extras (pip install 'meniscope[train]'): {exc}")
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -1,0 +1,26 @@
+"""Fixtures shared by every test module: the example scene and the ../shared folder."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from service import DEFAULT_SCENE
+from service.scene import Scene
+
+#: ../shared beside the checkout (specs and real Phantom recordings); may be absent.
+SHARED = Path(__file__).resolve().parents[1].parent / "shared"
+
+
+@pytest.fixture(scope="session")
+def scene() -> Scene:
+    """The embedded default scene (shared/spec/scene.example.json)."""
+    return Scene.load(DEFAULT_SCENE)
+
+
+@pytest.fixture(scope="session")
+def shared_dir() -> Path:
+    """The shared folder, or a skip saying where it was looked for."""
+    if not SHARED.is_dir():
+        pytest.skip(f"../shared not found at {SHARED}: the shared specs and recordings are not checked out beside the repo")
+    return SHARED
