@@ -16,6 +16,8 @@ import numpy as np
 from numpy.typing import ArrayLike
 from scipy.special import j0, j1
 
+from service.errors import MeniscopeError
+
 #: First two positive roots of J0: the Bessel modes vanish at the rim r = R.
 L1 = 2.404825557695773
 L2 = 5.520078110286311
@@ -53,6 +55,18 @@ def damped_mode(t: ArrayLike, amplitude: ArrayLike, decay: ArrayLike, frequency:
     with np.errstate(under="ignore"):
         envelope = np.exp(-np.asarray(decay, dtype=np.float64) * t)
     return amplitude * envelope * np.cos(2.0 * np.pi * np.asarray(frequency) * t + phase)
+
+
+def coefficient_array(coeffs: ArrayLike, where: str = "coefficients") -> np.ndarray:
+    """Coefficients as float64 of shape (N, 4) (columns d, p, a, b), or a MeniscopeError saying what is wrong."""
+    arr = np.asarray(coeffs, dtype=np.float64)
+    if arr.ndim == 1 and arr.shape[0] == 4:
+        arr = arr[None, :]
+    if arr.ndim != 2 or arr.shape[1] != 4:
+        raise MeniscopeError(where, f"expected shape (N, 4) with columns d, p, a, b, got {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise MeniscopeError(where, "contain NaN or infinite values")
+    return arr
 
 
 @dataclass(frozen=True)

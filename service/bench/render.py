@@ -1,0 +1,195 @@
+"""``meniscope bench render``: our renderer against Blender Cycles on the same coefficient draws.
+
+Both render the same N seeded draws from ``CoefficientRanges`` in one run, so their
+speeds are measured under the same machine load. Ours at several settings (supersampling x
+sun samples: the speed-for-accuracy trade), each timed over ``--repeats`` passes after a
+warm-up call; Cycles per frame, excluding Blender's one-time start (reported too). Per
+setting: median frames/s, the ratio to Cycles, and the agreement of ``service.render.agreement``. Writes ``render.json``, ``render.md``,
+``render.png`` (ours | Cycles | difference for a few frames), both frame stacks (ours at the last setting) and the
+coefficients to ``--out``, and prints the table.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import time
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+from tqdm import tqdm
+
+from service import DEFAULT_SCENE
+from service.errors import MeniscopeError
+from service.physics import CoefficientRanges
+from service.scene import Scene
+
+#: (frames, samples) for a full run and for ``--quick``.
+FULL, QUICK = (300, 32), (12, 8)
+#: Our renderer's settings measured by default, "SUPERSAMPLExSUN_SAMPLES": fastest to most accurate.
+SETTINGS = "1x1,2x1,2x4,4x16"
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser("render", help="our renderer vs Blender Cycles: speed and agreement", description=__doc__)
+    p.add_argument("--scene", type=Path, default=DEFAULT_SCENE, help="scene JSON (default: the embedded example)")
+    p.add_argument("--frames", type=int, help=f"coefficient draws (default {FULL[0]}, --quick {QUICK[0]})")
+    p.add_argument("--samples", type=int, help=f"Cycles samples per pixel (default {FULL[1]}, --quick {QUICK[1]})")
+    p.add_argument("--quick", action="store_true", help="a short smoke run")
+    p.add_argument("--seed", type=int, default=0, help="seed of the coefficient draws")
+    p.add_argument("--settings", default=SETTINGS,
+                   help=f"our renderer's settings, SUPERSAMPLExSUN_SAMPLES, comma-separated (default {SETTINGS})")
+    p.add_argument("--repeats", type=int, default=5, help="timed passes over the draws per setting (median reported)")
+    p.add_argument("--blender", default="blender", help="Blender executable")
+    p.add_argument("--out", type=Path, default=Path("bench-render"), help="folder for the results")
+    p.set_defaults(func=run)
+
+
+def parse_settings(text: str) -> list[tuple[int, int]]:
+    """"2x4,1x1" -> [(2, 4), (1, 1)]; a one-line error for anything else."""
+    out = []
+    for item in text.split(","):
+        try:
+            ss, sun = (int(v) for v in item.strip().lower().split("x"))
+        except ValueError:
+            raise MeniscopeError("--settings", f"expected SUPERSAMPLExSUN_SAMPLES like 2x4, got {item!r}") from None
+        if ss < 1 or sun < 1:
+            raise MeniscopeError("--settings", f"supersample and sun samples must be at least 1, got {item!r}")
+        out.append((ss, sun))
+    return out
+
+
+def time_ours(render: Callable[[np.ndarray], np.ndarray], coeffs: np.ndarray, repeats: int,
+              label: str) -> tuple[np.ndarray, float, np.ndarray]:
+    """Frames (N, H, W), the warm-up call's seconds, and seconds per frame of each timed pass (repeats,)."""
+    start = time.perf_counter()
+    render(coeffs[:1])
+    warmup = time.perf_counter() - start
+    per_frame = []
+    for _ in tqdm(range(repeats), desc=f"ours {label}", unit="pass"):
+        start = time.perf_counter()
+        frames = render(coeffs)
+        per_frame.append((time.perf_counter() - start) / len(coeffs))
+    return frames, warmup, np.array(per_frame)
+
+
+def _rate(seconds_per_frame: float) -> float | None:
+    return 1.0 / seconds_per_frame if seconds_per_frame > 0 else None
+
+
+def _fmt(x: float | None, spec: str = ".3g") -> str:
+    return "n/a" if x is None else format(x, spec)
+
+
+def markdown(results: dict) -> str:
+    """The results as Markdown: one row per setting of ours beside Cycles, speed ratio and agreement."""
+    c = results["cycles"]
+    n = results["frames"]
+    lines = [
+        f"Renderer benchmark: {n} draws, scene {results['scene']['path']}, "
+        f"load average {results['host']['load_before']:.2f} -> {results['host']['load_after']:.2f} "
+        f"on {results['host']['cpus']} CPUs. Blender Cycles, {c['samples']} spp: "
+        f"{_fmt(c['frames_per_s'])} frames/s (median {_fmt(c['median_s_per_frame'])} s/frame; "
+        f"one-time start {_fmt(c['startup_s'])} s).",
+        "",
+        "| ours (supersample x sun samples) | frames/s (median) | x Cycles | first call (s) | "
+        "correlation median / p10 | centroid median / p90 (px) | highlight in both | gain |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    for o in results["ours"]:
+        a = o["agreement"]
+        lines.append(
+            f"| {o['supersample']} x {o['sun_samples']} | {_fmt(o['frames_per_s'], '.0f')} | "
+            f"{_fmt(o['speed_ratio'], '.0f')} | {_fmt(o['warmup_s'])} | "
+            f"{_fmt(a['correlation_median'], '.4f')} / {_fmt(a['correlation_p10'], '.4f')} | "
+            f"{_fmt(a['centroid_distance_median_px'])} / {_fmt(a['centroid_distance_p90_px'])} | "
+            f"{a['highlight_both']}/{n} | {_fmt(a['gain_median'])} |")
+    return "\n".join(lines) + "\n"
+
+
+def figure(ours: np.ndarray, cycles: np.ndarray, agreement, path: Path, label: str = "ours", rows: int = 4) -> None:
+    """PNG of ``rows`` frames, ours | Cycles | Cycles - ours: best, middle and worst centroid distances."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    both = np.flatnonzero(agreement.both_found)
+    pool = both[np.argsort(agreement.distance_px[both])] if both.size else np.arange(len(ours))
+    picks = pool[np.unique(np.linspace(0, len(pool) - 1, min(rows, len(pool))).round().astype(int))]
+    fig, axes = plt.subplots(len(picks), 3, figsize=(9, 3 * len(picks)), squeeze=False)
+    for row, i in zip(axes, picks):
+        diff = cycles[i] - ours[i]
+        lim = max(float(np.abs(diff).max()), 1e-6)
+        row[0].imshow(ours[i], cmap="gray", vmin=0, vmax=1)
+        row[1].imshow(cycles[i], cmap="gray", vmin=0, vmax=1)
+        im = row[2].imshow(diff, cmap="coolwarm", vmin=-lim, vmax=lim)
+        fig.colorbar(im, ax=row[2], fraction=0.046)
+        dist = f"{agreement.distance_px[i]:.2f} px" if agreement.both_found[i] else "no highlight in both"
+        row[0].set_title(f"{label}, frame {i}")
+        row[1].set_title(f"Cycles ({dist})")
+        row[2].set_title(f"Cycles - ours (r = {agreement.correlation[i]:.3f})")
+        for ax in row:
+            ax.set_xticks([])
+            ax.set_yticks([])
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def run(args: argparse.Namespace) -> int:
+    from service.render import Renderer
+    from service.render.agreement import compare
+    from service.render.blender import BlenderRenderer
+
+    default_frames, default_samples = QUICK if args.quick else FULL
+    frames = default_frames if args.frames is None else args.frames
+    samples = default_samples if args.samples is None else args.samples
+    for name, value in (("--frames", frames), ("--samples", samples), ("--repeats", args.repeats)):
+        if value < 1:
+            raise MeniscopeError(name, f"must be at least 1, got {value}")
+    settings = parse_settings(args.settings)
+    scene = Scene.load(args.scene)
+    coeffs = CoefficientRanges().sample(frames, np.random.default_rng(args.seed))  # (N, 4): d, p, a, b
+    load_before = os.getloadavg()[0]
+
+    blender = BlenderRenderer(scene, samples=samples, blender=args.blender, seed=args.seed)
+    cycles = blender.render(coeffs)
+    timing = blender.last_timing
+    cycles_median = float(np.median(timing.frame_s))
+    cycles_rate = _rate(cycles_median)
+    ours_results, best = [], None
+    for ss, sun in settings:
+        ours, warmup, ours_s = time_ours(Renderer(scene, supersample=ss, sun_samples=sun).render, coeffs,
+                                         args.repeats, f"{ss}x{sun}")
+        agreement = compare(ours, cycles)
+        rate = _rate(float(np.median(ours_s)))
+        ours_results.append({
+            "supersample": ss, "sun_samples": sun, "warmup_s": warmup,
+            "median_s_per_frame": float(np.median(ours_s)), "frames_per_s": rate,
+            "speed_ratio": rate / cycles_rate if rate and cycles_rate else None,
+            "agreement": agreement.summary(),
+        })
+        best = (ours, agreement, ss, sun)  # the last (most accurate) setting goes into the figure
+    results = {
+        "schema": "meniscope.bench.render/2",
+        "scene": {"path": str(args.scene), "sha256": scene.sha256},
+        "seed": args.seed,
+        "frames": frames,
+        "host": {"cpus": os.cpu_count(), "load_before": load_before, "load_after": os.getloadavg()[0]},
+        "cycles": {"samples": samples, "startup_s": timing.startup_s, "median_s_per_frame": cycles_median,
+                   "frames_per_s": cycles_rate},
+        "ours": ours_results,
+    }
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / "render.json").write_text(json.dumps(results, indent=2, allow_nan=False) + "\n")
+    table = markdown(results)
+    (args.out / "render.md").write_text(table)
+    ours, agreement, ss, sun = best
+    np.save(args.out / "ours.npy", ours)
+    np.save(args.out / "cycles.npy", cycles)
+    np.savetxt(args.out / "coefficients.csv", coeffs, delimiter=",", header="d,p,a,b", comments="")
+    figure(ours, cycles, agreement, args.out / "render.png", label=f"ours {ss}x{sun}")
+    print(table, end="")
+    return 0

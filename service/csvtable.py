@@ -1,0 +1,54 @@
+"""Numeric CSV tables with a header row (COEFFS.csv, SERIES.csv of shared/spec/cli.md), read with one-line errors."""
+from __future__ import annotations
+
+import csv
+import math
+from pathlib import Path
+
+import numpy as np
+
+from service.errors import MeniscopeError
+
+
+def read_columns(path: str | Path, names: tuple[str, ...], allow_empty: bool = False) -> np.ndarray:
+    """Columns ``names`` of the CSV at ``path`` as float64 (rows, len(names)).
+
+    Other columns are ignored. Empty cells are NaN when ``allow_empty`` (missing samples),
+    an error otherwise; so is any cell that is not a finite number, naming file, line and column.
+    """
+    path = Path(path)
+    try:
+        with path.open(newline="") as fh:
+            reader = csv.reader(fh)
+            header = [h.strip() for h in next(reader, [])]
+            missing = [n for n in names if n not in header]
+            if missing:
+                raise MeniscopeError(path, f"needs a header row with columns {', '.join(names)}; "
+                                           f"missing {', '.join(missing)} (header: {','.join(header) or 'none'})")
+            index = [header.index(n) for n in names]
+            rows = []
+            for line, row in enumerate(reader, start=2):
+                if not any(cell.strip() for cell in row):
+                    continue
+                rows.append([_cell(path, line, name, row[i] if i < len(row) else "", allow_empty)
+                             for name, i in zip(names, index)])
+    except FileNotFoundError:
+        raise MeniscopeError(path, "no such file") from None
+    except (OSError, UnicodeDecodeError, csv.Error) as exc:
+        raise MeniscopeError(path, f"cannot read as CSV: {exc}") from None
+    return np.array(rows, dtype=np.float64).reshape(len(rows), len(names))
+
+
+def _cell(path: Path, line: int, name: str, text: str, allow_empty: bool) -> float:
+    text = text.strip()
+    if not text:
+        if allow_empty:
+            return math.nan
+        raise MeniscopeError(path, f"line {line}: empty cell in column {name}")
+    try:
+        value = float(text)
+    except ValueError:
+        raise MeniscopeError(path, f"line {line}: column {name} is not a number: {text!r}") from None
+    if not math.isfinite(value):
+        raise MeniscopeError(path, f"line {line}: column {name} is not finite: {text!r}")
+    return value

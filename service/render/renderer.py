@@ -1,0 +1,193 @@
+"""The batched ray tracer for the scene class of shared/spec/scene.md: frames from Eq. 1 coefficients.
+
+What a frame holds: the pinhole camera's view of the ROI (:mod:`.camera`), the nozzle body and
+artifact spheres lit by the sun (:mod:`.nozzle`, shaded once per renderer: they never move),
+and the meniscus of Eq. 1 (:mod:`.meniscus`), GGX metal (:mod:`.shading`) lit by
+
+- the sun, its disc integrated by ``sun_samples`` directions, shadowed by the bore wall when
+  the surface sits inside the bore (the bore is convex, so a point sees the sun exactly when
+  its ray towards it leaves through the outlet);
+- the artifact spheres' reflections of the sun (the second bounce): each sphere is a point
+  light of the radiant intensity of a mirror ball at its centre, hidden where its glint
+  would lie inside the nozzle body or the path leaves the bore through the wall. Which
+  sphere can light which ray at all is decided once from geometry and the frame's largest
+  slope, so frames whose surface cannot tilt far enough skip the work.
+
+Per frame only rays that can meet the fluid are traced (:mod:`.kernel`, frames in parallel);
+the rest of the image is the static one. Anti-aliasing: ``supersample`` x ``supersample``
+stratified rays per pixel, box filter. Output: ``clip(exposure * radiance, 0, 1)`` as float32
+(N, H, W), linear (scene.md, "Camera").
+"""
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+
+import numba
+import numpy as np
+from numpy.typing import ArrayLike
+
+from service.errors import MeniscopeError
+from service.physics import coefficient_array
+from service.render import kernel, nozzle
+from service.render.camera import pixel_rays
+from service.render.meniscus import Profiles, ray_terms
+from service.render.shading import mirror_ball_intensity, sun_directions
+from service.scene import Scene
+
+#: Sun directions for the static scene (shaded once, so it can afford soft shadows).
+STATIC_SUN_SAMPLES = 32
+#: Radiance below which a sphere's reflection in the fluid is left out: an eighth of an 8-bit
+#: step, and well under what the model already leaves out (the fluid's reflection of the lit
+#: nozzle face, ~0.015).
+FAINTEST = 5e-4
+#: The sphere cull assumes n.v at least this; grazing hits below it consider every sphere.
+CULL_MIN_COS_VIEW = 0.25
+#: Points along each ray (intervals + 1) at which it is decided which spheres can light it.
+CULL_SAMPLES = 33
+
+
+@dataclass(frozen=True)
+class FluidRays:
+    """The camera rays that can meet the fluid: ``origin``, ``direction`` (M, 3), the ``pixel``
+    (row-major index) each belongs to, and the interval [``enter``, ``leave``] (M,) of the ray
+    parameter (mm) inside the bore's cylinder and before anything static."""
+
+    origin: np.ndarray
+    direction: np.ndarray
+    pixel: np.ndarray
+    enter: np.ndarray
+    leave: np.ndarray
+
+
+class Renderer:
+    """Renders frames of a scene from Eq. 1 coefficients: ``render(coeffs (N, 4)) -> (N, H, W)`` float32.
+
+    ``supersample``: rays per pixel along each axis; ``sun_samples``: directions over the sun's
+    disc for the fluid; ``threads``: frames traced at once (default: one per CPU);
+    ``batch_frames``: frames per call of the kernel (bounds the per-frame tables' memory).
+    """
+
+    def __init__(self, scene: Scene, supersample: int = 2, sun_samples: int = 4, threads: int | None = None,
+                 batch_frames: int = 256) -> None:
+        for name, value in (("supersample", supersample), ("sun_samples", sun_samples), ("batch_frames", batch_frames)):
+            if not 1 <= value <= 4096:
+                raise MeniscopeError("renderer", f"{name} must be between 1 and 4096, got {value}")
+        self.scene, self.supersample, self.batch_frames = scene, supersample, batch_frames
+        self.threads = max(1, threads if threads is not None else (os.cpu_count() or 1))
+        cam, R = scene.camera, scene.nozzle.radius_mm
+        self.shape = (cam.height_px, cam.width_px)
+        rays = pixel_rays(scene, supersample)
+        static = nozzle.trace(scene, rays.origin, rays.direction, rays.camera_s)
+        radiance = nozzle.shade(scene, rays.origin, rays.direction, static, sun_directions(scene, STATIC_SUN_SAMPLES))
+        h, w, ss = cam.height_px, cam.width_px, supersample
+        self._static_pixels = radiance.reshape(h, ss, w, ss).mean(axis=(1, 3)).ravel()  # (H W,)
+
+        # rays that can meet the fluid: they enter the bore's cylinder before anything static
+        enter, leave = nozzle.cylinder_interval(rays.origin, rays.direction, R)
+        enter = np.maximum(enter, rays.camera_s)
+        leave = np.minimum(leave, static.t)
+        idx = np.flatnonzero(np.isfinite(enter) & (enter < leave))
+        self._origin, self._direction = rays.origin[idx], rays.direction[idx]
+        self._terms = ray_terms(self._origin, self._direction, R)
+        self._enter, self._leave = enter[idx], leave[idx]
+        self._static_radiance = radiance[idx]
+        # rays are ordered (row, sub-row, column, sub-column): the pixel each candidate belongs to
+        self._pixel = (idx // (w * ss * ss)) * w + (idx % (w * ss)) // ss  # (M,)
+        # per frame only the pixels these rays belong to change; the rest is the static frame
+        self._touched, self._slot = np.unique(self._pixel, return_inverse=True)
+        self._static_frame = np.clip(scene.camera.exposure * self._static_pixels, 0, 1).astype(np.float32)
+        self._suns = sun_directions(scene, sun_samples)
+        self._spheres = scene.spheres
+        self._intensity = mirror_ball_intensity(self._spheres[:, 3], scene.fluid.reflectance, scene.light.strength)
+        self._reach, self._reach_start, self._reach_scale = self._sphere_reach()
+
+    # ---- public -------------------------------------------------------------------------------
+    def render(self, coeffs: ArrayLike) -> np.ndarray:
+        """Frames for coefficients of shape (N, 4) (d, p, a, b; Eq. 1): float32 (N, H, W) in [0, 1]."""
+        coeffs = coefficient_array(coeffs)
+        out = np.empty((coeffs.shape[0], *self.shape), np.float32)
+        for i in range(0, coeffs.shape[0], self.batch_frames):
+            self._render_batch(coeffs[i : i + self.batch_frames], out[i : i + self.batch_frames])
+        return out
+
+    def fluid_hits(self, coeffs: ArrayLike) -> np.ndarray:
+        """Where the rays that can meet the fluid first meet it, per frame: (N, M, 3) in mm, NaN where a
+        ray misses (rays: :attr:`fluid_rays`). What :meth:`render` shades; for checks and figures."""
+        coeffs = coefficient_array(coeffs)
+        prof = Profiles.build(coeffs, self.scene.nozzle.radius_mm)
+        s = np.empty((coeffs.shape[0], self._origin.shape[0]))
+        with kernel.LAUNCH:
+            numba.set_num_threads(min(self.threads, numba.config.NUMBA_NUM_THREADS))
+            kernel.first_hits(coeffs, prof.value, prof.step, prof.z_low, prof.z_high, prof.max_slope, self._terms,
+                              self._enter, self._leave, self.scene.nozzle.radius_mm, s)
+        return self._origin + s[..., None] * self._direction
+
+    @property
+    def fluid_rays(self) -> FluidRays:
+        """The rays that can meet the fluid, as :meth:`fluid_hits` and :meth:`render` trace them."""
+        return FluidRays(self._origin, self._direction, self._pixel, self._enter, self._leave)
+
+    def _render_batch(self, coeffs: np.ndarray, out: np.ndarray) -> None:
+        """Trace the fluid for frames (F, 4) and write the frames (F, H, W) into ``out``."""
+        n_frames = coeffs.shape[0]
+        out.reshape(n_frames, -1)[:] = self._static_frame
+        prof = Profiles.build(coeffs, self.scene.nozzle.radius_mm)
+        nz, fluid = self.scene.nozzle, self.scene.fluid
+        with kernel.LAUNCH:
+            numba.set_num_threads(min(self.threads, numba.config.NUMBA_NUM_THREADS))
+            kernel.trace(coeffs, prof.value, prof.step, prof.slope, prof.slope_step, prof.z_low, prof.z_high,
+                         prof.max_slope, self._origin, self._direction, self._terms, self._enter, self._leave,
+                         self._static_radiance, self._slot, 1.0 / self.supersample**2,
+                         self._touched, self._static_pixels[self._touched], self.scene.camera.exposure,
+                         self._suns, fluid.roughness, fluid.reflectance, self.scene.light.strength,
+                         nz.radius_mm, nz.outer_radius_mm, nz.bore_depth_mm,
+                         self._spheres, self._intensity, self._reach, self._reach_start, self._reach_scale,
+                         CULL_MIN_COS_VIEW, out.reshape(n_frames, -1))
+
+    def _sphere_reach(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Which sphere can light which fluid hit: per ray m, interval i along it and sphere k, the
+        least tilt of the surface normal (from straight down) at which sphere k adds more than
+        :data:`FAINTEST` to the ray; returned as an int16 table (M, I, K) in units of ``kernel.REACH_UNIT`` (rounded down), with the
+        start (M,) and intervals per mm (M,) of the segment where the ray can meet the fluid (|z| <= R).
+
+        Rigorous bound: at an interval's start the half-vector of the view and the sphere makes
+        the angle beta with straight down; across the interval the direction to the sphere turns
+        by at most the angle the interval subtends from the sphere's centre, and the half-vector
+        by at most that over |v + w|. A normal tilted by ``tilt`` is then at least
+        ``beta - change - tilt`` from the half-vector, and the reflection is invisible beyond the
+        angle where GGX's D falls below FAINTEST over the brightest it could be there: the GGX
+        peak (n.v >= CULL_MIN_COS_VIEW) times the sphere's intensity over its nearest distance squared.
+        """
+        M, K = self._origin.shape[0], self._spheres.shape[0]
+        R, n_int = self.scene.nozzle.radius_mm, CULL_SAMPLES - 1
+        o, d = self._origin, self._direction
+        dz = np.where(d[:, 2] == 0, 1e-12, d[:, 2])
+        z_a, z_b = (-R - o[:, 2]) / dz, (R - o[:, 2]) / dz
+        lo = np.maximum(self._enter, np.minimum(z_a, z_b))
+        hi = np.maximum(np.minimum(self._leave, np.maximum(z_a, z_b)), lo + 1e-9)
+        if not K or not M:
+            return np.zeros((M, n_int, K), np.int16), lo, n_int / (hi - lo)
+        length = (hi - lo) / n_int  # (M,) of each interval
+        start = lo[:, None] + length[:, None] * np.arange(n_int)  # (M, I)
+        p = o[:, None, :] + start[..., None] * d[:, None, :]  # (M, I, 3) interval starts
+        centre, radius = self._spheres[:, :3], self._spheres[:, 3]
+        rel = centre - p[:, :, None, :]  # (M, I, K, 3)
+        dist = np.linalg.norm(rel, axis=-1)
+        w = rel / dist[..., None]
+        along = np.clip(np.einsum("mikc,mc->mik", rel, d), 0.0, length[:, None, None])
+        nearest = np.linalg.norm(rel - along[..., None] * d[:, None, None, :], axis=-1)  # segment to centre
+        turn = 2 * np.arctan(length[:, None, None] / (2 * np.maximum(nearest, 1e-12)))  # w turns at most this
+        half = w - d[:, None, None, :]  # v + w, v = -d
+        half_len = np.linalg.norm(half, axis=-1)
+        beta = np.arccos(np.clip(-half[..., 2] / half_len, -1.0, 1.0))
+        room = half_len - turn
+        change = np.where(room > turn, np.arcsin(np.clip(turn / np.maximum(room, 1e-12), 0.0, 1.0)), np.pi)
+        fluid, alpha = self.scene.fluid, self.scene.fluid.roughness
+        brightest = (fluid.reflectance / (np.pi * alpha**2) / (4 * CULL_MIN_COS_VIEW)
+                     * mirror_ball_intensity(radius, fluid.reflectance, self.scene.light.strength)
+                     / np.maximum(nearest, 2 * radius) ** 2)  # (M, I, K)
+        ratio = np.minimum(FAINTEST / brightest, 1.0) / 2  # D / D_max below which it is invisible
+        lobe = np.arctan(alpha * np.sqrt(np.maximum(ratio**-0.5 - 1.0, 0.0)))
+        units = np.floor((beta - change - lobe) / kernel.REACH_UNIT)
+        return np.clip(units, -32768, 32767).astype(np.int16), lo, n_int / (hi - lo)
