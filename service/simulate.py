@@ -1,0 +1,281 @@
+"""Synthetic recordings with ground truth: ejections, damped oscillations between them (Eq. 1), a camera.
+
+``meniscope simulate`` renders them so that every analysis can be scored against known motion
+(scene.md, "Recordings and ground truth"). A recording of W windows has W ejections, one every
+``fps / ejection_hz`` frames, each rounded to the nearest frame (``floor(k fps / hz + 0.5)``, so a
+non-integer period gives windows one frame longer or shorter); the recording ends where ejection W
+would be. Window k spans frames ``[ejection k, ejection k + 1)`` and its time ``t = (frame -
+start_frame) / fps`` starts at its ejection. Its first ``transient_frames`` frames show the ejection:
+the meniscus bulges out towards the camera and snaps back as the droplet leaves, modelled as an
+extra mode-1 amplitude ``bulge_mm * sin(pi (i + 0.5) / transient_frames)`` on frame ``i`` of the
+transient, on top of the window's true motion, which holds on every frame of the window.
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from tqdm import tqdm
+
+from service.camera_effects import CameraEffects
+from service.errors import MeniscopeError
+from service.physics import WindowTruth
+from service.recordings import open_writer
+from service.render import Renderer
+from service.scene import Scene
+
+SCHEMA = "meniscope.truth/1"
+#: Recording formats by extension and the bit depths each stores.
+FORMATS: dict[str, tuple[int, ...]] = {".cine": (8, 12, 16), ".avi": (8,)}
+#: Highest mode frequency allowed, as a fraction of the frame rate (Nyquist is 0.5): >= 2.9 frames per period.
+MAX_FREQUENCY_FPS_FRACTION = 0.35
+#: Frames rendered and written at once: bounds memory for any window length.
+BATCH_FRAMES = 512
+
+
+@dataclass(frozen=True)
+class WindowRanges:
+    """Uniform ranges each window's true motion is drawn from (phases uniform in [0, 2 pi)).
+
+    Physically: two axisymmetric membrane modes whose frequency ratio is near l2 / l1 = 2.30
+    (Bessel roots), mode 2 decaying faster (``g2 = g1 * g2_over_g1``, ``g2_over_g1 > 1``) so mode 1
+    is always the dominant, longest-lasting one; decay rates 100 to 3000 /s, so within a 10 ms
+    window some windows settle and some do not. Amplitudes and offsets stay inside the default
+    :class:`service.physics.CoefficientRanges`, where the renders are informative and the inverse
+    models are trained. Units: d, A mm; p dimensionless; f Hz; g 1/s.
+    """
+
+    d: tuple[float, float] = (-0.03, 0.03)
+    p: tuple[float, float] = (-0.15, 0.15)
+    A1: tuple[float, float] = (0.010, 0.025)
+    A2: tuple[float, float] = (0.003, 0.012)
+    f1: tuple[float, float] = (500.0, 2500.0)
+    f2_over_f1: tuple[float, float] = (2.2, 2.4)
+    g1: tuple[float, float] = (100.0, 1000.0)
+    g2_over_g1: tuple[float, float] = (1.5, 3.0)
+
+    def for_fps(self, fps: float) -> "WindowRanges":
+        """These ranges with f1's upper end lowered so f2 stays below 0.35 fps; ValueError if none is left."""
+        f1_max = MAX_FREQUENCY_FPS_FRACTION * fps / self.f2_over_f1[1]
+        if f1_max <= self.f1[0]:
+            raise ValueError(
+                f"{fps:g} frames/s cannot sample mode 2 (f2 up to {self.f1[0] * self.f2_over_f1[1]:g} Hz "
+                f"needs at least {self.f1[0] * self.f2_over_f1[1] / MAX_FREQUENCY_FPS_FRACTION:g} frames/s)"
+            )
+        return replace(self, f1=(self.f1[0], min(self.f1[1], f1_max)))
+
+    def sample(self, rng: np.random.Generator) -> WindowTruth:
+        """One window's true motion."""
+        u = lambda lohi: float(rng.uniform(*lohi))  # noqa: E731
+        d, p, A1, A2, f1, g1 = u(self.d), u(self.p), u(self.A1), u(self.A2), u(self.f1), u(self.g1)
+        f2, g2 = f1 * u(self.f2_over_f1), g1 * u(self.g2_over_g1)
+        phi1, phi2 = u((0.0, 2 * math.pi)), u((0.0, 2 * math.pi))
+        return WindowTruth(d=d, p=p, A1=A1, g1=g1, f1=f1, phi1=phi1, A2=A2, g2=g2, f2=f2, phi2=phi2)
+
+
+@dataclass(frozen=True)
+class Transient:
+    """The ejection seen at the start of each window: a mode-1 bulge lasting ``duration_s``.
+
+    ``bulge_mm``: range of the bulge's peak amplitude (mm, positive = out of the nozzle, towards
+    the camera): about four times the largest oscillation, so the ejection stands out.
+    """
+
+    duration_s: float = 0.25e-3
+    bulge_mm: tuple[float, float] = (0.06, 0.10)
+
+    def frames(self, fps: float) -> int:
+        """Frames the transient covers at ``fps`` (at least one): 5 at 19,000 frames/s."""
+        return max(1, int(math.floor(self.duration_s * fps + 0.5)))
+
+    def profile(self, n: int) -> np.ndarray:
+        """Shape (n,): the bulge on each transient frame as a fraction of its peak, sin(pi (i + 0.5) / n)."""
+        return np.sin(np.pi * (np.arange(n) + 0.5) / n)
+
+
+def ejection_frames(windows: int, fps: float, ejection_hz: float) -> np.ndarray:
+    """Shape (windows + 1,): frame of each ejection, then the frame count; ``floor(k fps / hz + 0.5)``."""
+    return np.floor(np.arange(windows + 1) * (fps / ejection_hz) + 0.5).astype(np.int64)
+
+
+@dataclass(frozen=True)
+class Plan:
+    """Everything random about a recording, drawn before any frame is rendered."""
+
+    fps: float
+    ejections: np.ndarray  # (W + 1,) int64: ejection frames, then the frame count
+    truths: tuple[WindowTruth, ...]  # (W,)
+    bulges_mm: np.ndarray  # (W,) peak bulge of each ejection, mm
+    transient_frames: int
+    ranges: WindowRanges
+    transient: Transient
+
+    @property
+    def frame_count(self) -> int:
+        return int(self.ejections[-1])
+
+    def coefficients(self, window: int, start: int, stop: int) -> np.ndarray:
+        """Shape (stop - start, 4), columns d, p, a, b (Eq. 1) of frames ``start..stop-1`` of a window."""
+        i = np.arange(start, stop)
+        coeffs = self.truths[window].coefficients(i / self.fps).to_array()
+        transient = i < self.transient_frames
+        coeffs[transient, 2] += self.bulges_mm[window] * self.transient.profile(self.transient_frames)[i[transient]]
+        return coeffs
+
+
+def plan_recording(
+    windows: int,
+    fps: float,
+    ejection_hz: float,
+    rng: np.random.Generator,
+    ranges: WindowRanges = WindowRanges(),
+    transient: Transient = Transient(),
+) -> Plan:
+    """Draw the ejection schedule's motion: one :class:`WindowTruth` and one bulge per window.
+
+    Raises ValueError when a window would be too short to hold its transient and ten frames of
+    oscillation, or when ``fps`` cannot sample the modes (:meth:`WindowRanges.for_fps`).
+    """
+    if windows < 1:
+        raise ValueError(f"need at least one window, got {windows}")
+    ranges = ranges.for_fps(fps)
+    n_transient = transient.frames(fps)
+    ejections = ejection_frames(windows, fps, ejection_hz)
+    shortest = int(np.diff(ejections).min())
+    if shortest < n_transient + 10:
+        raise ValueError(
+            f"an ejection every {fps / ejection_hz:.3g} frames leaves no room for the {n_transient}-frame "
+            f"transient and ten frames of oscillation: lower the ejection rate"
+        )
+    truths = tuple(ranges.sample(rng) for _ in range(windows))
+    bulges = rng.uniform(*transient.bulge_mm, size=windows)
+    return Plan(fps, ejections, truths, bulges, n_transient, ranges, transient)
+
+
+def truth_path(recording: str | Path) -> Path:
+    """The ground-truth sidecar of a recording: its extension replaced by ``.truth.json``."""
+    recording = Path(recording)
+    return recording.with_name(recording.stem + ".truth.json")
+
+
+def truth_document(plan: Plan, scene: Scene, recording: Path, effects: CameraEffects, seed: int,
+                   ejection_hz: float, noise: str | None) -> dict[str, Any]:
+    """The sidecar's content (scene.md, "Recordings and ground truth"): JSON-safe, finite numbers."""
+    x, y = scene.camera.roi
+    R = scene.nozzle.radius_mm
+    starts, ends = plan.ejections[:-1], plan.ejections[1:]
+    return {
+        "schema": SCHEMA,
+        "recording": {
+            "path": recording.name,
+            "frames": plan.frame_count,
+            "fps": scene.camera.fps,
+            "width": x + scene.camera.width_px,
+            "height": y + scene.camera.height_px,
+            "bit_depth": effects.bit_depth,
+        },
+        "scene": scene.model_dump(mode="json"),
+        "scene_sha256": scene.sha256,
+        "seed": seed,
+        "ejection_hz": ejection_hz,
+        "ejections": [int(e) for e in starts],
+        "time_origin": "t = (frame - start_frame) / fps, start_frame being the window's ejection",
+        "transient": {
+            "frames": plan.transient_frames,
+            "duration_s": plan.transient.duration_s,
+            "model": "a += bulge_mm * sin(pi * (frame - start_frame + 0.5) / frames) on the first `frames` "
+                     "frames of each window, on top of the true motion",
+        },
+        "ranges": {name: list(lohi) for name, lohi in asdict(plan.ranges).items()},
+        "camera_effects": effects.model_dump(mode="json"),
+        "noise": noise,
+        "windows": [
+            {
+                "index": k,
+                "start_frame": int(start),
+                "end_frame": int(end),
+                "oscillation_start_frame": int(start) + plan.transient_frames,
+                "bulge_mm": float(plan.bulges_mm[k]),
+                "offset_mm": truth.d + truth.p * R,
+                "truth": truth.as_dict(),
+            }
+            for k, (start, end, truth) in enumerate(zip(starts, ends, plan.truths))
+        ],
+    }
+
+
+def check_output(out: Path, bit_depth: int) -> None:
+    """Refuse a recording path or bit depth the writers cannot produce, before any rendering."""
+    ext = out.suffix.lower()
+    if ext not in FORMATS:
+        raise MeniscopeError(out, f"unknown recording format {out.suffix or '(none)'!r}: use .cine or .avi")
+    if bit_depth not in FORMATS[ext]:
+        raise MeniscopeError(out, f"{ext} stores bit depths {list(FORMATS[ext])}, not {bit_depth}")
+    parent = out.parent
+    if not parent.is_dir():
+        raise MeniscopeError(out, f"folder {parent} does not exist")
+    if not os.access(parent, os.W_OK) or (out.exists() and not os.access(out, os.W_OK)):
+        raise MeniscopeError(out, "not writable")
+
+
+def simulate(
+    scene: Scene,
+    out: str | Path,
+    *,
+    windows: int,
+    seed: int,
+    ejection_hz: float = 100.0,
+    effects: CameraEffects = CameraEffects(),
+    noise: str | None = None,
+    ranges: WindowRanges = WindowRanges(),
+    transient: Transient = Transient(),
+    renderer: Renderer | None = None,
+) -> dict[str, Any]:
+    """Render, pass through the camera and write a recording plus its ``.truth.json``; returns the truth.
+
+    Deterministic by ``seed``: the motion comes from the first child of ``SeedSequence(seed)``, the
+    camera noise of window k from child k of its second child. Frames outside the scene's ROI
+    (``camera.roi``) are black before the camera effects. ``noise`` names the preset ``effects``
+    came from, for the record. Memory stays bounded: at most :data:`BATCH_FRAMES` frames at once.
+    """
+    out = Path(out)
+    check_output(out, effects.bit_depth)
+    cam = scene.camera
+    motion_seed, noise_seed = np.random.SeedSequence(seed).spawn(2)
+    try:
+        plan = plan_recording(windows, cam.fps, ejection_hz, np.random.default_rng(motion_seed), ranges, transient)
+    except ValueError as exc:
+        raise MeniscopeError(out, str(exc)) from None
+    renderer = renderer or Renderer(scene)
+    x, y = cam.roi
+    width, height = x + cam.width_px, y + cam.height_px
+    frame = np.zeros((BATCH_FRAMES, height, width), np.float32)  # linear, black outside the ROI
+    sidecar = truth_path(out)
+    try:
+        with open_writer(out, width, height, cam.fps, bit_depth=effects.bit_depth) as writer, tqdm(
+            total=plan.frame_count, unit="frame", desc=f"simulate {out.name}", disable=None
+        ) as bar:
+            for k, window_seed in enumerate(noise_seed.spawn(windows)):
+                rng = np.random.default_rng(window_seed)
+                length = int(plan.ejections[k + 1] - plan.ejections[k])
+                for start in range(0, length, BATCH_FRAMES):
+                    stop = min(length, start + BATCH_FRAMES)
+                    linear = frame[: stop - start]
+                    linear[:, y:, x:] = renderer.render(plan.coefficients(k, start, stop))
+                    writer.write(effects.apply(linear, rng), None)
+                    bar.update(stop - start)
+        truth = truth_document(plan, scene, out, effects, seed, ejection_hz, noise)
+        try:
+            sidecar.write_text(json.dumps(truth, indent=1, allow_nan=False) + "\n")
+        except OSError as exc:
+            raise MeniscopeError(sidecar, f"cannot write the ground truth: {exc.strerror or exc}") from None
+    except BaseException:
+        out.unlink(missing_ok=True)
+        sidecar.unlink(missing_ok=True)
+        raise
+    return truth
