@@ -1,0 +1,110 @@
+"""Replay of a recording (.cine, .avi) as if it were a live camera: paced by its own timestamps, looping on request.
+
+``speed`` scales the recorded rate (1 = as recorded, 0.1 = ten times slower, 0 or "max" = as fast as the
+file reads). Frame indices are positions in the file (0..N-1); with ``loop`` they keep increasing across
+passes and the timestamps continue, each pass one recorded duration plus one frame period after the last.
+"""
+from __future__ import annotations
+
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+from urllib.parse import SplitResult, unquote
+
+import numpy as np
+from pydantic import Field, field_validator
+
+from service.errors import MeniscopeError
+from service.recordings import Recording, open_recording
+from service.sources.base import FrameBatch, FrameSource, SourceOptions, StreamFormat, parse_options
+from service.sources.pacing import Pacer
+
+
+class ReplayOptions(SourceOptions):
+    speed: float = Field(1.0, ge=0, allow_inf_nan=False, description="x recorded rate; 0 or 'max': unpaced")
+    loop: bool = False
+
+    @field_validator("speed", mode="before")
+    @classmethod
+    def _max_is_unpaced(cls, value: Any) -> Any:
+        return 0.0 if isinstance(value, str) and value.strip().lower() == "max" else value
+
+
+class ReplaySource(FrameSource):
+    """A recording delivered at ``speed`` x its recorded rate, in batches, on a drift-free schedule."""
+
+    kind = "replay"
+
+    def __init__(self, path: str | Path, *, speed: float = 1.0, loop: bool = False, timeout: float = 0.1,
+                 uri: str | None = None) -> None:
+        super().__init__(uri or str(path), timeout)
+        self.path = Path(path)
+        self.speed, self.loop = speed, loop
+        self._recording: Recording | None = None
+        self._times = np.empty(0)
+        self._period = 0.0
+        self._next = 0
+        self._pacer = Pacer(speed)
+
+    @classmethod
+    def from_uri(cls, uri: str, parts: SplitResult, options: Mapping[str, Any]) -> "ReplaySource":
+        if parts.netloc not in ("", "localhost"):
+            raise MeniscopeError(uri, "a file URI names a local file: file:///path/to/rec.cine")
+        opts = parse_options(ReplayOptions, uri, options)
+        return cls(unquote(parts.path), speed=opts.speed, loop=opts.loop, timeout=opts.timeout, uri=uri)
+
+    def _open(self) -> StreamFormat:
+        rec = open_recording(self.path)
+        n = len(rec)
+        if n == 0:
+            rec.close()
+            raise MeniscopeError(self.path, "the recording has no frames to replay")
+        times = rec.timestamps
+        if not np.all(np.diff(times) > 0):  # a file whose clock stalls or jumps back: pace by the frame rate
+            times = (np.arange(n) - rec.trigger_frame) / rec.fps
+        self._recording, self._times, self._next = rec, times, 0
+        self._period = float(times[-1] - times[0]) + 1.0 / rec.fps
+        self._pacer.start(float(times[0]))
+        return StreamFormat(rec.width, rec.height, rec.dtype, rec.bit_depth, rec.fps)
+
+    def _read(self, max_frames: int) -> FrameBatch | None:
+        n = len(self._times)
+        start = self._next
+        if not self.loop:
+            if start >= n:
+                return None
+            max_frames = min(max_frames, n - start)
+        indices = np.arange(start, start + max_frames, dtype=np.int64)
+        times = self._time(indices)
+        self._pacer.wait(float(times[-1]), self.timeout)
+        due = int(np.searchsorted(times, self._pacer.now(), side="right"))
+        if due == 0:
+            return self.empty_batch()
+        self._next += due
+        return FrameBatch(self._pixels(start, due), indices[:due], times[:due])
+
+    def _time(self, indices: np.ndarray) -> np.ndarray:
+        """Timestamps (s) of frame indices (N,) counted across loop passes."""
+        passes, pos = np.divmod(indices, len(self._times))
+        return self._times[pos] + passes * self._period
+
+    def _pixels(self, start: int, count: int) -> np.ndarray:
+        """Frames ``start .. start + count - 1`` counted across passes, shape (count, H, W)."""
+        assert self._recording is not None
+        n = len(self._times)
+        pieces = []
+        while count > 0:
+            pos = start % n
+            take = min(count, n - pos)
+            pieces.append(self._recording.read(pos, take))
+            start, count = start + take, count - take
+        return pieces[0] if len(pieces) == 1 else np.concatenate(pieces)
+
+    def _close(self) -> None:
+        if self._recording is not None:
+            self._recording.close()
+            self._recording = None
+
+    def _details(self) -> dict[str, Any]:
+        return {"path": str(self.path), "speed": self.speed, "loop": self.loop,
+                "frames_in_file": len(self._times), "position": self._next}
