@@ -22,6 +22,9 @@ from service.render.meniscus import MARCH_MIN_STEP_MM, MONOTONE_MARGIN, TOLERANC
 
 #: Newton / bisection steps at most: bisection alone reaches float64 resolution from any slab.
 MAX_ITERATIONS = 64
+#: Where along the mirror ray the search for a second fluid hit starts (mm): past the first hit's
+#: root tolerance, far below a pixel (~0.01 mm).
+SECOND_BOUNCE_START_MM = 1e-4
 #: Sphere-cull table entries are angles in units of this (radians), rounded down.
 REACH_UNIT = 1e-3
 
@@ -114,10 +117,10 @@ def _chord(coeffs, f, radius):  # pragma: no cover - compiled
 
 
 @njit(cache=True, inline="always", error_model="numpy", fastmath=FASTMATH)
-def _first_hit(f, term, enter, leave, zl, zh, slope_f, centre, k_chord, value, step):  # pragma: no cover - compiled
-    """Distance along a ray (``term``: A, B, C, oz, dz, dh) to its first hit of frame f's surface within
-    [enter, leave]; NaN when it has none. ``zl``, ``zh``: the frame's slab; ``slope_f``: its slope bound."""
-    A, B, C, oz, dz, dh = term[0], term[1], term[2], term[3], term[4], term[5]
+def _first_hit(f, A, B, C, oz, dz, dh, enter, leave, zl, zh, slope_f, centre, k_chord, value, step):  # pragma: no cover - compiled
+    """Distance along a ray (A, B, C, oz, dz, dh of :func:`service.render.meniscus.ray_terms`) to its first
+    hit of frame f's surface within [enter, leave]; NaN when it has none. ``zl``, ``zh``: the frame's
+    slab; ``slope_f``: its slope bound."""
     if dz != 0.0:
         sa, sb = (zl - oz) / dz, (zh - oz) / dz  # F <= 0 at sa, >= 0 at sb
         e, l = max(min(sa, sb), enter), min(max(sa, sb), leave)
@@ -145,18 +148,69 @@ def _first_hit(f, term, enter, leave, zl, zh, slope_f, centre, k_chord, value, s
     return _march(e, l, abs(dz) + slope_f * dh, f, A, B, C, oz, dz, value, step)
 
 
+@njit(cache=True, inline="always", error_model="numpy", fastmath=FASTMATH)
+def _normal(f, px, py, slope, slope_step, r2):  # pragma: no cover - compiled
+    """Unit normal, facing the air below, of frame f's surface z = -D at (px, py): from the smooth dD/du (Eq. 1)."""
+    size = slope.shape[1]
+    x = min(max((px * px + py * py) / r2, 0.0), 1.0) * (size - 1)
+    i = min(int(x), size - 2)
+    g = -2.0 * (slope[f, i] + (x - i) * slope_step[f, i]) / r2
+    inv = 1.0 / math.sqrt(g * g * (px * px + py * py) + 1.0)
+    return g * px * inv, g * py * inv, -inv
+
+
+@njit(cache=True, inline="always", error_model="numpy", fastmath=FASTMATH)
+def _sun(px, py, pz, nx, ny, nz, vx, vy, vz, n_v, g_v, suns, a2, r2, ro2, strength, reflectance):  # pragma: no cover - compiled
+    """GGX radiance towards v of the fluid at p (normal n) lit by the sun's disc (``shading.specular_sun``),
+    each part of the disc seen through the outlet when p is inside the bore."""
+    n_suns = suns.shape[0]
+    lit = 0.0
+    for j in range(n_suns):
+        lx, ly, lz = suns[j, 0], suns[j, 1], suns[j, 2]
+        if lz != 0.0:
+            t0 = -pz / lz
+            cx, cy = px + t0 * lx, py + t0 * ly
+            c2 = cx * cx + cy * cy
+            visible = (lz < 0.0 and c2 < r2) if pz > 0.0 else (lz < 0.0 or c2 > ro2)
+        else:
+            visible = pz <= 0.0
+        if not visible:
+            continue
+        n_l = nx * lx + ny * ly + nz * lz
+        hx, hy, hz = vx + lx, vy + ly, vz + lz
+        n_h = (nx * hx + ny * hy + nz * hz) / max(math.sqrt(hx * hx + hy * hy + hz * hz), 1e-12)
+        lit += _ggx(n_h, a2) * _smith(n_l, a2)
+    return strength * reflectance * g_v * lit / (n_suns * 4.0 * n_v)
+
+
+@njit(cache=True, inline="always", error_model="numpy", fastmath=FASTMATH)
+def _second_hit(f, px, py, pz, rx, ry, rz, zl, zh, slope_f, centre, k_chord, value, step, r2):  # pragma: no cover - compiled
+    """Distance along the mirror ray from the surface point p to where it meets the fluid again (NaN: never),
+    within the bore's cylinder. A ray the slope bound makes monotone meets the surface once, at p itself."""
+    A, dh = (rx * rx + ry * ry) / r2, math.sqrt(rx * rx + ry * ry)
+    if slope_f * dh < MONOTONE_MARGIN * abs(rz):
+        return math.nan
+    B, C = 2.0 * (px * rx + py * ry) / r2, (px * px + py * py) / r2
+    leave = (-B + math.sqrt(max(B * B - 4.0 * A * (C - 1.0), 0.0))) / (2.0 * A) if A > 0.0 else 1e3
+    g, _ = _gap(SECOND_BOUNCE_START_MM, f, A, B, C, pz, rz, value, step)
+    if g >= 0.0 or leave <= SECOND_BOUNCE_START_MM:  # grazing: the ray does not clear the surface
+        return math.nan
+    return _first_hit(f, A, B, C, pz, rz, dh, SECOND_BOUNCE_START_MM, leave, zl, zh, slope_f, centre, k_chord,
+                      value, step)
+
+
 @njit(cache=True, parallel=True, error_model="numpy", fastmath=FASTMATH)
 def first_hits(coeffs, value, step, z_low, z_high, max_slope, terms, enter, leave, radius, out):  # pragma: no cover - compiled
     """Distances (F, M) along each candidate ray to its first hit of each frame's surface (NaN: none), into ``out``."""
     for f in prange(out.shape[0]):
         centre, k_chord = _chord(coeffs, f, radius)
         for m in range(out.shape[1]):
-            out[f, m] = _first_hit(f, terms[m], enter[m], leave[m], z_low[f], z_high[f], max_slope[f],
-                                   centre, k_chord, value, step)
+            out[f, m] = _first_hit(f, terms[m, 0], terms[m, 1], terms[m, 2], terms[m, 3], terms[m, 4], terms[m, 5],
+                                   enter[m], leave[m], z_low[f], z_high[f], max_slope[f], centre, k_chord, value, step)
 
 
 @njit(cache=True, parallel=True, error_model="numpy", fastmath=FASTMATH)
-def trace(coeffs, value, step, slope, slope_step, z_low, z_high, max_slope,
+def trace(coeffs, value, step, slope, slope_step, z_low, z_high, max_slope, convex,
           ray_o, ray_d, terms, enter, leave, static, slot, inv_samples, touched, static_touched, exposure,
           suns, alpha, reflectance, strength, radius, outer_radius, bore_depth,
           spheres, intensity, reach, reach_start, reach_scale, min_cos_view, out):  # pragma: no cover - compiled
@@ -186,40 +240,33 @@ def trace(coeffs, value, step, slope, slope_step, z_low, z_high, max_slope,
         zl, zh, slope_f = z_low[f], z_high[f], max_slope[f]
         centre, k_chord = _chord(coeffs, f, radius)
         for m in range(n_rays):
-            s = _first_hit(f, terms[m], enter[m], leave[m], zl, zh, slope_f, centre, k_chord, value, step)
+            s = _first_hit(f, terms[m, 0], terms[m, 1], terms[m, 2], terms[m, 3], terms[m, 4], terms[m, 5],
+                           enter[m], leave[m], zl, zh, slope_f, centre, k_chord, value, step)
             if math.isnan(s):
                 continue
             # ---- the hit: normal from the smooth dD/du (Eq. 1), view towards the camera ----
             px, py, pz = ray_o[m, 0] + s * ray_d[m, 0], ray_o[m, 1] + s * ray_d[m, 1], ray_o[m, 2] + s * ray_d[m, 2]
-            x = min(max((px * px + py * py) / r2, 0.0), 1.0) * (size - 1)
-            i = min(int(x), size - 2)
-            g = -2.0 * (slope[f, i] + (x - i) * slope_step[f, i]) / r2
-            nx, ny, nz = g * px, g * py, -1.0
-            inv = 1.0 / math.sqrt(nx * nx + ny * ny + 1.0)
-            nx, ny, nz = nx * inv, ny * inv, nz * inv
+            nx, ny, nz = _normal(f, px, py, slope, slope_step, r2)
             vx, vy, vz = -ray_d[m, 0], -ray_d[m, 1], -ray_d[m, 2]
             n_v = nx * vx + ny * vy + nz * vz
             radiance = 0.0
             if n_v > 0.0:
                 g_v = _smith(n_v, a2)
-                # the sun, each part of its disc seen through the outlet when the point is in the bore
-                lit = 0.0
-                for j in range(n_suns):
-                    lx, ly, lz = suns[j, 0], suns[j, 1], suns[j, 2]
-                    if lz != 0.0:
-                        t0 = -pz / lz
-                        cx, cy = px + t0 * lx, py + t0 * ly
-                        c2 = cx * cx + cy * cy
-                        visible = (lz < 0.0 and c2 < r2) if pz > 0.0 else (lz < 0.0 or c2 > ro2)
-                    else:
-                        visible = pz <= 0.0
-                    if not visible:
-                        continue
-                    n_l = nx * lx + ny * ly + nz * lz
-                    hx, hy, hz = vx + lx, vy + ly, vz + lz
-                    n_h = (nx * hx + ny * hy + nz * hz) / max(math.sqrt(hx * hx + hy * hy + hz * hz), 1e-12)
-                    lit += _ggx(n_h, a2) * _smith(n_l, a2)
-                radiance = strength * reflectance * g_v * lit / (n_suns * 4.0 * n_v)
+                # the mirror direction: where the GGX lobe points; on a concave surface it may meet the fluid
+                # again, which then hides the sun there and shows the sun's reflection at that second point
+                rx, ry, rz = 2.0 * n_v * nx - vx, 2.0 * n_v * ny - vy, 2.0 * n_v * nz - vz
+                q = math.nan if convex[f] else _second_hit(f, px, py, pz, rx, ry, rz, zl, zh, slope_f, centre,
+                                                          k_chord, value, step, r2)
+                if math.isnan(q):
+                    radiance = _sun(px, py, pz, nx, ny, nz, vx, vy, vz, n_v, g_v, suns, a2, r2, ro2,
+                                    strength, reflectance)
+                else:
+                    qx, qy, qz = px + q * rx, py + q * ry, pz + q * rz
+                    mx, my, mz = _normal(f, qx, qy, slope, slope_step, r2)
+                    m_v = -(mx * rx + my * ry + mz * rz)
+                    if m_v > 0.0:
+                        radiance = reflectance * _sun(qx, qy, qz, mx, my, mz, -rx, -ry, -rz, m_v, _smith(m_v, a2),
+                                                      suns, a2, r2, ro2, strength, reflectance)
                 # the spheres' reflections of the sun: point lights, culled by the reach table
                 if n_spheres:
                     tilt = math.acos(min(max(-nz, -1.0), 1.0))

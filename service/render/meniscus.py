@@ -68,7 +68,9 @@ class Profiles:
     ``value`` / ``step``: D at the nodes (mm) and the difference to the next node (0 at the last);
     ``slope`` / ``slope_step``: the smooth dD/du at the nodes, for shading normals;
     ``z_low``, ``z_high`` (F,): the slab of surface heights z = -D; ``max_slope`` (F,): a bound
-    on |dD/dr| of the interpolant.
+    on |dD/dr| of the interpolant; ``convex`` (F,): the metal ``z > -D`` is convex (D concave
+    in x, y: dD/du <= 0 and dD/du + 2 u d2D/du2 <= 0 at every node), so no ray leaving the
+    surface into the air can meet it again and the renderer skips the search for a second bounce.
     """
 
     value: np.ndarray
@@ -78,6 +80,7 @@ class Profiles:
     z_low: np.ndarray
     z_high: np.ndarray
     max_slope: np.ndarray
+    convex: np.ndarray
 
     @classmethod
     def build(cls, coeffs: np.ndarray, radius: float, size: int = TABLE_SIZE) -> "Profiles":
@@ -91,8 +94,11 @@ class Profiles:
         slope_step = np.diff(slope, axis=1, append=slope[:, -1:])
         # |dD/dr| = |dD/du| 2 sqrt(u) / R, bounded per cell by its far node's sqrt(u)
         per_cell = np.abs(step[:, :-1]) * (size - 1) * 2.0 * np.sqrt(u[1:]) / radius
+        curvature = slope + 2.0 * u * slope_step * (size - 1)  # R^2 / 2 d2D/dr2
+        convex = (slope.max(axis=1) <= 0.0) & (curvature[:, :-1].max(axis=1) <= 0.0)
         return cls(value=value, step=step, slope=slope, slope_step=slope_step,
-                   z_low=-value.max(axis=1), z_high=-value.min(axis=1), max_slope=per_cell.max(axis=1))
+                   z_low=-value.max(axis=1), z_high=-value.min(axis=1), max_slope=per_cell.max(axis=1),
+                   convex=convex)
 
 
 def ray_terms(origin: np.ndarray, direction: np.ndarray, radius: float) -> np.ndarray:

@@ -137,7 +137,7 @@ class Renderer:
         with kernel.LAUNCH:
             numba.set_num_threads(min(self.threads, numba.config.NUMBA_NUM_THREADS))
             kernel.trace(coeffs, prof.value, prof.step, prof.slope, prof.slope_step, prof.z_low, prof.z_high,
-                         prof.max_slope, self._origin, self._direction, self._terms, self._enter, self._leave,
+                         prof.max_slope, prof.convex, self._origin, self._direction, self._terms, self._enter, self._leave,
                          self._static_radiance, self._slot, 1.0 / self.supersample**2,
                          self._touched, self._static_pixels[self._touched], self.scene.camera.exposure,
                          self._suns, fluid.roughness, fluid.reflectance, self.scene.light.strength,
