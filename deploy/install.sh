@@ -8,13 +8,15 @@ cd "$(dirname "$0")/.."
 dev=0
 [ "${1:-}" = "--dev" ] && dev=1
 
-# System packages: harminv (peer fit), promtool (metrics check); for --dev also Blender
-# (reference renderer) and ffmpeg. Installed only when missing, so reruns are quick.
-need=(harminv:harminv promtool:prometheus)
-[ "$dev" = 1 ] && need+=(blender:blender ffmpeg:ffmpeg)
+# Debian packages: harminv (peer fit), prometheus (promtool, metrics check); Aravis and its
+# GObject bindings (GigE Vision / USB3 cameras, with a fake camera for tests) plus what
+# PyGObject builds against; for --dev also Blender (reference renderer) and ffmpeg.
+# Installed only when missing, so reruns are quick.
+need=(harminv prometheus aravis-tools gir1.2-aravis-0.8 libgirepository1.0-dev libcairo2-dev pkg-config gcc)
+[ "$dev" = 1 ] && need+=(blender ffmpeg)
 missing=()
-for pair in "${need[@]}"; do
-  command -v "${pair%%:*}" >/dev/null 2>&1 || missing+=("${pair#*:}")
+for pkg in "${need[@]}"; do
+  dpkg-query -W -f='${Status}' "$pkg" 2>/dev/null | grep -q "install ok installed" || missing+=("$pkg")
 done
 if [ "${#missing[@]}" -gt 0 ]; then
   sudo=""; [ "$(id -u)" = 0 ] || sudo="sudo"
@@ -26,7 +28,7 @@ py=${PYTHON:-python3}
 if [ "$dev" = 1 ]; then
   # the CPU build; an unpinned torch would pull GBs of CUDA packages
   "$py" -m pip install -q "torch==2.13.0"
-  "$py" -m pip install -q -e ".[train,test]"
+  "$py" -m pip install -q -e ".[aravis,train,test]"
 else
-  "$py" -m pip install -q -e .
+  "$py" -m pip install -q -e ".[aravis]"
 fi
