@@ -32,6 +32,7 @@ from tqdm import tqdm
 
 from service.camera_effects import BitDepth, EffectRanges, apply_effects, pixel_dtype
 from service.errors import MeniscopeError
+from service.jsonfile import read_schema_json
 from service.physics import CoefficientRanges, centre_displacement
 from service.render import Renderer
 from service.scene import Scene
@@ -224,15 +225,7 @@ def open_dataset(path: str | Path, scene: Scene | None = None, verify: bool = Fa
     if not path.is_dir():
         raise MeniscopeError(path, "not a dataset folder (it does not exist or is a file)")
     manifest_path = path / "manifest.json"
-    try:
-        manifest = json.loads(manifest_path.read_text())
-    except FileNotFoundError:
-        raise MeniscopeError(manifest_path, "missing: not a dataset, or its generation did not finish") from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise MeniscopeError(manifest_path, f"unreadable: {exc}") from None
-    if not isinstance(manifest, dict) or manifest.get("schema") != SCHEMA:
-        got = manifest.get("schema") if isinstance(manifest, dict) else type(manifest).__name__
-        raise MeniscopeError(manifest_path, f"schema is {got!r}, expected {SCHEMA!r}")
+    manifest = read_schema_json(manifest_path, SCHEMA, "not a dataset, or its generation did not finish")
     try:
         config = DatasetConfig.model_validate(manifest["config"])
     except (KeyError, ValidationError) as exc:

@@ -1,4 +1,4 @@
-"""The offline verbs, added to ``meniscope`` through the ``meniscope.verbs`` entry point: ``dataset``."""
+"""The offline verbs, added to ``meniscope`` through the ``meniscope.verbs`` entry point: ``dataset``, ``train``."""
 from __future__ import annotations
 
 import argparse
@@ -26,6 +26,47 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--chunk-size", type=int, default=2048, help="frames per chunk and per jittered scene (default 2048)")
     p.add_argument("--bit-depth", type=int, default=8, help="stored bits: 8 (uint8) or 10, 12, 16 (uint16); default 8")
     p.set_defaults(func=run)
+
+    p = subparsers.add_parser(
+        "train",
+        help="train the inverse models for a scene and export them as ONNX",
+        description="Train the VAE on unlabeled lab frames, the regressor on synthetic renders through its "
+        "encoder, and the direct CNN baseline; export ONNX graphs, loss and validation plots and a manifest "
+        "into MODEL_DIR.",
+    )
+    p.add_argument("--scene", type=Path, default=DEFAULT_SCENE, help="scene file (default: the embedded one)")
+    p.add_argument("--lab-video", type=Path, required=True, help="unlabeled lab recording (.cine or .avi)")
+    p.add_argument("--out", type=Path, required=True, help="model folder to write (new or empty)")
+    p.add_argument("--samples", type=int, help="synthetic renders to train on (default 50000; --quick 1536)")
+    p.add_argument("--dataset", type=Path, help="a dataset folder from `meniscope dataset` to use (or create)")
+    p.add_argument("--holdout", type=Path, help="a simulated recording (with .truth.json) no model sees, scored")
+    p.add_argument("--seed", type=int, default=0, help="seed (default 0)")
+    p.add_argument("--quick", action="store_true", help="a run of seconds for tests; its models are not useful")
+    p.set_defaults(func=run_train)
+
+
+def run_train(args: argparse.Namespace) -> int:
+    from dataclasses import replace
+
+    from training.train import TrainConfig, train_models  # torch loads only when the verb runs
+
+    config = TrainConfig.quick() if args.quick else TrainConfig()
+    if args.samples is not None:
+        if args.samples < 64:
+            raise MeniscopeError("--samples", f"must be at least 64, got {args.samples}")
+        config = replace(config, samples=args.samples)
+    if args.seed < 0:
+        raise MeniscopeError("--seed", f"must be zero or positive, got {args.seed}")
+    config = replace(config, seed=args.seed)
+    manifest = train_models(Scene.load(args.scene), args.lab_video, args.out, config, dataset=args.dataset,
+                            holdout_video=args.holdout)
+    print(f"{args.out}: {', '.join(sorted(manifest.methods))} exported in {manifest.training.seconds:.0f} s")
+    for name, by_data in manifest.validation.items():
+        for data, s in by_data.items():
+            rmse = ", ".join(f"{k} {v:.3g}" for k, v in s.rmse.items())
+            r = "n/a" if s.centre_correlation is None else f"{s.centre_correlation:.3f}"
+            print(f"  {name} on {data} ({s.frames} frames): RMSE {rmse}; D(0, t) correlation {r}")
+    return 0
 
 
 def run(args: argparse.Namespace) -> int:

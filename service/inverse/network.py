@@ -1,0 +1,74 @@
+"""The learned inverse methods at run time: an exported ONNX graph run by onnxruntime on the CPU.
+
+``network`` is Price et al.'s (2022, Sec. 3.2 (b)) VAE encoder + regressor, ``direct`` the CNN
+trained end to end on renders; both take the ROI as stored and return Eq. 1's coefficients and
+D(0, t) in one call (normalisation is inside the graph, see ``training.export``).
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import onnxruntime as ort
+
+from service.errors import MeniscopeError
+from service.inverse.base import InverseMethod, InverseOutput
+from service.inverse.manifest import INPUT, OUTPUTS, load_manifest
+from service.scene import Scene
+
+
+def session_options(threads: int) -> ort.SessionOptions:
+    """Options for a small graph on a shared CPU: ``threads`` intra-op threads that sleep when idle.
+
+    Spinning threads would burn the cores the reader and the window fit need; one inter-op thread
+    since the graphs are a single chain; every graph optimisation (conv + ReLU fusion, constant folding).
+    """
+    options = ort.SessionOptions()
+    options.intra_op_num_threads = threads
+    options.inter_op_num_threads = 1
+    options.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+    options.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    options.add_session_config_entry("session.intra_op.allow_spinning", "0")
+    options.add_session_config_entry("session.inter_op.allow_spinning", "0")
+    return options
+
+
+class NetworkMethod(InverseMethod):
+    """An ONNX inverse method of a model folder made by ``meniscope train`` for this scene.
+
+    ``method``: "network" (VAE encoder + regressor) or "direct" (the end-to-end CNN); frames are
+    run ``batch`` at a time on ``threads`` CPU threads.
+    """
+
+    def __init__(self, model_dir: str | Path, scene: Scene, method: str = "network", threads: int = 2,
+                 batch: int = 64) -> None:
+        if threads < 1 or batch < 1:
+            raise MeniscopeError(model_dir, f"threads and batch must be at least 1, got {threads} and {batch}")
+        manifest = load_manifest(model_dir, scene)
+        if method not in manifest.methods:
+            raise MeniscopeError(model_dir, f"has no {method!r} model; it has {sorted(manifest.methods)}")
+        path = Path(model_dir) / manifest.methods[method].file
+        try:
+            self._session = ort.InferenceSession(str(path), session_options(threads), providers=["CPUExecutionProvider"])
+        except Exception as exc:  # onnxruntime raises its own untyped errors for unloadable graphs
+            raise MeniscopeError(path, f"onnxruntime cannot load it: {str(exc).splitlines()[0]}") from None
+        self.name = method
+        self.batch = batch
+        self._dtype = np.dtype(manifest.input.dtype)
+        self._shape = (manifest.input.height, manifest.input.width)
+
+    def infer(self, frames: np.ndarray) -> InverseOutput:
+        frames = np.asarray(frames)
+        if frames.ndim != 3 or frames.shape[1:] != self._shape:
+            raise MeniscopeError(
+                "frames", f"shape {frames.shape} is not (N, {self._shape[0]}, {self._shape[1]}), the scene's ROI"
+            )
+        if frames.dtype not in (np.uint8, np.uint16) or not np.can_cast(frames.dtype, self._dtype, "safe"):
+            raise MeniscopeError("frames", f"pixel type {frames.dtype} cannot feed a {self._dtype} model")
+        x = np.ascontiguousarray(frames, dtype=self._dtype)  # (N, H, W); widens uint8 losslessly
+        coefficients = np.empty((len(x), 4), np.float64)
+        centre = np.empty(len(x), np.float64)
+        for start in range(0, len(x), self.batch):
+            part = slice(start, start + self.batch)
+            coefficients[part], centre[part] = self._session.run(list(OUTPUTS), {INPUT: x[part]})
+        return InverseOutput(coefficients=coefficients, centre=centre)

@@ -1,0 +1,100 @@
+"""``meniscope train`` end to end (quick settings): ONNX graphs that match torch, a manifest that guards
+them, the run-time method that loads them, and one-line errors for what users get wrong."""
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from service.errors import MeniscopeError
+from service.inverse.manifest import MANIFEST, load_manifest
+from service.inverse.network import NetworkMethod
+from service.recordings import open_recording
+from service.scene import Scene
+
+torch = pytest.importorskip("torch", reason="training needs the train extra (torch)")
+
+#: The export's promise: onnxruntime and torch agree on every output within this (mm).
+PARITY_MM = 1e-4
+
+
+def meniscope(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "service.cli", *args], capture_output=True, text=True, timeout=600)
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path, Path]:
+    """A lab video, a hold-out recording and the model folder quick training made from them."""
+    folder = tmp_path_factory.mktemp("train")
+    lab, holdout, models = folder / "lab.cine", folder / "holdout.avi", folder / "models"
+    for rec, seed, windows in ((lab, 1, 3), (holdout, 2, 2)):
+        done = meniscope("simulate", "--out", str(rec), "--windows", str(windows), "--seed", str(seed))
+        assert done.returncode == 0, done.stderr
+    done = meniscope("train", "--lab-video", str(lab), "--holdout", str(holdout), "--out", str(models), "--quick")
+    assert done.returncode == 0, done.stderr
+    assert "network on recording" in done.stdout and "direct on synthetic" in done.stdout
+    return lab, holdout, models
+
+
+def test_train_exports_both_methods_with_a_manifest_and_plots(trained: tuple[Path, Path, Path], scene: Scene) -> None:
+    _, _, models = trained
+    manifest = load_manifest(models, scene)
+    assert set(manifest.methods) == {"network", "direct"}
+    for name in ("network.onnx", "direct.onnx", "losses.png", "validation.png"):
+        assert (models / name).stat().st_size > 0
+    assert set(manifest.validation["network"]) == {"synthetic", "recording"}
+    for entry in manifest.methods.values():
+        assert entry.parity_max_abs <= PARITY_MM
+
+
+def test_the_runtime_method_infers_raw_frames_of_any_batch_size(trained: tuple[Path, Path, Path], scene: Scene) -> None:
+    _, holdout, models = trained
+    with open_recording(holdout) as rec:
+        frames = np.asarray(rec.read(0, 37))  # uint8 as stored
+    for name in ("network", "direct"):
+        method = NetworkMethod(models, scene, name, threads=1, batch=16)
+        out = method.infer(frames)
+        assert out.coefficients.shape == (37, 4) and out.centre.shape == (37,)
+        assert np.all(np.isfinite(out.coefficients)) and np.all(np.isfinite(out.centre))
+        # batching does not change the answer
+        np.testing.assert_allclose(method.infer(frames[:5]).centre, out.centre[:5], atol=1e-6)
+
+
+def test_a_model_for_another_scene_is_refused(trained: tuple[Path, Path, Path], scene: Scene) -> None:
+    data = scene.model_dump()
+    data["camera"]["elevation_deg"] = -30.0
+    with pytest.raises(MeniscopeError, match="trained for scene"):
+        NetworkMethod(trained[2], Scene.from_dict(data))
+
+
+def test_a_changed_model_file_is_refused(trained: tuple[Path, Path, Path], scene: Scene, tmp_path: Path) -> None:
+    copy = tmp_path / "models"
+    shutil.copytree(trained[2], copy)
+    with (copy / "direct.onnx").open("ab") as fh:
+        fh.write(b"\0")
+    with pytest.raises(MeniscopeError, match="sha256 differs"):
+        NetworkMethod(copy, scene, "direct")
+    (copy / MANIFEST).write_text(json.dumps({"schema": "something else"}))
+    with pytest.raises(MeniscopeError, match="schema"):
+        NetworkMethod(copy, scene)
+
+
+def test_frames_of_the_wrong_size_or_type_are_a_clear_error(trained: tuple[Path, Path, Path], scene: Scene) -> None:
+    method = NetworkMethod(trained[2], scene)
+    with pytest.raises(MeniscopeError, match="ROI"):
+        method.infer(np.zeros((2, 10, 10), np.uint8))
+    with pytest.raises(MeniscopeError, match="pixel type"):
+        method.infer(np.zeros((2, scene.camera.height_px, scene.camera.width_px), np.float32))
+
+
+def test_training_refuses_bad_input_in_one_line(trained: tuple[Path, Path, Path], tmp_path: Path) -> None:
+    lab, _, _ = trained
+    done = meniscope("train", "--lab-video", str(tmp_path / "none.cine"), "--out", str(tmp_path / "m"), "--quick")
+    assert done.returncode == 2 and done.stderr.count("\n") == 1 and "none.cine" in done.stderr
+    done = meniscope("train", "--lab-video", str(lab), "--holdout", str(lab), "--out", str(tmp_path / "m"), "--quick")
+    assert done.returncode == 2 and "hold-out recording must differ" in done.stderr
