@@ -15,3 +15,9 @@ class MeniscopeError(Exception):
         self.where = str(where) if where is not None else None
         self.problem = " ".join(str(problem).split())  # always one line
         super().__init__(f"{self.where}: {self.problem}" if self.where else self.problem)
+
+
+def require_folder_of(path: Path) -> None:
+    """Refuse an output path whose folder does not exist, before any work is done for it."""
+    if not Path(path).parent.is_dir():
+        raise MeniscopeError(path, f"folder {Path(path).parent} does not exist")

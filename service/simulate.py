@@ -23,7 +23,7 @@ import numpy as np
 from tqdm import tqdm
 
 from service.camera_effects import CameraEffects
-from service.errors import MeniscopeError
+from service.errors import MeniscopeError, require_folder_of
 from service.physics import WindowTruth
 from service.recordings import open_writer
 from service.render import Renderer
@@ -216,10 +216,8 @@ def check_output(out: Path, bit_depth: int) -> None:
         raise MeniscopeError(out, f"unknown recording format {out.suffix or '(none)'!r}: use .cine or .avi")
     if bit_depth not in FORMATS[ext]:
         raise MeniscopeError(out, f"{ext} stores bit depths {list(FORMATS[ext])}, not {bit_depth}")
-    parent = out.parent
-    if not parent.is_dir():
-        raise MeniscopeError(out, f"folder {parent} does not exist")
-    if not os.access(parent, os.W_OK) or (out.exists() and not os.access(out, os.W_OK)):
+    require_folder_of(out)
+    if not os.access(out.parent, os.W_OK) or (out.exists() and not os.access(out, os.W_OK)):
         raise MeniscopeError(out, "not writable")
 
 

@@ -17,7 +17,7 @@ from service.inverse.network import NetworkMethod
 from service.recordings import open_recording
 from service.scene import Scene
 
-torch = pytest.importorskip("torch", reason="training needs the train extra (torch)")
+pytest.importorskip("torch", reason="training needs the train extra (torch)")
 
 #: The export's promise: onnxruntime and torch agree on every output within this (mm).
 PARITY_MM = 1e-4

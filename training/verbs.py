@@ -5,7 +5,7 @@ import argparse
 import os
 from pathlib import Path
 
-from service import DEFAULT_SCENE
+from service.cli import add_scene_option
 from service.errors import MeniscopeError
 from service.scene import Scene
 
@@ -17,7 +17,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         description="Render SAMPLES frames of random Eq. 1 shapes (jittered scene, randomised camera) into a "
         "memory-mappable folder: frames.npy, coeffs.npy, centre.npy, manifest.json.",
     )
-    p.add_argument("--scene", type=Path, default=DEFAULT_SCENE, help="scene file (default: the embedded one)")
+    add_scene_option(p)
     p.add_argument("--out", type=Path, required=True, help="dataset folder to create (new or empty)")
     p.add_argument("--samples", type=int, default=20000, help="frames to render (default 20000)")
     p.add_argument("--seed", type=int, default=0, help="seed (default 0); the files do not depend on --workers")
@@ -34,7 +34,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "encoder, and the direct CNN baseline; export ONNX graphs, loss and validation plots and a manifest "
         "into MODEL_DIR.",
     )
-    p.add_argument("--scene", type=Path, default=DEFAULT_SCENE, help="scene file (default: the embedded one)")
+    add_scene_option(p)
     p.add_argument("--lab-video", type=Path, required=True, help="unlabeled lab recording (.cine or .avi)")
     p.add_argument("--out", type=Path, required=True, help="model folder to write (new or empty)")
     p.add_argument("--samples", type=int, help="synthetic renders to train on (default 50000; --quick 1536)")

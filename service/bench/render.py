@@ -20,7 +20,7 @@ from typing import Callable
 import numpy as np
 from tqdm import tqdm
 
-from service import DEFAULT_SCENE
+from service.cli import add_scene_option
 from service.errors import MeniscopeError
 from service.physics import CoefficientRanges
 from service.scene import Scene
@@ -33,7 +33,7 @@ SETTINGS = "1x1,2x1,2x4,4x16"
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser("render", help="our renderer vs Blender Cycles: speed and agreement", description=__doc__)
-    p.add_argument("--scene", type=Path, default=DEFAULT_SCENE, help="scene JSON (default: the embedded example)")
+    add_scene_option(p)
     p.add_argument("--frames", type=int, help=f"coefficient draws (default {FULL[0]}, --quick {QUICK[0]})")
     p.add_argument("--samples", type=int, help=f"Cycles samples per pixel (default {FULL[1]}, --quick {QUICK[1]})")
     p.add_argument("--quick", action="store_true", help="a short smoke run")

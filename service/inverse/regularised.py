@@ -48,8 +48,13 @@ class RegularisedFit:
 
     def curve(self, t: np.ndarray) -> np.ndarray:
         """f(t) in mm at times t (s) from the window's start."""
-        w = 2 * np.pi * self.frequency_hz
-        return self.amplitude_mm * np.exp(-self.decay_rate_per_s * t) * np.sin(w * t - self.phase_rad) + self.offset_mm
+        return damped_sine(t, self.amplitude_mm, self.decay_rate_per_s, 2 * np.pi * self.frequency_hz,
+                           self.phase_rad, self.offset_mm)
+
+
+def damped_sine(t: np.ndarray, alpha, beta, delta, eps, zeta) -> np.ndarray:
+    """f(t) = alpha exp(-beta t) sin(delta t - eps) + zeta; parameters broadcast against t."""
+    return alpha * np.exp(-beta * t) * np.sin(delta * t - eps) + zeta
 
 
 def _spectral_start(nearest: np.ndarray, fps: float, bounds: list[tuple[float, float]]) -> np.ndarray:
@@ -87,8 +92,7 @@ def fit_window(candidates: np.ndarray, fps: float, seed: int = 0) -> Regularised
 
     def objective(x: np.ndarray) -> np.ndarray:
         x = x.reshape(5, -1)  # (5, S) candidates of the population
-        alpha, beta, delta, eps, zeta = (v[:, None] for v in x)  # (S, 1)
-        f = alpha * np.exp(-beta * t) * np.sin(delta * t - eps) + zeta  # (S, n)
+        f = damped_sine(t, *(v[:, None] for v in x))  # (S, n)
         gap = np.abs(c[None, :, :] - f[:, :, None]).min(axis=2)  # (S, n)
         return np.sqrt((gap * gap).sum(axis=1))  # (S,)
 
@@ -96,8 +100,7 @@ def fit_window(candidates: np.ndarray, fps: float, seed: int = 0) -> Regularised
                                     vectorized=True, updating="deferred", polish=False, init="sobol",
                                     x0=_spectral_start(c[:, 0], fps, bounds))
     alpha, beta, delta, eps, zeta = result.x
-    fit = RegularisedFit(frequency_hz=delta / (2 * np.pi), decay_rate_per_s=beta, amplitude_mm=alpha,
-                         phase_rad=eps % (2 * np.pi), offset_mm=zeta, centre=np.empty(0), chosen=np.empty(0, int),
-                         rms_mm=float(result.fun) / np.sqrt(n))
-    chosen = np.abs(c - fit.curve(t)[:, None]).argmin(axis=1)
-    return RegularisedFit(**{**fit.__dict__, "centre": c[np.arange(n), chosen], "chosen": chosen})
+    chosen = np.abs(c - damped_sine(t, *result.x)[:, None]).argmin(axis=1)
+    return RegularisedFit(frequency_hz=delta / (2 * np.pi), decay_rate_per_s=beta, amplitude_mm=alpha,
+                          phase_rad=eps % (2 * np.pi), offset_mm=zeta, centre=c[np.arange(n), chosen], chosen=chosen,
+                          rms_mm=float(result.fun) / np.sqrt(n))

@@ -14,7 +14,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from service.errors import MeniscopeError
+from service.errors import MeniscopeError, require_folder_of
 
 #: Largest frame side any writer accepts (16-bit fields in the .cine SETUP; FFmpeg's own limit is larger).
 MAX_SIDE = 65535
@@ -174,8 +174,7 @@ class RecordingWriter(ABC):
 
     def __init__(self, path: Path, width: int, height: int, fps: float, bit_depth: int, trigger_frame: int) -> None:
         self.path = Path(path)
-        if not self.path.parent.is_dir():
-            raise MeniscopeError(self.path, f"folder {self.path.parent} does not exist")
+        require_folder_of(self.path)
         for name, side in (("width", width), ("height", height)):
             if operator.index(side) < 1 or side > MAX_SIDE:
                 raise MeniscopeError(self.path, f"{name} {side} px is outside 1..{MAX_SIDE}")

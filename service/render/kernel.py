@@ -225,7 +225,6 @@ def trace(coeffs, value, step, slope, slope_step, z_low, z_high, max_slope, conv
     ``spheres`` (K, 4) with ``intensity`` (K,); ``reach`` (M, I, K) int16 in REACH_UNIT.
     """
     n_frames, n_rays = out.shape[0], terms.shape[0]
-    size = value.shape[1]
     a2 = alpha * alpha
     n_suns, n_spheres, n_int = suns.shape[0], spheres.shape[0], reach.shape[1]
     r2, ro2 = radius * radius, outer_radius * outer_radius

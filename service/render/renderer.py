@@ -21,6 +21,8 @@ stratified rays per pixel, box filter. Output: ``clip(exposure * radiance, 0, 1)
 from __future__ import annotations
 
 import os
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 import numba
@@ -81,7 +83,7 @@ class Renderer:
         static = nozzle.trace(scene, rays.origin, rays.direction, rays.camera_s)
         radiance = nozzle.shade(scene, rays.origin, rays.direction, static, sun_directions(scene, STATIC_SUN_SAMPLES))
         h, w, ss = cam.height_px, cam.width_px, supersample
-        self._static_pixels = radiance.reshape(h, ss, w, ss).mean(axis=(1, 3)).ravel()  # (H W,)
+        static_pixels = radiance.reshape(h, ss, w, ss).mean(axis=(1, 3)).ravel()  # (H W,)
 
         # rays that can meet the fluid: they enter the bore's cylinder before anything static
         enter, leave = nozzle.cylinder_interval(rays.origin, rays.direction, R)
@@ -96,7 +98,8 @@ class Renderer:
         self._pixel = (idx // (w * ss * ss)) * w + (idx % (w * ss)) // ss  # (M,)
         # per frame only the pixels these rays belong to change; the rest is the static frame
         self._touched, self._slot = np.unique(self._pixel, return_inverse=True)
-        self._static_frame = np.clip(scene.camera.exposure * self._static_pixels, 0, 1).astype(np.float32)
+        self._static_touched = static_pixels[self._touched]
+        self._static_frame = np.clip(scene.camera.exposure * static_pixels, 0, 1).astype(np.float32)
         self._suns = sun_directions(scene, sun_samples)
         self._spheres = scene.spheres
         self._intensity = mirror_ball_intensity(self._spheres[:, 3], scene.fluid.reflectance, scene.light.strength)
@@ -117,8 +120,7 @@ class Renderer:
         coeffs = coefficient_array(coeffs)
         prof = Profiles.build(coeffs, self.scene.nozzle.radius_mm)
         s = np.empty((coeffs.shape[0], self._origin.shape[0]))
-        with kernel.LAUNCH:
-            numba.set_num_threads(min(self.threads, numba.config.NUMBA_NUM_THREADS))
+        with self._launch():
             kernel.first_hits(coeffs, prof.value, prof.step, prof.z_low, prof.z_high, prof.max_slope, self._terms,
                               self._enter, self._leave, self.scene.nozzle.radius_mm, s)
         return self._origin + s[..., None] * self._direction
@@ -128,18 +130,24 @@ class Renderer:
         """The rays that can meet the fluid, as :meth:`fluid_hits` and :meth:`render` trace them."""
         return FluidRays(self._origin, self._direction, self._pixel, self._enter, self._leave)
 
+    @contextmanager
+    def _launch(self) -> Iterator[None]:
+        """Hold numba's thread pool, sized to this renderer's ``threads``, for one kernel call."""
+        with kernel.LAUNCH:
+            numba.set_num_threads(min(self.threads, numba.config.NUMBA_NUM_THREADS))
+            yield
+
     def _render_batch(self, coeffs: np.ndarray, out: np.ndarray) -> None:
         """Trace the fluid for frames (F, 4) and write the frames (F, H, W) into ``out``."""
         n_frames = coeffs.shape[0]
         out.reshape(n_frames, -1)[:] = self._static_frame
         prof = Profiles.build(coeffs, self.scene.nozzle.radius_mm)
         nz, fluid = self.scene.nozzle, self.scene.fluid
-        with kernel.LAUNCH:
-            numba.set_num_threads(min(self.threads, numba.config.NUMBA_NUM_THREADS))
+        with self._launch():
             kernel.trace(coeffs, prof.value, prof.step, prof.slope, prof.slope_step, prof.z_low, prof.z_high,
                          prof.max_slope, prof.convex, self._origin, self._direction, self._terms, self._enter, self._leave,
                          self._static_radiance, self._slot, 1.0 / self.supersample**2,
-                         self._touched, self._static_pixels[self._touched], self.scene.camera.exposure,
+                         self._touched, self._static_touched, self.scene.camera.exposure,
                          self._suns, fluid.roughness, fluid.reflectance, self.scene.light.strength,
                          nz.radius_mm, nz.outer_radius_mm, nz.bore_depth_mm,
                          self._spheres, self._intensity, self._reach, self._reach_start, self._reach_scale,

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from service.errors import MeniscopeError
+from service.errors import MeniscopeError, require_folder_of
 from service.recordings import open_recording
 
 #: Frames copied per step of ``frames``: bounded by bytes, so big frames do not need big memory.
@@ -48,8 +48,7 @@ def run_info(args: argparse.Namespace) -> int:
 def run_frames(args: argparse.Namespace) -> int:
     """Copy frames ``--start`` .. ``--start + --count - 1`` into a .npy file, a chunk at a time."""
     out: Path = args.out
-    if not out.parent.is_dir():
-        raise MeniscopeError(out, f"folder {out.parent} does not exist")
+    require_folder_of(out)
     with open_recording(args.recording) as recording:
         count = len(recording) - args.start if args.count is None else args.count
         frames = recording.frame_range(args.start, count)

@@ -6,14 +6,14 @@ from pathlib import Path
 
 import numpy as np
 
-from service import DEFAULT_SCENE
+from service.cli import add_scene_option
 from service.csvtable import read_columns
-from service.errors import MeniscopeError
+from service.errors import MeniscopeError, require_folder_of
 from service.scene import Scene
 
 
 def _quality(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--scene", type=Path, default=DEFAULT_SCENE, help="scene file (default: the embedded one)")
+    add_scene_option(p)
     p.add_argument("--supersample", type=int, default=2, help="rays per pixel along each axis (default 2)")
     p.add_argument("--sun-samples", type=int, default=4, help="directions over the sun's disc (default 4)")
 
@@ -45,8 +45,7 @@ def _renderer(args: argparse.Namespace):
 def _writable(out: Path, suffix: str) -> None:
     if out.suffix.lower() != suffix:
         raise MeniscopeError(out, f"the output must be a {suffix} file")
-    if not out.parent.is_dir():
-        raise MeniscopeError(out, f"folder {out.parent} does not exist")
+    require_folder_of(out)
 
 
 def run_render(args: argparse.Namespace) -> int:

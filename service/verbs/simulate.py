@@ -5,7 +5,7 @@ import argparse
 import math
 from pathlib import Path
 
-from service import DEFAULT_SCENE
+from service.cli import add_scene_option
 from service.camera_effects import NOISE_PRESETS, noise_preset
 from service.errors import MeniscopeError
 from service.scene import Scene
@@ -18,7 +18,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         description="Render a synthetic recording (.cine or .avi, by extension) with ejections and damped "
         "oscillations between them; write REC.truth.json beside it.",
     )
-    p.add_argument("--scene", type=Path, default=DEFAULT_SCENE, help="scene file (default: the embedded one)")
+    add_scene_option(p)
     p.add_argument("--out", type=Path, required=True, help="recording to write: REC.cine or REC.avi")
     p.add_argument("--windows", type=int, default=10, help="windows between ejections (default 10)")
     p.add_argument("--seed", type=int, default=0, help="seed of the motion and the noise (default 0)")
