@@ -1,0 +1,404 @@
+"""The damped-oscillation fit of one window: offset, drift and 0, 1 or 2 damped modes (Eq. 1 at r = 0).
+
+    D(0, t) = c + v t + sum_k A_k exp(-g_k t) cos(2 pi f_k t + phi_k),   t from the window start
+
+Eq. 1 makes ``c = d + p R`` constant in a window; the drift ``v`` is there so that a slow bias of
+the upstream estimate is not mistaken for a slow mode (it is reported, and is ~0 on clean data).
+Per model order the matrix pencil gives the start, Levenberg-Marquardt (MINPACK via
+``scipy.optimize.least_squares``) refines it under a soft-L1 loss whose scale is a robust noise
+estimate, so a few bad frames do not drag the fit. The order is chosen by BIC: it is consistent
+(with ~190 samples it does not add modes that noise alone explains, where AIC/AICc would more
+often), and its log(n) penalty is what makes "settled" mean "no oscillation above the noise".
+Confidence intervals come from the Gauss-Newton covariance at the optimum (Student t).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+from numpy.typing import ArrayLike
+from scipy.optimize import least_squares
+from scipy.special import stdtrit
+from tqdm import tqdm
+
+from service.analysis.pencil import MatrixPencil
+from service.analysis.results import FitSettings, WindowResult
+from service.analysis.segment import Window
+from service.analysis.settling import damping_ratio, quality_factor, settle, tolerance
+from service.physics import damped_mode
+
+_BASE = 2  # offset c, drift v
+_PER_MODE = 4  # a = A cos(phi), b = -A sin(phi), w (rad/sample), g (1/sample)
+_MIN_DOF = 3  # residual degrees of freedom a model order needs to be tried
+#: A mode that decays by e within a frame is a transient, not a resolved oscillation (1/sample).
+_MAX_DECAY = 1.0
+#: Residuals below this fraction of the window's peak deviation count as exact (float64 round-off).
+_EXACT = 1e-9
+_MAD_TO_SIGMA = 1.482602218505602
+_IRLS_STEPS = 100  # at most; the order-0 cost settles to 1e-10 in ~10-25 rounds
+
+
+def min_samples(order: int) -> int:
+    """Finite samples needed to fit ``order`` modes with at least 3 residual degrees of freedom."""
+    return _BASE + _PER_MODE * order + _MIN_DOF
+
+
+def _robust_sigma(values: np.ndarray) -> float:
+    """1.4826 * MAD: the standard deviation of the Gaussian part of ``values``."""
+    return float(_MAD_TO_SIGMA * np.median(np.abs(values - np.median(values)))) if values.size else 0.0
+
+
+def _noise_from_differences(n: np.ndarray, y: np.ndarray) -> float:
+    """Noise level from first differences of consecutive samples (an over-estimate when the signal is fast)."""
+    consecutive = np.diff(n) == 1
+    diffs = np.diff(y)[consecutive] if consecutive.sum() >= 3 else np.diff(y)
+    return _robust_sigma(diffs) / np.sqrt(2.0)
+
+
+def _columns(n: np.ndarray, params: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Model and Jacobian of c + v n + sum_k exp(-g_k n) (a_k cos w_k n + b_k sin w_k n).
+
+    Parameters
+    ----------
+    n : array of shape (N,), sample index since the window start.
+    params : array of shape (2 + 4 M,): c, v, then a, b, w, g per mode (per-sample units).
+
+    Returns
+    -------
+    model : array of shape (N,); jacobian : array of shape (N, 2 + 4 M).
+    """
+    a, b, w, g = params[_BASE:].reshape(-1, _PER_MODE).T  # each (M,)
+    with np.errstate(under="ignore"):
+        z = np.exp(n[:, None] * (1j * w - g))  # (N, M): exp(-g n) (cos w n + i sin w n)
+    ec, es = z.real, z.imag
+    osc = ec * a + es * b  # (N, M)
+    jac = np.empty((n.size, params.size))
+    jac[:, 0], jac[:, 1] = 1.0, n
+    jac[:, _BASE + 0 :: _PER_MODE] = ec
+    jac[:, _BASE + 1 :: _PER_MODE] = es
+    jac[:, _BASE + 2 :: _PER_MODE] = n[:, None] * (ec * b - es * a)
+    jac[:, _BASE + 3 :: _PER_MODE] = -n[:, None] * osc
+    return params[0] + params[1] * n + osc.sum(axis=1), jac
+
+
+def _soft_l1(r: np.ndarray, scale: float) -> tuple[np.ndarray, np.ndarray]:
+    """Residuals rescaled so that their sum of squares is the soft-L1 cost, and d(rescaled)/dr.
+
+    ``sum r'^2 = sum C^2 rho(r^2 / C^2)`` with ``rho(z) = 2 (sqrt(1 + z) - 1)`` (quadratic below the
+    scale C, linear above), written as ``r' = r sqrt(2 / (sqrt(1 + z) + 1))`` so that it is smooth at 0.
+    """
+    z = (r / scale) ** 2
+    root = np.sqrt(1.0 + z)
+    weight = np.sqrt(2.0 / (root + 1.0))
+    return r * weight, weight * (1.0 - z / (2.0 * root * (root + 1.0)))
+
+
+@dataclass(frozen=True)
+class _OrderFit:
+    """The least-squares optimum for one model order, in normalised units (per sample, per scale)."""
+
+    order: int
+    params: np.ndarray  # (2 + 4 M,): c, v, (a, b, w, g) per mode, w in [0, pi], g >= 0
+    half_width: np.ndarray  # (2 + 4 M,) CI half-widths; inf where not identifiable
+    cost: float  # sum of squared (robust) residuals
+    bic: float
+    problem: str | None  # why its modes are not resolved, None when they are
+
+
+class _Window:
+    """One window's normalised data and the per-order fits of the module docstring."""
+
+    def __init__(self, n: np.ndarray, y: np.ndarray, settings: FitSettings) -> None:
+        self.n, self.y, self.settings = n, y, settings
+        self.scale = max(_noise_from_differences(n, y), _EXACT)  # soft-L1 scale, normalised units
+
+    def residuals(self, model: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Residuals as minimised, and their derivative with respect to the plain residual."""
+        r = model - self.y
+        if self.settings.loss == "linear":
+            return r, np.ones_like(r)
+        return _soft_l1(r, self.scale)
+
+    def starts(self, order: int, pencil_modes: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+        """Start for ``order`` modes: the most energetic pencil pairs, linear coefficients by least squares."""
+        w, g = pencil_modes
+        missing = order - min(order, w.size)
+        span = max(self.n[-1], 1.0)
+        w = np.concatenate([w[:order], np.full(missing, np.pi / span)])  # half a cycle per window
+        g = np.concatenate([g[:order], np.full(missing, 1.0 / span)])
+        w, g = np.clip(w, 1e-3, np.pi - 1e-3), np.clip(g, 1e-4, _MAX_DECAY)
+        nonlinear = np.stack([np.zeros(order), np.zeros(order), w, g], axis=1).reshape(-1)
+        _, design = _columns(self.n, np.concatenate([[0.0, 0.0], nonlinear]))
+        linear_columns = np.r_[0, 1, (_BASE + np.arange(order)[:, None] * _PER_MODE + np.array([0, 1])).ravel()]
+        coef = np.linalg.lstsq(design[:, linear_columns], self.y, rcond=None)[0]
+        params = np.concatenate([[0.0, 0.0], nonlinear])
+        params[linear_columns] = coef
+        return params
+
+    def bic(self, cost: float, k: int) -> float:
+        """n ln(cost / n) + k ln n, with residuals under ``_EXACT`` counted as exact."""
+        n = self.n.size
+        return float(n * np.log(cost / n + _EXACT**2) + k * np.log(n))
+
+    def linear_fit(self, design: np.ndarray) -> tuple[np.ndarray, float]:
+        """Coefficients of ``design`` (N, k) and their robust cost, by iteratively reweighted least squares.
+
+        For a linear model this reaches the optimum LM would; the soft-L1 weight is
+        rho'(z) = 1 / sqrt(1 + z), z = (r / C)^2.
+        """
+        weight, cost = np.ones_like(self.y), np.inf
+        for _ in range(_IRLS_STEPS):
+            weighted = design.T * weight
+            params = np.linalg.solve(weighted @ design, weighted @ self.y)
+            model = design @ params
+            minimised = self.residuals(model)[0]
+            previous, cost = cost, float(minimised @ minimised)
+            if self.settings.loss == "linear" or previous - cost <= 1e-10 * cost:
+                break
+            weight = 1.0 / np.sqrt(1.0 + ((model - self.y) / self.scale) ** 2)
+        return params, cost
+
+    def fit_baseline(self) -> _OrderFit:
+        """Order 0: offset and drift alone."""
+        return self._judge(0, self.linear_fit(np.stack([np.ones_like(self.n), self.n], axis=1))[0])
+
+    def drift_evident(self, baseline: _OrderFit) -> bool:
+        """Whether the criterion prefers offset and drift to a constant offset."""
+        _, cost = self.linear_fit(np.ones((self.n.size, 1)))
+        return baseline.bic < self.bic(cost, 1)
+
+    def fit(self, order: int, start: np.ndarray) -> _OrderFit:
+        """Refine ``start`` by LM in (w, sqrt g), so that g >= 0 without bounds; then covariance in (w, g)."""
+        decay = np.s_[_BASE + 3 :: _PER_MODE]
+        x0 = start.copy()
+        x0[decay] = np.sqrt(x0[decay])
+
+        last: dict[str, object] = {}
+
+        def evaluate(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            """Residuals and their Jacobian in x; MINPACK asks for both at each x, so computed once."""
+            if last.get("x") is None or not np.array_equal(last["x"], x):
+                p = x.copy()
+                p[decay] = x[decay] ** 2
+                model, j = _columns(self.n, p)
+                j[:, decay] *= 2.0 * x[decay]
+                r, dr = self.residuals(model)
+                last.update(x=x.copy(), r=r, j=dr[:, None] * j)
+            return last["r"], last["j"]
+
+        x = least_squares(lambda x: evaluate(x)[0], x0, jac=lambda x: evaluate(x)[1], method="lm").x
+        x[decay] = x[decay] ** 2
+        return self._judge(order, _canonical(x))
+
+    def _judge(self, order: int, params: np.ndarray) -> _OrderFit:
+        """Cost, BIC, CI half-widths and (for modes) whether they are resolved."""
+        model, j = _columns(self.n, params)
+        r, dr = self.residuals(model)
+        n, k = self.n.size, params.size
+        cost = float(r @ r)
+        bic = self.bic(cost, k)
+        variance = _covariance_diagonal(dr[:, None] * j) * cost / (n - k)
+        half = stdtrit(n - k, 0.5 + self.settings.confidence / 2) * np.sqrt(variance)
+        return _OrderFit(order, params, half, cost, bic, _unresolved(params, half))
+
+
+def _canonical(params: np.ndarray) -> np.ndarray:
+    """Each mode with w folded into [0, pi] (cos even, sin odd: b changes sign) and g >= 0."""
+    p = params.copy()
+    modes = p[_BASE:].reshape(-1, _PER_MODE)  # a view
+    w = np.mod(modes[:, 2] + np.pi, 2 * np.pi) - np.pi
+    modes[:, 1] *= np.where(w < 0, -1.0, 1.0)
+    modes[:, 2] = np.abs(w)
+    return p
+
+
+def _covariance_diagonal(jac: np.ndarray) -> np.ndarray:
+    """diag((J^T J)^-1), shape (k,), inf for parameters in a (numerically) unidentifiable direction."""
+    norms = np.linalg.norm(jac, axis=0)
+    if not np.all(norms > 0):
+        return np.full(jac.shape[1], np.inf)
+    _, sv, vt = np.linalg.svd(jac / norms, full_matrices=False)
+    if sv[-1] <= 1e-10 * sv[0]:
+        return np.full(jac.shape[1], np.inf)
+    return ((vt.T / sv) ** 2).sum(axis=1) / norms**2
+
+
+def _unresolved(params: np.ndarray, half: np.ndarray) -> str | None:
+    """Why the modes of a fit are not resolved oscillations, or None when they all are."""
+    modes = params[_BASE:].reshape(-1, _PER_MODE)
+    halves = half[_BASE:].reshape(-1, _PER_MODE)
+    problems = []
+    for k in np.argsort(modes[:, 3], kind="stable"):  # dominant first, as reported
+        w, g = modes[k, 2], modes[k, 3]
+        if not np.all(np.isfinite(halves[k])):
+            problems.append(f"mode at {w / (2 * np.pi):.3g} cycles/frame is not identifiable (singular Jacobian)")
+        elif g > _MAX_DECAY:
+            problems.append(f"mode at {w / (2 * np.pi):.3g} cycles/frame dies within a frame (decay {g:.3g}/frame)")
+        elif w - halves[k, 2] <= 0:
+            problems.append(
+                f"mode at {w / (2 * np.pi):.3g} cycles/frame: its frequency CI reaches 0 "
+                "(no full oscillation resolved in the window)"
+            )
+    return "; ".join(problems) or None
+
+
+def _choose(fits: list[_OrderFit]) -> tuple[_OrderFit, str | None]:
+    """The BIC choice among resolved fits and order 0; an unresolved fit only when it beats them all."""
+    best = min(fits, key=lambda f: f.bic)
+    if best.problem is None:
+        return best, None
+    resolved = min((f for f in fits if f.problem is None), key=lambda f: f.bic)
+    if resolved.order > 0:
+        return resolved, f"the {best.order}-mode fit was better but unresolved ({best.problem})"
+    return best, best.problem
+
+
+def fit_window(
+    values: ArrayLike,
+    fps: float,
+    settings: FitSettings = FitSettings(),
+    *,
+    index: int = 0,
+    start_frame: int = 0,
+    starts_at_ejection: bool = False,
+    ends_at_ejection: bool = False,
+) -> WindowResult:
+    """Fit one window of the centre displacement and judge it (ok, settled, unresolved or failed).
+
+    Parameters
+    ----------
+    values : array of shape (N,), mm, one per frame from the window start; NaN/Inf are missing samples.
+    fps : frames per second (frame i is at t = i / fps).
+    settings : model orders, loss, confidence level and settling tolerance.
+
+    Returns
+    -------
+    WindowResult with modes in mm, Hz, 1/s, rad (dominant, i.e. smallest decay rate, first).
+    """
+    x = np.asarray(values, dtype=np.float64).reshape(-1)
+    finite = np.isfinite(x)
+    common = dict(
+        index=index, start_frame=start_frame, end_frame=start_frame + x.size,
+        samples=int(finite.sum()), missing=int(x.size - finite.sum()),
+        starts_at_ejection=starts_at_ejection, ends_at_ejection=ends_at_ejection,
+    )
+    need = min_samples(min(1, settings.max_modes))
+    if finite.sum() < need:
+        return WindowResult(
+            status="failed", **common,
+            reason=f"{int(finite.sum())} finite samples of {x.size}; testing for an oscillation needs {need}",
+        )
+    n, raw = np.flatnonzero(finite).astype(np.float64), x[finite]
+    centre = float(np.median(raw))
+    spread = float(np.max(np.abs(raw - centre)))
+    if spread <= 8 * np.finfo(float).eps * max(abs(centre), np.finfo(float).tiny):
+        return WindowResult(
+            status="settled", reason="constant series: no oscillation (r2 undefined)", **common,
+            offset_mm=centre, drift_mm_per_s=0.0, settling_time_s=0.0, settled=True,
+            residual_amplitude_mm=0.0, noise_mm=0.0,
+        )
+    window = _Window(n, (raw - centre) / spread, settings)
+    fits = [window.fit_baseline()]
+    orders = [m for m in range(1, settings.max_modes + 1) if n.size >= min_samples(m)]
+    if orders:
+        pencil_modes = _pencil_modes(n, window.y, x.size, 2 * orders[-1] + 2)
+        fits += [window.fit(m, window.starts(m, pencil_modes)) for m in orders]
+    chosen, problem = _choose(fits)
+    return _result(chosen, problem, window, centre, spread, fps, settings, common)
+
+
+def _pencil_modes(n: np.ndarray, y: np.ndarray, length: int, order: int) -> tuple[np.ndarray, np.ndarray]:
+    """Pencil pole pairs (w, g per sample, most energetic first) of the gap-filled, detrended series."""
+    grid = np.arange(length, dtype=np.float64)
+    filled = np.interp(grid, n, y)
+    filled -= np.polyval(np.polyfit(grid, filled, 1), grid)
+    return MatrixPencil(filled).estimate(order).damped_sinusoids()
+
+
+def _result(
+    fit: _OrderFit, problem: str | None, window: _Window,
+    centre: float, spread: float, fps: float, settings: FitSettings, common: dict,
+) -> WindowResult:
+    """Back to mm, Hz and 1/s; the status, the settling metrics and r2 of the chosen fit."""
+    model, _ = _columns(window.n, fit.params)
+    ss_res = float(np.sum((window.y - model) ** 2))
+    ss_tot = float(np.sum((window.y - window.y.mean()) ** 2))
+    numbers = dict(
+        offset_mm=centre + spread * fit.params[0],
+        drift_mm_per_s=spread * fit.params[1] * fps,
+        r2=1.0 - ss_res / ss_tot,
+        noise_mm=spread * _robust_sigma(window.y - model),
+    )
+    if fit.order == 0:
+        return _without_modes(fit, problem, window, spread, settings, common, numbers)
+    modes = fit.params[_BASE:].reshape(-1, _PER_MODE)
+    halves = fit.half_width[_BASE:].reshape(-1, _PER_MODE)
+    order = np.lexsort((-np.hypot(modes[:, 0], modes[:, 1]), modes[:, 3]))  # decay up, then amplitude down
+    modes, halves = modes[order], halves[order]
+    a, b, w, g = modes.T
+    hz, per_s = fps / (2 * np.pi), fps
+    f, decay, amp = w * hz, g * per_s, spread * np.hypot(a, b)
+    f_half, g_half = halves[:, 2] * hz, halves[:, 3] * per_s
+    zeta, q = damping_ratio(f, decay), quality_factor(f, decay)
+    estimates = [
+        dict(
+            frequency_hz=f[k], decay_rate_per_s=decay[k], amplitude_mm=amp[k], phase_rad=float(np.arctan2(-b[k], a[k])),
+            frequency_ci_hz=(max(f[k] - f_half[k], 0.0), min(f[k] + f_half[k], fps / 2)),
+            decay_rate_ci_per_s=(max(decay[k] - g_half[k], 0.0), decay[k] + g_half[k]),
+            damping_ratio=zeta[k], quality_factor=q[k],
+        )
+        for k in range(len(order))
+    ]
+    duration = (common["end_frame"] - common["start_frame"]) / fps
+    s = settle(amp, decay, duration, settings.settle_fraction, settings.settle_floor_mm)
+    status = "unresolved" if fit.problem else "ok"
+    return WindowResult(
+        status=status, reason=problem, **common, **numbers, modes=estimates,
+        settling_time_s=s.time_s, settled=s.settled, residual_amplitude_mm=s.residual_amplitude_mm,
+    )
+
+
+def _without_modes(
+    fit: _OrderFit, problem: str | None, window: _Window, spread: float, settings: FitSettings,
+    common: dict, numbers: dict,
+) -> WindowResult:
+    """Order 0 chosen: settled, unless the displacement trends (evidently, and beyond the settling tolerance)."""
+    note = f" ({problem})" if problem else ""
+    change = spread * abs(fit.params[1]) * (window.n[-1] - window.n[0])  # mm over the window
+    tol = tolerance([], settings.settle_fraction, settings.settle_floor_mm)
+    if change > tol and window.drift_evident(fit):
+        return WindowResult(
+            status="unresolved", **common, **numbers, residual_amplitude_mm=None,
+            reason=f"no resolved oscillation, but the displacement trends by {change:.3g} mm over the window "
+            f"(settling tolerance {tol:.3g} mm): a slow motion under one cycle, or drift{note}",
+        )
+    return WindowResult(
+        status="settled", **common, **numbers, settling_time_s=0.0, settled=True, residual_amplitude_mm=0.0,
+        reason=f"no oscillation above the noise: {settings.criterion} prefers offset and drift alone{note}",
+    )
+
+
+def model_curve(result: WindowResult, t: ArrayLike) -> np.ndarray:
+    """The fitted centre displacement (mm) at ``t`` s since the window start; NaN for a failed window."""
+    t = np.asarray(t, dtype=np.float64)
+    if result.offset_mm is None:
+        return np.full(t.shape, np.nan)
+    curve = result.offset_mm + (result.drift_mm_per_s or 0.0) * t
+    for m in result.modes:
+        curve = curve + damped_mode(t, m.amplitude_mm, m.decay_rate_per_s, m.frequency_hz, m.phase_rad)
+    return curve
+
+
+def fit_windows(
+    series: ArrayLike, fps: float, windows: Sequence[Window], settings: FitSettings = FitSettings(), progress: bool = True
+) -> list[WindowResult]:
+    """One :func:`fit_window` per window of ``series`` (mm per frame), with a progress bar over windows."""
+    x = np.asarray(series, dtype=np.float64).reshape(-1)
+    return [
+        fit_window(
+            x[w.start : w.end], fps, settings, index=w.index, start_frame=w.start,
+            starts_at_ejection=w.starts_at_ejection, ends_at_ejection=w.ends_at_ejection,
+        )
+        for w in tqdm(windows, desc="fit", unit="window", disable=not progress)
+    ]

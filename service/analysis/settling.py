@@ -1,0 +1,99 @@
+"""Settling metrics of a fitted window: when the oscillation falls under tolerance, what is left at the next ejection.
+
+The fitted oscillation ``sum_k A_k exp(-g_k t) cos(2 pi f_k t + phi_k)`` (Eq. 1, t from the window
+start) never exceeds its envelope ``E(t) = sum_k |A_k| exp(-g_k t)``; the metrics use ``E``, so a
+window declared settled is settled whatever the phases. ``E`` never increases (``g_k >= 0``).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike
+from scipy.optimize import brentq
+
+
+def envelope(t: ArrayLike, amplitudes: ArrayLike, decays: ArrayLike) -> np.ndarray:
+    """E(t) = sum_k |A_k| exp(-g_k t) in mm.
+
+    Parameters
+    ----------
+    t : array of shape (N,), s since the window start (>= 0).
+    amplitudes : array of shape (M,), mm.
+    decays : array of shape (M,), 1/s (>= 0).
+
+    Returns
+    -------
+    ndarray of shape (N,), mm.
+    """
+    t = np.atleast_1d(np.asarray(t, dtype=np.float64))
+    amplitudes = np.abs(np.asarray(amplitudes, dtype=np.float64)).reshape(-1)
+    decays = np.asarray(decays, dtype=np.float64).reshape(-1)
+    with np.errstate(under="ignore"):
+        return (amplitudes * np.exp(-np.outer(t, decays))).sum(axis=1)
+
+
+def tolerance(amplitudes: ArrayLike, fraction: float, floor_mm: float) -> float:
+    """max(fraction * E(0), floor_mm): the band the envelope must stay in (mm)."""
+    return max(fraction * float(np.abs(np.asarray(amplitudes, dtype=np.float64)).sum()), floor_mm)
+
+
+def settling_time(amplitudes: ArrayLike, decays: ArrayLike, tol_mm: float) -> float:
+    """First time (s) after which E(t) <= tol_mm for good; 0 if it starts there, inf if it never gets there.
+
+    E is a sum of decaying exponentials, so it is monotone and the crossing is unique: closed form
+    for one damped mode, Brent's method otherwise, bracketed by the time each term alone needs to
+    fall under its share of the tolerance. Undamped modes (g = 0) stay for ever.
+    """
+    amplitudes = np.abs(np.asarray(amplitudes, dtype=np.float64)).reshape(-1)
+    decays = np.asarray(decays, dtype=np.float64).reshape(-1)
+    if amplitudes.sum() <= tol_mm:
+        return 0.0
+    damped = decays > 0
+    budget = tol_mm - amplitudes[~damped].sum()  # what the damped terms may still contribute
+    if budget <= 0:
+        return float("inf")
+    a, g = amplitudes[damped], decays[damped]
+    reach = np.log(np.maximum(a * a.size / budget, 1.0)) / g  # each term under budget / M
+    if a.size == 1:
+        return float(reach[0])
+    return float(brentq(lambda s: envelope(s, a, g)[0] - budget, 0.0, reach.max(), xtol=1e-12, rtol=1e-12))
+
+
+def damping_ratio(frequency_hz: ArrayLike, decay_per_s: ArrayLike) -> np.ndarray:
+    """zeta = g / sqrt(g^2 + w^2), w = 2 pi f: the mode as the free response of x'' + 2 zeta w0 x' + w0^2 x = 0.
+
+    0 for an undamped mode, 1 for a non-oscillating (critically or over-damped) one.
+    """
+    g = np.asarray(decay_per_s, dtype=np.float64)
+    w0 = np.hypot(g, 2.0 * np.pi * np.asarray(frequency_hz, dtype=np.float64))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(w0 > 0, g / w0, 1.0)
+
+
+def quality_factor(frequency_hz: ArrayLike, decay_per_s: ArrayLike) -> np.ndarray:
+    """Q = 1 / (2 zeta) = w0 / (2 g); inf for an undamped mode.
+
+    (harminv reports pi f / g instead, the same to first order in zeta.)
+    """
+    with np.errstate(divide="ignore"):
+        return 0.5 / damping_ratio(frequency_hz, decay_per_s)
+
+
+@dataclass(frozen=True)
+class Settling:
+    """Settling of one window of duration ``duration_s`` (the next ejection, when the window ends at one)."""
+
+    time_s: float | None  # None: still above tolerance at the window's end
+    settled: bool
+    residual_amplitude_mm: float  # E(duration_s)
+    tolerance_mm: float
+
+
+def settle(amplitudes: ArrayLike, decays: ArrayLike, duration_s: float, fraction: float, floor_mm: float) -> Settling:
+    """Settling time, settled-before-the-window-ends and residual envelope for modes (A_k mm, g_k 1/s)."""
+    tol = tolerance(amplitudes, fraction, floor_mm)
+    t_s = settling_time(amplitudes, decays, tol)
+    residual = float(envelope(duration_s, amplitudes, decays)[0])
+    settled = bool(t_s <= duration_s)
+    return Settling(t_s if settled else None, settled, residual, tol)
