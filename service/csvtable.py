@@ -13,8 +13,9 @@ from service.errors import MeniscopeError
 def read_columns(path: str | Path, names: tuple[str, ...], allow_empty: bool = False) -> np.ndarray:
     """Columns ``names`` of the CSV at ``path`` as float64 (rows, len(names)).
 
-    Other columns are ignored. Empty cells are NaN when ``allow_empty`` (missing samples),
-    an error otherwise; so is any cell that is not a finite number, naming file, line and column.
+    Other columns are ignored. Empty cells are NaN when ``allow_empty`` (missing samples; in a
+    one-column file they are blank lines, so blank lines count too, except at the end), skipped
+    blank lines and an error otherwise; so is any cell that is not a finite number, naming file, line and column.
     """
     path = Path(path)
     try:
@@ -26,10 +27,13 @@ def read_columns(path: str | Path, names: tuple[str, ...], allow_empty: bool = F
                 raise MeniscopeError(path, f"needs a header row with columns {', '.join(names)}; "
                                            f"missing {', '.join(missing)} (header: {','.join(header) or 'none'})")
             index = [header.index(n) for n in names]
-            rows = []
+            rows, blank = [], 0
             for line, row in enumerate(reader, start=2):
                 if not any(cell.strip() for cell in row):
+                    blank += 1  # a missing sample when empty cells are allowed, unless only blanks follow
                     continue
+                rows.extend([[math.nan] * len(names)] * (blank if allow_empty else 0))
+                blank = 0
                 rows.append([_cell(path, line, name, row[i] if i < len(row) else "", allow_empty)
                              for name, i in zip(names, index)])
     except FileNotFoundError:
@@ -52,3 +56,27 @@ def _cell(path: Path, line: int, name: str, text: str, allow_empty: bool) -> flo
     if not math.isfinite(value):
         raise MeniscopeError(path, f"line {line}: column {name} is not finite: {text!r}")
     return value
+
+
+def write_columns(path: str | Path, names: tuple[str, ...], columns: list[np.ndarray], what: str) -> Path:
+    """A CSV with header ``names`` and one row per element of the equal-length ``columns``.
+
+    Integer columns are written as integers, floats with 9 significant digits, NaN/Inf as empty
+    cells (read back as missing by :func:`read_columns` with ``allow_empty``).
+    """
+    path = Path(path)
+    cells = []
+    for col in columns:
+        col = np.asarray(col)
+        if col.dtype.kind in "iu":
+            cells.append(col.astype(str))
+        else:
+            cells.append(np.where(np.isfinite(col), np.char.mod("%.9g", col), ""))
+    try:
+        with path.open("w", newline="") as fh:
+            writer = csv.writer(fh)
+            writer.writerow(names)
+            writer.writerows(zip(*cells))
+    except OSError as exc:
+        raise MeniscopeError(path, f"cannot write the {what}: {exc.strerror or exc}") from None
+    return path

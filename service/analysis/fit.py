@@ -20,6 +20,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 from scipy.optimize import least_squares
 from scipy.special import stdtrit
+from threadpoolctl import ThreadpoolController
 from tqdm import tqdm
 
 from service.analysis.pencil import MatrixPencil
@@ -33,10 +34,15 @@ _PER_MODE = 4  # a = A cos(phi), b = -A sin(phi), w (rad/sample), g (1/sample)
 _MIN_DOF = 3  # residual degrees of freedom a model order needs to be tried
 #: A mode that decays by e within a frame is a transient, not a resolved oscillation (1/sample).
 _MAX_DECAY = 1.0
+#: A mode turning less than this many cycles over the window is a slow swing, not a measured frequency.
+_MIN_CYCLES = 0.8
 #: Residuals below this fraction of the window's peak deviation count as exact (float64 round-off).
 _EXACT = 1e-9
 _MAD_TO_SIGMA = 1.482602218505602
 _IRLS_STEPS = 100  # at most; the order-0 cost settles to 1e-10 in ~10-25 rounds
+#: The fit's matrices are small: a multi-threaded BLAS only fights the other threads for the cores
+#: (7x slower per window on a loaded 2-core machine), so each fit runs its BLAS on one thread.
+_BLAS = ThreadpoolController()
 
 
 def min_samples(order: int) -> int:
@@ -200,7 +206,7 @@ class _Window:
         bic = self.bic(cost, k)
         variance = _covariance_diagonal(dr[:, None] * j) * cost / (n - k)
         half = stdtrit(n - k, 0.5 + self.settings.confidence / 2) * np.sqrt(variance)
-        return _OrderFit(order, params, half, cost, bic, _unresolved(params, half))
+        return _OrderFit(order, params, half, cost, bic, _unresolved(params, half, self.n[-1] - self.n[0] + 1))
 
 
 def _canonical(params: np.ndarray) -> np.ndarray:
@@ -224,8 +230,8 @@ def _covariance_diagonal(jac: np.ndarray) -> np.ndarray:
     return ((vt.T / sv) ** 2).sum(axis=1) / norms**2
 
 
-def _unresolved(params: np.ndarray, half: np.ndarray) -> str | None:
-    """Why the modes of a fit are not resolved oscillations, or None when they all are."""
+def _unresolved(params: np.ndarray, half: np.ndarray, span: float) -> str | None:
+    """Why the modes of a fit over ``span`` samples are not resolved oscillations, or None when they all are."""
     modes = params[_BASE:].reshape(-1, _PER_MODE)
     halves = half[_BASE:].reshape(-1, _PER_MODE)
     problems = []
@@ -233,6 +239,9 @@ def _unresolved(params: np.ndarray, half: np.ndarray) -> str | None:
         w, g = modes[k, 2], modes[k, 3]
         if not np.all(np.isfinite(halves[k])):
             problems.append(f"mode at {w / (2 * np.pi):.3g} cycles/frame is not identifiable (singular Jacobian)")
+        elif w * span / (2 * np.pi) < _MIN_CYCLES:
+            problems.append(f"mode at {w / (2 * np.pi):.3g} cycles/frame turns only {w * span / (2 * np.pi):.2g} "
+                            f"cycles in the window (fewer than {_MIN_CYCLES}): a slow swing, not a frequency")
         elif g > _MAX_DECAY:
             problems.append(f"mode at {w / (2 * np.pi):.3g} cycles/frame dies within a frame (decay {g:.3g}/frame)")
         elif w - halves[k, 2] <= 0:
@@ -269,6 +278,7 @@ def fit_window(
     Parameters
     ----------
     values : array of shape (N,), mm, one per frame from the window start; NaN/Inf are missing samples.
+        A window that starts at an ejection has its first ``settings.transient_frames(fps)`` left out.
     fps : frames per second (frame i is at t = i / fps).
     settings : model orders, loss, confidence level and settling tolerance.
 
@@ -276,11 +286,21 @@ def fit_window(
     -------
     WindowResult with modes in mm, Hz, 1/s, rad (dominant, i.e. smallest decay rate, first).
     """
+    with _BLAS.limit(limits=1, user_api="blas"):
+        return _fit_window(values, fps, settings, index, start_frame, starts_at_ejection, ends_at_ejection)
+
+
+def _fit_window(values: ArrayLike, fps: float, settings: FitSettings, index: int, start_frame: int,
+                starts_at_ejection: bool, ends_at_ejection: bool) -> WindowResult:
+    """:func:`fit_window` on the calling thread's BLAS settings."""
     x = np.asarray(values, dtype=np.float64).reshape(-1)
+    missing = int(x.size - np.isfinite(x).sum())
+    skip = min(settings.transient_frames(fps), x.size) if starts_at_ejection else 0
+    x = np.concatenate([np.full(skip, np.nan), x[skip:]])
     finite = np.isfinite(x)
     common = dict(
         index=index, start_frame=start_frame, end_frame=start_frame + x.size,
-        samples=int(finite.sum()), missing=int(x.size - finite.sum()),
+        samples=int(finite.sum()), missing=missing, transient_frames=skip,
         starts_at_ejection=starts_at_ejection, ends_at_ejection=ends_at_ejection,
     )
     need = min_samples(min(1, settings.max_modes))

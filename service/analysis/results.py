@@ -11,6 +11,7 @@ import math
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
+import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from service.errors import MeniscopeError
@@ -39,6 +40,13 @@ class FitSettings(_Frozen):
     settle_fraction: Annotated[float, Field(gt=0, lt=1)] = 0.05
     #: ... but never below this absolute floor (mm); 0.5 um is ~1/20 pixel in the example scene.
     settle_floor_mm: NonNegative = 5e-4
+    #: Time after an ejection that shows the droplet leaving, not the meniscus oscillating: those frames are
+    #: left out of the fit (t still counts from the ejection). The simulator's transient lasts 0.25 ms.
+    transient_s: NonNegative = 3e-4
+
+    def transient_frames(self, fps: float) -> int:
+        """Frames after an ejection that :attr:`transient_s` covers (rounded up)."""
+        return int(np.ceil(self.transient_s * fps - 1e-9))
 
 
 class ModeEstimate(_Frozen):
@@ -89,6 +97,7 @@ class WindowResult(_Frozen):
     noise_mm: NonNegative | None = None
     samples: Annotated[int, Field(ge=0)] = 0  # finite samples fitted
     missing: Annotated[int, Field(ge=0)] = 0  # non-finite samples skipped
+    transient_frames: Annotated[int, Field(ge=0)] = 0  # frames after the ejection left out (FitSettings.transient_s)
     starts_at_ejection: bool = False
     ends_at_ejection: bool = False
 

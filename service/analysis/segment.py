@@ -27,6 +27,9 @@ from service.errors import MeniscopeError
 
 _MAD_TO_SIGMA = 1.482602218505602
 _CHUNK_FRAMES = 256  # frame differences are taken this many frames at a time to bound memory
+#: Ejections closer than this are one (when no rate is given): 250 Hz, 2.5x the printer's usual 100 Hz, and
+#: above the meniscus' slowest oscillation period (2 ms), so that its ringing is not taken for a repeat.
+MIN_EJECTION_PERIOD_S = 4e-3
 
 
 @dataclass(frozen=True)
@@ -105,34 +108,55 @@ def series_activity(series: ArrayLike) -> np.ndarray:
     return robust_z(np.where(np.isfinite(step), step, 0.0))
 
 
-def frame_activity(frames: np.ndarray) -> np.ndarray:
-    """Per-frame activity of a video: robust z-score of the mean absolute difference from the previous frame.
+def frame_steps(frames: np.ndarray, previous: np.ndarray | None = None) -> np.ndarray:
+    """Mean absolute difference of each frame from the one before: the video's raw activity.
 
     Parameters
     ----------
     frames : array of shape (N, H, W), any numeric dtype (memory-mapped is fine: read in chunks).
+    previous : the frame before ``frames[0]`` (H, W), when streaming chunk by chunk; without it frame 0
+        gets NaN (no predecessor).
 
     Returns
     -------
-    ndarray of shape (N,), float64; frame 0 (no predecessor) gets the median difference.
+    ndarray of shape (N,), float64, in the frames' units.
     """
     n = frames.shape[0]
-    if n < 2:
-        return np.zeros(n)
-    step = np.empty(n)
-    for lo in range(1, n, _CHUNK_FRAMES):
-        chunk = np.asarray(frames[lo - 1 : lo + _CHUNK_FRAMES], dtype=np.float32)
+    step = np.full(n, np.nan)
+    first = 0 if previous is not None else 1
+    for lo in range(first, n, _CHUNK_FRAMES):
+        before = previous[None] if lo == 0 else frames[lo - 1 : lo]
+        chunk = np.concatenate([before, frames[lo : lo + _CHUNK_FRAMES]]).astype(np.float32)
         step[lo : lo + chunk.shape[0] - 1] = np.abs(np.diff(chunk, axis=0)).mean(axis=(1, 2))
-    step[0] = np.median(step[1:])
-    return robust_z(step)
+    return step
 
 
-def ejections_at_rate(activity: ArrayLike, fps: float, ejection_hz: float) -> np.ndarray:
-    """Ejections every fps / ejection_hz frames, in phase with the activity's sharpest rise.
+def frame_activity(steps: ArrayLike) -> np.ndarray:
+    """Robust z-score of :func:`frame_steps` (shape (N,)); a NaN step (frame 0) gets the median, z = 0."""
+    steps = np.asarray(steps, dtype=np.float64)
+    finite = np.isfinite(steps)
+    filled = np.where(finite, steps, np.median(steps[finite]) if finite.any() else 0.0)
+    return robust_z(filled)
 
-    The activity is folded modulo the period into round(period) phase bins; the ejection phase is
-    the bin where the mean activity jumps most from the bin before (an ejection is an onset).
-    Returns sorted frame indices, shape (E,), int64.
+
+def burst(activity: ArrayLike, frames: int) -> np.ndarray:
+    """Forward box sum of the positive activity over ``frames`` frames, shape (N,): largest at a transient's start.
+
+    An ejection moves the meniscus for a few frames (out and back, so the frame differences peak
+    twice with a dip between); summed over the transient's length they make one peak, at its first frame.
+    """
+    z = np.clip(np.asarray(activity, dtype=np.float64), 0.0, None)
+    frames = max(int(frames), 1)
+    total = np.concatenate([[0.0], np.cumsum(z), np.full(frames - 1, np.sum(z))])
+    return total[frames : frames + z.size] - total[: z.size]
+
+
+def ejections_at_rate(activity: ArrayLike, fps: float, ejection_hz: float, transient_frames: int = 6) -> np.ndarray:
+    """Ejections every fps / ejection_hz frames, in phase with the activity's strongest bursts.
+
+    The activity and its :func:`burst` signal are folded modulo the period into round(period) phase
+    bins; the ejection phase is the onset (:func:`_onset`) of the folded burst's largest bin, found in
+    the folded activity. Returns sorted frame indices, shape (E,), int64.
     """
     z = np.asarray(activity, dtype=np.float64)
     period = fps / ejection_hz
@@ -140,25 +164,108 @@ def ejections_at_rate(activity: ArrayLike, fps: float, ejection_hz: float) -> np
         raise ValueError(f"an ejection rate of {ejection_hz} Hz is above half the frame rate ({fps} frames/s)")
     bins = max(int(round(min(period, z.size))), 1)
     phase_bin = np.minimum((np.mod(np.arange(z.size), period) / period * bins).astype(np.int64), bins - 1)
-    counts = np.bincount(phase_bin, minlength=bins)
-    profile = np.bincount(phase_bin, weights=z, minlength=bins) / np.maximum(counts, 1)
-    phase = np.argmax(profile - np.roll(profile, 1)) * period / bins
+    counts = np.maximum(np.bincount(phase_bin, minlength=bins), 1)
+    folded = np.bincount(phase_bin, weights=z, minlength=bins) / counts
+    strongest = int(np.argmax(np.bincount(phase_bin, weights=burst(z, transient_frames), minlength=bins) / counts))
+    back = min(transient_frames, bins - 1)  # the onset lies up to this many bins before, around the fold
+    onset = _onset(np.roll(folded, back - strongest), back, transient_frames) - back + strongest
+    phase = np.mod(onset, bins) * period / bins
     frames = np.round(phase + period * np.arange(int(np.ceil(z.size / period)) + 1)).astype(np.int64)
     return np.unique(frames[frames < z.size])
 
 
-def detect_ejections(
-    activity: ArrayLike, fps: float, expected_hz: float | None = None, threshold: float = 8.0
-) -> np.ndarray:
-    """Ejection frames where the activity jumps above ``threshold`` robust sigmas.
+def burst_period(bursts: np.ndarray, min_frames: int, min_correlation: float = 0.3) -> float | None:
+    """The repeat period (frames) of a burst signal from its autocorrelation, or None when it does not repeat.
 
-    Each ejection is the first frame of an above-threshold run (the onset), keeping the strongest
-    run when two are closer than half the expected period (2 ms when no rate is expected).
-    Returns sorted frame indices, shape (E,), int64.
+    The first autocorrelation peak at a lag of at least ``min_frames`` whose height is at least 0.7 of the
+    highest (so twice the period is not taken for it), refined by a parabola through its neighbours;
+    None when that peak is under ``min_correlation`` or fewer than two periods fit in the series.
     """
-    z = robust_z(activity)
-    separation = 0.5 * fps / expected_hz if expected_hz else 2e-3 * fps
-    peaks, _ = find_peaks(z, height=threshold, distance=max(1, int(separation)))
-    above = np.concatenate([[False], z > threshold])
-    onsets = np.flatnonzero(~above[:-1] & above[1:])  # first frame of each above-threshold run
-    return np.unique(onsets[np.searchsorted(onsets, peaks, side="right") - 1])
+    x = bursts - bursts.mean()
+    n = x.size
+    if n < 2 * min_frames or not np.any(x):
+        return None
+    spectrum = np.fft.rfft(x, 2 * n)
+    corr = np.fft.irfft(spectrum * np.conj(spectrum))[: n // 2 + 1]
+    corr /= corr[0]
+    peaks, _ = find_peaks(corr[: n // 2])
+    peaks = peaks[peaks >= min_frames]
+    if peaks.size == 0 or corr[peaks].max() < min_correlation:
+        return None
+    lag = int(peaks[np.argmax(corr[peaks] >= 0.7 * corr[peaks].max())])
+    left, mid, right = corr[lag - 1 : lag + 2]
+    curvature = left - 2 * mid + right
+    return lag + (0.5 * (left - right) / curvature if curvature < 0 else 0.0)
+
+
+def detect_ejections(
+    activity: ArrayLike, fps: float, expected_hz: float | None = None, transient_frames: int = 6,
+    threshold: float = 8.0, relative: float = 0.3,
+) -> np.ndarray:
+    """Ejection frames: the starts of the activity's strongest bursts, followed from one to the next.
+
+    Printers eject at a steady rate, so when the bursts repeat (:func:`burst_period`) each ejection is
+    searched for one period after the last, within +-10 % of it, from the strongest burst on in both
+    directions: a weak ejection is still found, a strong oscillation peak between two is not taken.
+    Otherwise every burst above ``threshold`` robust sigmas (times sqrt(transient_frames), as it sums
+    that many frames) and ``relative`` times the strongest
+    counts, the strongest kept when two are closer than half the expected period (:data:`MIN_EJECTION_PERIOD_S`
+    when no rate is expected). Returns sorted frame indices, shape (E,), int64.
+    """
+    a = robust_z(activity)
+    z = burst(a, transient_frames)
+    separation = 0.5 * fps / expected_hz if expected_hz else MIN_EJECTION_PERIOD_S * fps
+    period = burst_period(z, max(2, int(separation)))
+    if period is not None:
+        peaks = _follow(z, period, relative, transient_frames)
+    else:
+        height = threshold * np.sqrt(max(transient_frames, 1))  # a sum of that many noise frames reaches sqrt(n) more
+        peaks, found = find_peaks(np.concatenate([[-np.inf], z]), height=height, distance=max(1, int(separation)))
+        # (the leading -inf lets frame 0 be a peak: a recording may start at an ejection)
+        peaks = peaks[found["peak_heights"] >= relative * found["peak_heights"].max()] - 1 if peaks.size else peaks
+    return np.unique([_onset(a, int(p), transient_frames) for p in peaks]).astype(np.int64)
+
+
+def _onset(activity: np.ndarray, peak: int, frames: int) -> int:
+    """First frame in the ``frames`` before a burst peak whose activity reaches half their highest: the
+    moment the droplet starts to leave, not when the oscillation it leaves behind adds the most."""
+    lo = max(peak - frames, 0)
+    span = activity[lo : peak + 1]
+    return lo + int(np.argmax(span >= 0.5 * span.max()))
+
+
+def _follow(bursts: np.ndarray, period: float, relative: float, frames: int) -> np.ndarray:
+    """The strongest burst, then the strongest within +-10 % of one ``period`` from each found one, both ways,
+    while the expected ejection and its ``frames`` of transient lie in the series and the burst found there
+    is at least half ``relative`` times the typical (median) ejection's so far (a pause in printing)."""
+    reach = max(2, int(round(0.1 * period)))
+    found = [int(np.argmax(bursts))]
+    for step in (period, -period):
+        at = float(found[0])
+        while -reach / 2 <= round(at + step) and round(at + step) + frames <= bursts.size:
+            lo, hi = max(int(round(at + step)) - reach, 0), min(int(round(at + step)) + reach + 1, bursts.size)
+            at = lo + int(np.argmax(bursts[lo:hi]))
+            if bursts[at] < 0.5 * relative * np.median(bursts[found]):
+                break
+            found.append(at)
+    return np.unique(np.asarray(found, np.int64))
+
+
+def find_ejections(
+    activity: ArrayLike, fps: float, ejections_file: str | Path | None = None, ejection_hz: float | None = None,
+    transient_frames: int = 6,
+) -> tuple[np.ndarray, str]:
+    """Ejection frames and how they were found: from the printer's file, at its known rate, or detected.
+
+    ``activity`` (N,) is the per-frame activity (:func:`frame_activity` or :func:`series_activity`);
+    it places the phase of a known rate and is where undeclared ejections are detected.
+    """
+    z = np.asarray(activity, dtype=np.float64)
+    if ejections_file is not None:
+        return read_ejections(ejections_file, fps, z.size), f"read from {Path(ejections_file).name}"
+    if ejection_hz is not None:
+        try:
+            return ejections_at_rate(z, fps, ejection_hz, transient_frames), f"every {fps / ejection_hz:.4g} frames, phase from the video"
+        except ValueError as exc:
+            raise MeniscopeError("--ejection-hz", str(exc)) from None
+    return detect_ejections(z, fps, transient_frames=transient_frames), "detected from the video"

@@ -1,0 +1,129 @@
+"""``meniscope analyze`` and ``meniscope fit`` as functions: a recording or a series in, a Report out.
+
+A recording is streamed in chunks (any length fits in memory): each chunk's ROI feeds the video
+activity (ejection detection) and the per-frame inverse method. The window-level ``regularised``
+method then replaces each window's per-frame values by the neighbour candidates its damped
+sinusoid passes through. Every window is fitted by :func:`service.analysis.fit.fit_windows`.
+"""
+from __future__ import annotations
+
+import hashlib
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from service.analysis.fit import fit_windows
+from service.analysis.results import FitSettings, Report, Source
+from service.analysis.segment import Window, find_ejections, frame_activity, frame_steps, series_activity, windows_between
+from service.csvtable import write_columns
+from service.errors import MeniscopeError
+from service.inverse import regularised
+from service.inverse.base import InverseOutput
+from service.inverse.methods import open_method
+from service.inverse.nearest import NearestDatabase
+from service.recordings import open_recording
+from service.recordings.roi import roi_chunks
+from service.scene import Scene
+
+#: Neighbours per frame among which the regularised fit chooses (the paper's 10).
+CANDIDATES = 10
+
+
+@dataclass(frozen=True)
+class Ejections:
+    """How the windows are cut: the printer's file, its rate, or (neither) detection from the data."""
+
+    file: Path | None = None
+    hz: float | None = None
+
+
+@dataclass(frozen=True)
+class Analysis:
+    """A report and the per-frame estimates behind it (``per_frame.coefficients`` (N, 4), ``centre`` (N,) mm)."""
+
+    report: Report
+    per_frame: InverseOutput
+
+
+def file_sha256(path: Path) -> str:
+    """Hex SHA-256 of a file, read in 1 MiB blocks."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def analyse_recording(
+    path: Path, scene: Scene, method: str, models: Path, database: Path | None = None,
+    ejections: Ejections = Ejections(), settings: FitSettings = FitSettings(), progress: bool = True,
+) -> Analysis:
+    """Per-frame inversion of a recording, its windows and one fit per window."""
+    inverse, db = open_method(method, scene, models, database)
+    with open_recording(path) as rec:
+        n, fps = len(rec), rec.fps
+        if n < 2:
+            raise MeniscopeError(path, f"{n} frame(s): a window analysis needs at least 2")
+        coefficients, centre = np.empty((n, 4)), np.empty(n)
+        steps = np.empty(n)
+        candidates = np.empty((n, CANDIDATES), np.int64) if method == "regularised" else None
+        previous = None
+        with tqdm(total=n, unit="frame", desc=f"{method} {path.name}", disable=not progress) as bar:
+            for start, frames in roi_chunks(rec, scene):
+                part = slice(start, start + len(frames))
+                steps[part] = frame_steps(frames, previous)
+                previous = frames[-1]
+                out = inverse.infer(frames)
+                coefficients[part], centre[part] = out.coefficients, out.centre
+                if candidates is not None:
+                    candidates[part] = db.search(frames, k=CANDIDATES, exact=True).index
+                bar.update(len(frames))
+        source = Source(path=str(path), frames=n, fps=fps, width=rec.width, height=rec.height,
+                        sha256=file_sha256(path))
+    cuts, _ = find_ejections(frame_activity(steps), fps, ejections.file, ejections.hz)
+    windows = windows_between(cuts, n)
+    if candidates is not None:
+        coefficients, centre = _regularise(db, candidates, windows, fps, settings, progress)
+    results = fit_windows(centre, fps, windows, settings, progress=progress)
+    report = Report(source=source, method=method, ejections=cuts.tolist(), windows=results, fit=settings)
+    return Analysis(report, InverseOutput(coefficients=coefficients, centre=centre))
+
+
+def _regularise(db: NearestDatabase, candidates: np.ndarray, windows: list[Window], fps: float,
+                settings: FitSettings, progress: bool) -> tuple[np.ndarray, np.ndarray]:
+    """Per frame, the candidate the window's regularised fit chose (the nearest in a window's transient)."""
+    chosen = candidates[:, 0].copy()
+    skip = settings.transient_frames(fps)
+    for w in tqdm(windows, desc="regularised fit", unit="window", disable=not progress):
+        lo = w.start + (skip if w.starts_at_ejection else 0)
+        if w.end - lo < 4:  # too short to fit a sinusoid: keep the nearest
+            continue
+        fit = regularised.fit_window(db.centre[candidates[lo:w.end]], fps)
+        chosen[lo:w.end] = candidates[np.arange(lo, w.end), fit.chosen]
+    return db.coeffs[chosen], db.centre[chosen]
+
+
+def analyse_series(
+    values: np.ndarray, fps: float, source: Source, ejections: Ejections = Ejections(),
+    settings: FitSettings = FitSettings(), progress: bool = True,
+) -> Report:
+    """The window fit alone on a displacement series (mm per frame, NaN missing); one window without ejections."""
+    if ejections.file is None and ejections.hz is None:
+        cuts = np.empty(0, np.int64)
+    else:
+        cuts, _ = find_ejections(series_activity(values), fps, ejections.file, ejections.hz)
+    results = fit_windows(values, fps, windows_between(cuts, len(values)), settings, progress=progress)
+    return Report(source=source, method="series", ejections=cuts.tolist(), windows=results, fit=settings)
+
+
+#: Columns of the per-frame CSV that ``meniscope analyze`` writes beside its report.
+PER_FRAME_COLUMNS = ("frame", "t_s", "d_mm", "p", "a_mm", "b_mm", "centre_mm")
+
+
+def write_per_frame(path: Path, per_frame: InverseOutput, fps: float) -> Path:
+    """One row per frame: index, time (s) since frame 0, d, p, a, b and D(0, t) (mm)."""
+    n = len(per_frame.centre)
+    return write_columns(path, PER_FRAME_COLUMNS, [np.arange(n), np.arange(n) / fps, *per_frame.coefficients.T,
+                                                   per_frame.centre], "per-frame table")

@@ -1,0 +1,50 @@
+"""The inverse methods by name, as settings, REPORT.json and benchmarks call them, and how each is opened.
+
+- ``network``: VAE encoder + regressor (ONNX), the fast default;
+- ``direct``: the CNN trained end to end on renders (ONNX), the paper's counter-example;
+- ``nearest`` / ``nearest-approx``: the nearest render of a database, exact or PCA + FLANN search;
+- ``regularised``: the 10 nearest renders of each frame, one damped sinusoid through them per window
+  (a window-level method: :mod:`service.analysis.offline` runs it once the windows are known).
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+from service.errors import MeniscopeError
+from service.inverse.base import InverseMethod
+from service.inverse.nearest import NearestDatabase, NearestMethod
+from service.inverse.network import NetworkMethod
+from service.scene import Scene
+
+METHODS = ("network", "direct", "nearest", "nearest-approx", "regularised")
+#: Methods that need a render database (``meniscope dataset``).
+DATABASE_METHODS = ("nearest", "nearest-approx", "regularised")
+#: Where a model folder keeps its database when it has one.
+DATABASE_DIR = "database"
+
+
+def database_folder(models: Path, database: Path | None) -> Path:
+    """The database a nearest-neighbour method searches: ``database`` if given, else MODELS/database."""
+    folder = database if database is not None else models / DATABASE_DIR
+    if not folder.is_dir():
+        raise MeniscopeError(folder, "no render database there: build one with `meniscope dataset --out "
+                                     f"{folder}` or name one with --database")
+    return folder
+
+
+def open_method(name: str, scene: Scene, models: Path, database: Path | None = None,
+                threads: int = 2, batch: int = 64) -> tuple[InverseMethod, NearestDatabase | None]:
+    """The per-frame method behind ``name`` and, for the nearest-neighbour ones, its database.
+
+    ``regularised`` returns the exact nearest method (its per-frame fallback) with the database
+    whose candidates the window fit chooses among.
+    """
+    if name not in METHODS:
+        raise MeniscopeError("--method", f"unknown method {name!r}; choose one of {', '.join(METHODS)}")
+    if name not in DATABASE_METHODS:
+        return NetworkMethod(models, scene, name, threads=threads, batch=batch), None
+    db = NearestDatabase.load(database_folder(models, database))
+    if db.shape != (scene.camera.height_px, scene.camera.width_px):
+        raise MeniscopeError(database_folder(models, database), f"renders of {db.shape[1]}x{db.shape[0]} px do "
+                             f"not match the scene's ROI {scene.camera.width_px}x{scene.camera.height_px}")
+    return NearestMethod(db, exact=name != "nearest-approx"), db

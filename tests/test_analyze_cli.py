@@ -1,0 +1,118 @@
+"""`meniscope analyze` and `meniscope fit` as users run them: real recordings from `meniscope simulate`, the
+shipped models, REPORT.json in the layout of shared/spec/cli.md, one-line errors for bad input."""
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from service.analysis.results import Report
+from service.analysis.score import ejection_matches, load_truth, truth_centre
+from service.csvtable import read_columns
+from service.simulate import truth_path
+
+REPORT_KEYS = {"schema", "source", "method", "ejections", "windows"}
+WINDOW_KEYS = {"index", "start_frame", "end_frame", "status", "reason", "modes", "offset_mm", "settling_time_s",
+               "settled", "r2"}
+MODE_KEYS = {"frequency_hz", "decay_rate_per_s", "amplitude_mm", "phase_rad", "frequency_ci_hz", "decay_rate_ci_per_s"}
+
+
+def meniscope(*args: str | Path) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "service.cli", *map(str, args)], capture_output=True, text=True,
+                          timeout=600)
+
+
+@pytest.fixture(scope="module")
+def recording(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """Four windows at 19,000 frames/s, lab noise: 760 frames."""
+    out = tmp_path_factory.mktemp("rec") / "rec.cine"
+    done = meniscope("simulate", "--out", out, "--windows", "4", "--seed", "11")
+    assert done.returncode == 0, done.stderr
+    return out
+
+
+def check_layout(path: Path) -> dict:
+    """REPORT.json as cli.md lays it out: its keys, plain finite numbers (json refuses NaN here)."""
+    data = json.loads(path.read_text(), parse_constant=lambda c: pytest.fail(f"{path} holds {c}"))
+    assert REPORT_KEYS <= data.keys() and data["schema"] == "meniscope.report/1"
+    for w in data["windows"]:
+        assert WINDOW_KEYS <= w.keys()
+        assert all(MODE_KEYS <= m.keys() for m in w["modes"])
+    Report.load(path)
+    return data
+
+
+@pytest.mark.parametrize("method", ["network", "direct"])
+def test_analyze_writes_the_report_the_table_and_the_plot(recording: Path, tmp_path: Path, method: str):
+    out = tmp_path / "report.json"
+    done = meniscope("analyze", recording, "--method", method, "--out", out, "--quiet")
+    assert done.returncode == 0, done.stderr
+    data = check_layout(out)
+    truth = load_truth(truth_path(recording))
+    assert data["method"] == method and data["source"]["frames"] == 760 and data["source"]["fps"] == 19000
+    assert ejection_matches(np.array(data["ejections"]), np.array(truth["ejections"])) == (4, 4, 4)
+    table = read_columns(out.with_suffix(".frames.csv"), ("frame", "t_s", "d_mm", "p", "a_mm", "b_mm", "centre_mm"))
+    assert table.shape == (760, 7) and np.array_equal(table[:, 0], np.arange(760))
+    # the per-frame D(0, t) follows the truth (how closely is the inverse method's business: see the bench)
+    assert np.corrcoef(table[:, 6], truth_centre(truth))[0, 1] > 0.5
+    assert out.with_suffix(".png").stat().st_size > 10_000
+
+
+def test_analyze_at_a_known_rate_and_from_the_printers_file(recording: Path, tmp_path: Path):
+    listed = tmp_path / "ejections.txt"
+    listed.write_text("0\n190\n380\n570\n")
+    for option in (("--ejection-hz", "100"), ("--ejections", listed)):
+        out = tmp_path / "r.json"
+        done = meniscope("analyze", recording, *option, "--out", out, "--quiet")
+        assert done.returncode == 0, done.stderr
+        assert json.loads(out.read_text())["ejections"] == [0, 190, 380, 570]
+
+
+def test_fit_recovers_the_true_motion_of_every_window(recording: Path, tmp_path: Path):
+    truth = load_truth(truth_path(recording))
+    series = tmp_path / "series.csv"
+    values = truth_centre(truth)
+    values[[300, 301, 650]] = np.nan  # missing samples: empty cells
+    series.write_text("value\n" + "\n".join("" if np.isnan(v) else f"{v:.12g}" for v in values) + "\n")
+    out = tmp_path / "fit.json"
+    done = meniscope("fit", series, "--fps", "19000", "--ejection-hz", "100", "--out", out, "--quiet")
+    assert done.returncode == 0, done.stderr
+    data = check_layout(out)
+    assert data["ejections"] == truth["ejections"]
+    for w, tw in zip(data["windows"], truth["windows"]):
+        assert w["status"] == "ok" and w["modes"][0]["frequency_hz"] == pytest.approx(tw["truth"]["f1"], rel=1e-4)
+        assert w["modes"][0]["decay_rate_per_s"] == pytest.approx(tw["truth"]["g1"], rel=1e-3)
+        assert w["offset_mm"] == pytest.approx(tw["offset_mm"], abs=1e-7)
+    whole = meniscope("fit", series, "--fps", "19000", "--out", tmp_path / "one.json", "--quiet")
+    assert whole.returncode == 0 and len(json.loads((tmp_path / "one.json").read_text())["windows"]) == 1
+
+
+@pytest.mark.parametrize("verb_args, names", [
+    (("analyze", "missing.cine"), "missing.cine"),
+    (("fit", "missing.csv", "--fps", "19000"), "missing.csv"),
+    (("fit", "SERIES", "--fps", "-3"), "--fps"),
+    (("fit", "SERIES", "--fps", "19000", "--ejections", "nowhere.txt"), "nowhere.txt"),
+    (("analyze", "REC", "--method", "nearest", "--database", "nodb"), "nodb"),
+    (("analyze", "REC", "--models", "nomodels"), "nomodels"),
+])
+def test_bad_input_is_one_line_naming_the_culprit(recording: Path, tmp_path: Path, verb_args, names):
+    series = tmp_path / "s.csv"
+    series.write_text("value\n1\n2\n3\n")
+    args = [{"SERIES": series, "REC": recording}.get(a, a) for a in verb_args]
+    out = tmp_path / "out.json"
+    out.write_text("kept")
+    done = meniscope(*args, "--out", out, "--quiet")
+    assert done.returncode == 2 and "Traceback" not in done.stderr
+    assert len(done.stderr.strip().splitlines()) == 1 and names in done.stderr
+    assert out.read_text() == "kept"  # nothing already recorded is lost
+
+
+def test_a_csv_without_the_column_is_refused(tmp_path: Path):
+    series = tmp_path / "s.csv"
+    series.write_text("displacement\n1\n")
+    done = meniscope("fit", series, "--fps", "100", "--out", tmp_path / "f.json")
+    assert done.returncode == 2 and "value" in done.stderr and "s.csv" in done.stderr

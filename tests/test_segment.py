@@ -1,0 +1,102 @@
+"""Segmentation: ejections read from the printer's file, placed at its rate, or detected from the video."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from service.analysis.score import ejection_matches
+from service.analysis.segment import (
+    burst_period, detect_ejections, ejections_at_rate, read_ejections, robust_z, windows_between,
+)
+from service.errors import MeniscopeError
+
+FPS = 19000.0
+
+
+def activity(ejections: np.ndarray, n: int, seed: int, strengths: np.ndarray | None = None,
+             tail: int = 150) -> np.ndarray:
+    """Frame activity as a video gives it: noise, an ejection's out-and-back double burst, then for ``tail``
+    frames a decaying oscillation's flicker about half as strong (single frames rival the weakest ejections)."""
+    rng = np.random.default_rng(seed)
+    a = np.abs(rng.normal(1.0, 0.2, n))
+    strengths = rng.uniform(60, 100, ejections.size) if strengths is None else strengths  # bulges 0.06-0.1 mm
+    for e, s in zip(ejections, strengths):
+        burst = s * np.array([1.0, 0.2, 0.05, 0.3, 0.8, 0.5])
+        a[e : e + 6] += burst[: max(0, min(6, n - e))]
+        frames = np.arange(e + 6, min(e + tail, n))
+        a[frames] += 0.5 * s * np.exp(-(frames - e) / 40) * np.abs(np.sin(0.4 * (frames - e)))
+    return a
+
+
+def test_windows_run_from_each_ejection_to_the_next():
+    w = windows_between([10, 50], 100)
+    assert [(x.start, x.end, x.starts_at_ejection, x.ends_at_ejection) for x in w] == [
+        (0, 10, False, True), (10, 50, True, True), (50, 100, True, False)]
+    assert [(x.start, x.end) for x in windows_between([], 7)] == [(0, 7)]
+    assert [(x.start, x.end) for x in windows_between([0], 7)] == [(0, 7)]
+    with pytest.raises(ValueError):
+        windows_between([7], 7)
+
+
+@settings(max_examples=40, deadline=None)
+@given(period=st.floats(80, 400), phase=st.integers(0, 59), windows=st.integers(3, 30), seed=st.integers(0, 1000),
+       jitter=st.integers(0, 2))
+def test_periodic_ejections_are_all_found_and_nothing_else(period, phase, windows, seed, jitter):
+    rng = np.random.default_rng(seed)
+    true = np.round(phase + period * np.arange(windows)).astype(int) + rng.integers(-jitter, jitter + 1, windows)
+    true = np.clip(true, 0, None)
+    n = int(true[-1] + period)
+    found = detect_ejections(activity(true, n, seed, tail=int(0.8 * period)), FPS)
+    hits, n_found, n_true = ejection_matches(found, true)
+    assert hits == n_true == n_found, (found, true)
+
+
+def test_irregular_ejections_are_found_above_the_threshold():
+    true = np.array([30, 400, 520, 1100, 1500])
+    found = detect_ejections(activity(true, 1800, 3, np.array([80, 90, 70, 85, 95])), FPS)
+    assert ejection_matches(found, true) == (5, 5, 5)
+
+
+def test_a_quiet_series_has_no_ejections():
+    assert detect_ejections(np.abs(np.random.default_rng(0).normal(1, 0.2, 3000)), FPS).size == 0
+    assert detect_ejections(np.zeros(100), FPS).size == 0
+
+
+def test_a_known_rate_takes_its_phase_from_the_bursts():
+    true = 17 + np.round(190.0 * np.arange(10)).astype(int)
+    assert np.array_equal(ejections_at_rate(activity(true, 1900, 1), FPS, 100.0), true)
+    with pytest.raises(ValueError):
+        ejections_at_rate(np.zeros(100), FPS, 15000.0)
+
+
+def test_the_period_of_bursts_is_measured_to_a_fraction_of_a_frame():
+    true = np.round(190.4 * np.arange(30)).astype(int)
+    z = activity(true, 30 * 191, 2)
+    from service.analysis.segment import burst
+
+    assert burst_period(burst(robust_z(z), 6), 38) == pytest.approx(190.4, abs=0.3)
+
+
+def test_ejection_files_in_frames_and_in_seconds(tmp_path: Path):
+    frames = tmp_path / "e.txt"
+    frames.write_text("# printer log\n10\n200 # second\n\n390\n")
+    assert read_ejections(frames, FPS, 1000).tolist() == [10, 200, 390]
+    times = tmp_path / "t.csv"
+    times.write_text("time_s,nozzle\n0.001,1\n0.011,1\n")
+    assert read_ejections(times, FPS, 1000).tolist() == [19, 209]
+
+
+@pytest.mark.parametrize("text, message", [
+    ("", "no ejections"), ("10\nabc\n", "line 2"), ("10\n10\n", "same frame"), ("5000\n", "beyond the series"),
+    ("1.5\n", "whole frame"), ("-3\n", "non-negative"),
+])
+def test_bad_ejection_files_are_one_clear_error(tmp_path: Path, text: str, message: str):
+    path = tmp_path / "bad.txt"
+    path.write_text(text)
+    with pytest.raises(MeniscopeError, match=message) as err:
+        read_ejections(path, FPS, 1000)
+    assert "bad.txt" in str(err.value)
