@@ -35,6 +35,8 @@ def plot_report(report: Report, centre_mm: np.ndarray, path: Path, truth_mm: np.
         curve = model_curve(w, (frames - w.start_frame) / fps)
         modes = ", ".join(f"{m.frequency_hz:.0f} Hz / {m.decay_rate_per_s:.0f} s⁻¹" for m in w.modes[:1])
         ax.plot(frames / fps * 1e3, curve, "-", lw=1.4, color=_COLOURS[w.status])
+        if w.end_frame - w.start_frame < 0.5 * end / len(windows):
+            continue  # a sliver before the first ejection: no room for a label
         ax.annotate(f"{w.status}\n{modes}", (w.start_frame / fps * 1e3, 1.0), xycoords=("data", "axes fraction"),
                     va="top", fontsize=7, color=_COLOURS[w.status])
     for e in report.ejections:

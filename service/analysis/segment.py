@@ -132,11 +132,16 @@ def frame_steps(frames: np.ndarray, previous: np.ndarray | None = None) -> np.nd
 
 
 def frame_activity(steps: ArrayLike) -> np.ndarray:
-    """Robust z-score of :func:`frame_steps` (shape (N,)); a NaN step (frame 0) gets the median, z = 0."""
-    steps = np.asarray(steps, dtype=np.float64)
+    """Robust z-score of :func:`frame_steps` (shape (N,)).
+
+    Frame 0 has no predecessor: it gets frame 1's change, so that a recording that starts at an
+    ejection has it at frame 0, not 1. Other NaN steps get the median (z = 0).
+    """
+    steps = np.array(steps, dtype=np.float64)
+    if steps.size > 1 and not np.isfinite(steps[0]):
+        steps[0] = steps[1]
     finite = np.isfinite(steps)
-    filled = np.where(finite, steps, np.median(steps[finite]) if finite.any() else 0.0)
-    return robust_z(filled)
+    return robust_z(np.where(finite, steps, np.median(steps[finite]) if finite.any() else 0.0))
 
 
 def burst(activity: ArrayLike, frames: int) -> np.ndarray:
