@@ -48,3 +48,26 @@ def metric_names_in(expr: str) -> set[str]:
 def rule_names_in(expr: str) -> set[str]:
     """The recording rules (level:metric:operations, the only names with colons) a PromQL expression reads."""
     return set(re.findall(r"(?<![\w:\"])[a-zA-Z_]\w*(?::\w+)+", expr))
+
+
+def missing_from(exposition: str, contract: dict[str, Metric] | None = None) -> list[str]:
+    """What a /metrics text lacks of the contract: absent metrics, wrong types, label values not exported.
+
+    Label values must be there from the start (children created at 0), so rates see their first increment.
+    """
+    from prometheus_client.parser import text_string_to_metric_families
+
+    contract = load_contract() if contract is None else contract
+    families = {f.name: f for f in text_string_to_metric_families(exposition)}
+    problems = []
+    for m in contract.values():
+        family = families.get(m.name.removesuffix("_total") if m.kind == "counter" else m.name)
+        if family is None:
+            problems.append(f"{m.name}: not exported")
+        elif family.type != m.kind:
+            problems.append(f"{m.name}: a {family.type}, not a {m.kind}")
+        else:
+            for label, values in m.labels.items():
+                seen = {s.labels.get(label) for s in family.samples}
+                problems += [f"{m.name}: no series with {label}={v!r}" for v in values if v not in seen]
+    return problems
