@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import hashlib
 import json
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import Future
 from dataclasses import dataclass
 from datetime import datetime, timezone
 from importlib.metadata import version
@@ -35,6 +35,7 @@ from service.jsonfile import read_schema_json
 from service.physics import CoefficientRanges, centre_displacement
 from service.render import Renderer
 from service.scene import Scene
+from training.engine import Engine, open_engine
 
 SCHEMA = "meniscope.dataset/1"
 #: Bumped whenever the same config would produce different files.
@@ -125,21 +126,16 @@ def generate_chunk(config: DatasetConfig, chunk_index: int) -> tuple[np.ndarray,
     return frames, coeffs, centre
 
 
-def _chunks(config: DatasetConfig, workers: int) -> Iterator[tuple[int, tuple[np.ndarray, np.ndarray, np.ndarray]]]:
-    """(chunk index, chunk) pairs in order, computed by ``workers`` processes (at most 2 per worker in flight)."""
-    if workers == 1:
-        for k in range(config.chunks):
-            yield k, generate_chunk(config, k)
-        return
-    with ProcessPoolExecutor(max_workers=workers) as pool:
-        pending: dict[int, Any] = {}
-        for k in range(config.chunks):
-            pending[k] = pool.submit(generate_chunk, config, k)
-            if len(pending) >= 2 * workers:
-                first = min(pending)
-                yield first, pending.pop(first).result()
-        for k in sorted(pending):
-            yield k, pending.pop(k).result()
+def _chunks(config: DatasetConfig, engine: Engine) -> Iterator[tuple[int, tuple[np.ndarray, np.ndarray, np.ndarray]]]:
+    """(chunk index, chunk) pairs in order, computed by ``engine`` (at most 2 chunks per slot in flight)."""
+    pending: dict[int, Future] = {}
+    for k in range(config.chunks):
+        pending[k] = engine.executor.submit(generate_chunk, config, k)
+        if len(pending) >= 2 * engine.slots:
+            first = min(pending)
+            yield first, pending.pop(first).result()
+    for k in sorted(pending):
+        yield k, pending.pop(k).result()
 
 
 def _sha256(path: Path) -> str:
@@ -150,16 +146,22 @@ def _sha256(path: Path) -> str:
     return digest.hexdigest()
 
 
-def generate(config: DatasetConfig, out: str | Path, workers: int = 1) -> dict[str, Any]:
-    """Write the dataset folder ``out`` (new or empty) with ``workers`` processes; returns the manifest.
+def generate(config: DatasetConfig, out: str | Path, workers: int = 1, scheduler: str | None = None) -> dict[str, Any]:
+    """Write the dataset folder ``out`` (new or empty) with ``workers`` local processes, or on the Dask
+    cluster whose scheduler is at ``scheduler`` (``tcp://host:8786``); returns the manifest. The files are
+    the same, byte for byte, whichever runs the chunks.
 
     On any failure the files written so far are removed, so a folder with a manifest is complete.
     """
     out = Path(out)
-    if workers < 1:
-        raise MeniscopeError("--workers", f"must be at least 1, got {workers}")
     if out.exists() and (not out.is_dir() or any(out.iterdir())):
         raise MeniscopeError(out, "exists and is not an empty folder: choose a new one")
+    with open_engine(workers, scheduler) as engine:
+        return _write(config, out, engine)
+
+
+def _write(config: DatasetConfig, out: Path, engine: Engine) -> dict[str, Any]:
+    """The body of :func:`generate`, once ``out`` is checked and ``engine`` open."""
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
@@ -170,7 +172,7 @@ def generate(config: DatasetConfig, out: str | Path, workers: int = 1) -> dict[s
         coeffs = np.empty((config.samples, 4), np.float32)
         centre = np.empty(config.samples, np.float32)
         with tqdm(total=config.samples, unit="frame", desc=f"dataset {out.name}", disable=None) as bar:
-            for k, (f, c, z) in _chunks(config, workers):
+            for k, (f, c, z) in _chunks(config, engine):
                 part = config.chunk_slice(k)
                 frames[part], coeffs[part], centre[part] = f, c, z
                 bar.update(len(f))

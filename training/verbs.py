@@ -23,6 +23,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=int, default=0, help="seed (default 0); the files do not depend on --workers")
     p.add_argument("--workers", type=int, default=os.cpu_count() or 1,
                    help="processes rendering chunks (default: one per CPU core)")
+    p.add_argument("--scheduler", metavar="ADDRESS",
+                   help="render the chunks on the Dask cluster of this scheduler (tcp://host:8786) instead of local "
+                   "processes; needs the scale extra here and meniscope on every worker")
     p.add_argument("--chunk-size", type=int, default=2048, help="frames per chunk and per jittered scene (default 2048)")
     p.add_argument("--bit-depth", type=int, default=8, help="stored bits: 8 (uint8) or 10, 12, 16 (uint16); default 8")
     p.set_defaults(func=run)
@@ -81,7 +84,7 @@ def run(args: argparse.Namespace) -> int:
     except ValidationError as exc:
         err = exc.errors()[0]
         raise MeniscopeError(f"--{str(err['loc'][0]).replace('_', '-')}", f"{err['msg']}, got {err['input']!r}") from None
-    manifest = generate(config, args.out, workers=args.workers)
+    manifest = generate(config, args.out, workers=args.workers, scheduler=args.scheduler)
     frames = manifest["frames"]
     print(f"{args.out}: {manifest['samples']} frames {frames['dtype']} {frames['shape'][1]}x{frames['shape'][2]} "
           f"in {manifest['chunks']} chunks")
