@@ -116,3 +116,18 @@ def test_a_csv_without_the_column_is_refused(tmp_path: Path):
     series.write_text("displacement\n1\n")
     done = meniscope("fit", series, "--fps", "100", "--out", tmp_path / "f.json")
     assert done.returncode == 2 and "value" in done.stderr and "s.csv" in done.stderr
+
+
+def test_the_benchmarks_score_against_truth_and_harminv(recording: Path, tmp_path: Path):
+    out = tmp_path / "fit.json"
+    done = meniscope("bench", "fit", "--windows", "5", "--noise-mm", "0,0.001", "--out", out)
+    assert done.returncode == 0, done.stderr
+    levels = json.loads(out.read_text())["levels"]
+    assert [lv["noise_mm"] for lv in levels] == [0, 0.001]
+    assert levels[0]["methods"]["ours"]["found"] == 5 and levels[0]["methods"]["ours"]["frequency_error_median"] < 1e-9
+    out = tmp_path / "analysis.json"
+    done = meniscope("bench", "analysis", "--recordings", recording.parent, "--methods", "direct", "--out", out)
+    assert done.returncode == 0, done.stderr
+    figures = json.loads(out.read_text())["methods"]["direct"]["lab"]
+    assert figures["recall"] == figures["precision"] == 1.0 and figures["frames_per_s"] > 0
+    assert "| direct | lab |" in out.with_suffix(".md").read_text()
