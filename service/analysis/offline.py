@@ -20,7 +20,7 @@ from service.analysis.segment import Window, find_ejections, frame_activity, fra
 from service.csvtable import write_columns
 from service.errors import MeniscopeError
 from service.inverse import regularised
-from service.inverse.base import InverseOutput
+from service.inverse.base import InverseMethod, InverseOutput
 from service.inverse.methods import open_method
 from service.inverse.nearest import NearestDatabase
 from service.recordings import open_recording
@@ -59,9 +59,14 @@ def file_sha256(path: Path) -> str:
 def analyse_recording(
     path: Path, scene: Scene, method: str, models: Path, database: Path | None = None,
     ejections: Ejections = Ejections(), settings: FitSettings = FitSettings(), progress: bool = True,
+    opened: tuple[InverseMethod, NearestDatabase | None] | None = None,
 ) -> Analysis:
-    """Per-frame inversion of a recording, its windows and one fit per window."""
-    inverse, db = open_method(method, scene, models, database)
+    """Per-frame inversion of a recording, its windows and one fit per window.
+
+    ``opened``: the method and database :func:`open_method` returned, when analysing several
+    recordings with one (they are opened here otherwise).
+    """
+    inverse, db = opened or open_method(method, scene, models, database)
     with open_recording(path) as rec:
         n, fps = len(rec), rec.fps
         if n < 2:

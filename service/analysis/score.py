@@ -13,6 +13,7 @@ from typing import Any
 import numpy as np
 
 from service.analysis.results import Report
+from service.inverse.base import InverseOutput
 from service.jsonfile import read_schema_json
 from service.physics import WindowTruth
 from service.simulate import SCHEMA as TRUTH_SCHEMA
@@ -23,18 +24,23 @@ def load_truth(path: str | Path) -> dict[str, Any]:
     return read_schema_json(Path(path), TRUTH_SCHEMA, "no ground truth beside the recording (`meniscope simulate` writes one)")
 
 
-def truth_centre(truth: dict[str, Any]) -> np.ndarray:
-    """True D(0, t) (mm) of every frame of the recording, shape (frames,), transients included."""
-    fps, radius = truth["recording"]["fps"], truth["scene"]["nozzle"]["radius_mm"]
-    centre = np.full(truth["recording"]["frames"], np.nan)
+def truth_coefficients(truth: dict[str, Any]) -> np.ndarray:
+    """True d, p, a, b (Eq. 1) of every frame of the recording, shape (frames, 4), transients included."""
+    fps = truth["recording"]["fps"]
+    coeffs = np.full((truth["recording"]["frames"], 4), np.nan)
+    transient = truth["transient"]["frames"]
     for w in truth["windows"]:
         frames = np.arange(w["start_frame"], w["end_frame"])
-        t = (frames - w["start_frame"]) / fps
-        centre[frames] = WindowTruth(**w["truth"]).coefficients(t).centre(radius)
+        coeffs[frames] = WindowTruth(**w["truth"]).coefficients((frames - w["start_frame"]) / fps).to_array()
         bulge = frames < w["oscillation_start_frame"]
-        transient = truth["transient"]["frames"]
-        centre[frames[bulge]] += w["bulge_mm"] * np.sin(np.pi * (frames[bulge] - w["start_frame"] + 0.5) / transient)
-    return centre
+        coeffs[frames[bulge], 2] += w["bulge_mm"] * np.sin(np.pi * (frames[bulge] - w["start_frame"] + 0.5) / transient)
+    return coeffs
+
+
+def truth_centre(truth: dict[str, Any]) -> np.ndarray:
+    """True D(0, t) = d + p R + a + b (mm) of every frame, shape (frames,)."""
+    d, p, a, b = truth_coefficients(truth).T
+    return d + p * truth["scene"]["nozzle"]["radius_mm"] + a + b
 
 
 def ejection_matches(found: np.ndarray, true: np.ndarray, tolerance: int = 2) -> tuple[int, int, int]:
@@ -74,9 +80,10 @@ def window_errors(report: Report, truth: dict[str, Any]) -> dict[str, np.ndarray
     return out
 
 
-def summary(report: Report, truth: dict[str, Any], centre_mm: np.ndarray | None = None) -> dict[str, Any]:
+def summary(report: Report, truth: dict[str, Any], per_frame: InverseOutput | None = None) -> dict[str, Any]:
     """Medians and 90th percentiles of :func:`window_errors`, segmentation precision and recall (+-2 frames),
-    and with ``centre_mm`` (N,) the per-frame D(0, t) RMSE and correlation outside the transients."""
+    and with the ``per_frame`` estimates the RMSE of each coefficient and of D(0, t), and the correlation
+    of D(0, t), outside the transients."""
     errors = window_errors(report, truth)
     hits, found, true = ejection_matches(np.array(report.ejections), np.array(truth["ejections"]))
     out: dict[str, Any] = {
@@ -89,12 +96,15 @@ def summary(report: Report, truth: dict[str, Any], centre_mm: np.ndarray | None 
         finite = values[np.isfinite(values)]
         out[f"{key}_median"] = float(np.median(finite)) if finite.size else None
         out[f"{key}_p90"] = float(np.percentile(finite, 90)) if finite.size else None
-    if centre_mm is not None:
+    if per_frame is not None:
+        true_coeffs = truth_coefficients(truth)
         true_centre = truth_centre(truth)
         keep = np.ones(true_centre.size, bool)
         for w in truth["windows"]:
             keep[w["start_frame"] : w["oscillation_start_frame"]] = False
-        err = centre_mm[keep] - true_centre[keep]
+        err = per_frame.centre[keep] - true_centre[keep]
         out["centre_rmse_mm"] = float(np.sqrt(np.mean(err**2)))
-        out["centre_correlation"] = float(np.corrcoef(centre_mm[keep], true_centre[keep])[0, 1])
+        out["centre_correlation"] = float(np.corrcoef(per_frame.centre[keep], true_centre[keep])[0, 1])
+        rmse = np.sqrt(np.mean((per_frame.coefficients[keep] - true_coeffs[keep]) ** 2, axis=0))
+        out.update({f"{name}_rmse": float(v) for name, v in zip(("d_mm", "p", "a_mm", "b_mm"), rmse)})
     return out

@@ -1,16 +1,20 @@
 """``meniscope bench analysis``: every inverse method through the whole analysis, on the same simulated
 recordings, scored against their truth (the accuracy figures of the analysis issue) and timed.
 
-Per method and noise level: frames/s end to end from the file (inversion, segmentation, fits),
-segmentation precision and recall (+-2 frames), median and 90th-percentile relative errors of the
-dominant frequency, decay rate and amplitude, offset error (mm), and per-frame D(0, t) RMSE and
-correlation. Recordings are every ``*.cine``/``*.avi`` with a ``.truth.json`` in ``--recordings``.
+Per method and noise level: frames/s end to end from the file (inversion, segmentation, fits;
+the method's one-time setup, such as indexing a database, apart), segmentation precision and
+recall (+-2 frames), median and 90th-percentile relative errors of the dominant frequency, decay
+rate and amplitude, offset error (mm), per-frame RMSE of D(0, t) and of the coefficients, D(0, t)
+correlation, and the peak memory of the process that ran the method. Recordings are every ``*.cine``/``*.avi`` with a ``.truth.json`` in ``--recordings``.
 """
 from __future__ import annotations
 
 import argparse
 import json
+import multiprocessing
+import resource
 import time
+from concurrent.futures import ProcessPoolExecutor
 from collections import defaultdict
 from pathlib import Path
 
@@ -21,7 +25,7 @@ from service.analysis.offline import analyse_recording
 from service.analysis.score import load_truth, summary
 from service.cli import add_scene_option
 from service.errors import MeniscopeError, require_folder_of
-from service.inverse.methods import DATABASE_METHODS, METHODS
+from service.inverse.methods import DATABASE_METHODS, METHODS, open_method
 from service.scene import Scene
 from service.simulate import truth_path
 
@@ -32,6 +36,8 @@ COLUMNS = (
     ("decay_median", "decay err. median", ".1%"), ("decay_p90", "p90", ".1%"),
     ("amplitude_median", "ampl. err. median", ".1%"), ("offset_mm_median", "offset err. median (um)", "um"),
     ("centre_rmse_mm", "D(0,t) RMSE (um)", "um"), ("centre_correlation", "D(0,t) corr.", ".3f"),
+    ("a_mm_rmse", "a RMSE (um)", "um"), ("b_mm_rmse", "b RMSE (um)", "um"), ("p_rmse", "p RMSE", ".3f"),
+    ("peak_memory_mb", "peak MB", ".0f"),
 )
 
 
@@ -55,24 +61,29 @@ def recordings_in(folder: Path) -> list[Path]:
     return found
 
 
-def run_method(method: str, recordings: list[Path], scene: Scene, models: Path, database: Path | None) -> list[dict]:
-    """One row per recording: its noise preset, wall time, frames and :func:`summary` figures."""
+def run_method(method: str, recordings: list[Path], scene: Scene, models: Path, database: Path | None) -> dict:
+    """Open ``method`` once (timed), then one row per recording: noise preset, wall time, frames and
+    :func:`summary` figures; with this process's peak resident memory. Run in a fresh process per method."""
+    start = time.perf_counter()
+    opened = open_method(method, scene, models, database)
+    setup_s = time.perf_counter() - start
     rows = []
     for path in recordings:
         truth = load_truth(truth_path(path))
         start = time.perf_counter()
-        analysis = analyse_recording(path, scene, method, models, database, progress=False)
+        analysis = analyse_recording(path, scene, method, models, database, progress=False, opened=opened)
         seconds = time.perf_counter() - start
         rows.append({"recording": path.name, "noise": truth.get("noise"), "seconds": seconds,
-                     "frames": analysis.report.source.frames,
-                     **summary(analysis.report, truth, analysis.per_frame.centre)})
-    return rows
+                     "frames": analysis.report.source.frames, "windows_fitted": len(analysis.report.windows),
+                     **summary(analysis.report, truth, analysis.per_frame)})
+    peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    return {"setup_s": setup_s, "peak_memory_mb": peak_mb, "rows": rows}
 
 
 def aggregate(rows: list[dict]) -> dict:
     """Means over recordings of each summary figure (None where no recording had it); frames/s overall."""
     out = {"recordings": len(rows), "frames_per_s": sum(r["frames"] for r in rows) / sum(r["seconds"] for r in rows)}
-    for key, _, _ in COLUMNS[1:]:
+    for key, _, _ in COLUMNS[1:-1]:  # peak memory is the method's, not per recording
         values = [r[key] for r in rows if r.get(key) is not None]
         out[key] = float(np.mean(values)) if values else None
     return out
@@ -104,14 +115,20 @@ def run(args: argparse.Namespace) -> int:
     recordings = recordings_in(args.recordings)
     scene = Scene.load(args.scene)
     results: dict = {"recordings": [p.name for p in recordings], "methods": {}, "per_recording": {}}
+    context = multiprocessing.get_context("spawn")  # a fresh process per method: its own peak memory
     for method in methods:
-        rows = run_method(method, recordings, scene, args.models, args.database)
+        with ProcessPoolExecutor(1, mp_context=context) as pool:
+            measured = pool.submit(run_method, method, recordings, scene, args.models, args.database).result()
+        rows = measured["rows"]
         by_noise = defaultdict(list)
         for r in rows:
             by_noise[r["noise"] or "unknown"].append(r)
         results["per_recording"][method] = rows
-        results["methods"][method] = {noise: aggregate(group) for noise, group in sorted(by_noise.items())}
-        print(f"{method}: done ({len(rows)} recordings)")
+        results["methods"][method] = {
+            noise: {**aggregate(group), "setup_s": measured["setup_s"], "peak_memory_mb": measured["peak_memory_mb"]}
+            for noise, group in sorted(by_noise.items())}
+        print(f"{method}: done ({len(rows)} recordings, setup {measured['setup_s']:.1f} s, "
+              f"peak {measured['peak_memory_mb']:.0f} MB)")
     args.out.write_text(json.dumps(results, indent=2, allow_nan=False) + "\n")
     table = markdown(results)
     args.out.with_suffix(".md").write_text(table)
