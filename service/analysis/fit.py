@@ -194,7 +194,8 @@ class _Window:
             return last["r"], last["j"]
 
         # MINPACK's lmder through leastsq: the same optimum as least_squares(method="lm"), 17 % less overhead
-        x = np.atleast_1d(leastsq(lambda x: evaluate(x)[0], x0, Dfun=lambda x: evaluate(x)[1])[0])
+        # (full_output: an unconverged search is judged like any other fit, by BIC and its intervals, not warned of)
+        x = np.atleast_1d(leastsq(lambda x: evaluate(x)[0], x0, Dfun=lambda x: evaluate(x)[1], full_output=True)[0])
         x[decay] = x[decay] ** 2
         return self._judge(order, _canonical(x))
 

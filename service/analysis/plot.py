@@ -27,7 +27,7 @@ def plot_report(report: Report, centre_mm: np.ndarray, path: Path, truth_mm: np.
     end = windows[-1].end_frame if windows else len(centre_mm)
     t_ms = np.arange(end) / fps * 1e3
     fig, ax = plt.subplots(figsize=(12, 4.5), layout="constrained")
-    ax.plot(t_ms, centre_mm[:end], ".", ms=2, color="0.45", label=f"D(0, t) per frame ({report.method})")
+    ax.plot(t_ms, centre_mm[:end], ".", ms=2, color="0.45", label=f"D(0, t) fitted ({report.method})")
     if truth_mm is not None:
         ax.plot(t_ms, truth_mm[:end], "-", lw=0.8, color="tab:blue", alpha=0.7, label="truth")
     for w in windows:

@@ -104,7 +104,7 @@ def run_analyze(args: argparse.Namespace) -> int:
     write_per_frame(csv_path, analysis.per_frame, report.source.fps)
     sidecar = truth_path(args.recording)
     truth = truth_centre(load_truth(sidecar)) if sidecar.exists() else None
-    plot_report(report, analysis.per_frame.centre, png_path, truth)
+    plot_report(report, analysis.fitted, png_path, truth)
     _print_summary(report, (report_path, csv_path, png_path))
     return 0
 
