@@ -1,10 +1,6 @@
 """The live runtime behind ``meniscope serve`` and ``meniscope bench serve``: source to fitted windows.
 
-:class:`Supervisor` keeps a :class:`Pipeline` running for a :class:`~service.settings.ServiceSettings`
-and hands :class:`FittedWindow` s, :class:`TraceSnippet` s and timings to a :class:`PipelineSink`.
+:mod:`.supervisor` keeps a :mod:`.runtime` pipeline running for a :class:`~service.settings.ServiceSettings`
+and hands fitted windows, trace snippets and timings to a sink. Nothing is imported here, so that the
+fit worker processes (:mod:`.fitting`) load only what fitting needs.
 """
-from service.pipeline.runtime import FittedWindow, LatestFrame, Pipeline, PipelineSink, PipelineStats, TraceSnippet
-from service.pipeline.supervisor import Health, Supervisor
-
-__all__ = ["FittedWindow", "Health", "LatestFrame", "Pipeline", "PipelineSink", "PipelineStats", "Supervisor",
-           "TraceSnippet"]

@@ -131,6 +131,8 @@ def latest_render(service: Svc) -> Response:
         image = service.frame_views().render(_latest(service))
     except MeniscopeError as exc:
         raise HTTPException(503, str(exc)) from None
+    if image is None:
+        raise HTTPException(503, "the renderer is busy (the first render compiles it)", headers={"Retry-After": "5"})
     return Response(image, media_type="image/png", headers={"Cache-Control": "no-store"})
 
 

@@ -16,7 +16,8 @@ from fastapi import FastAPI
 from fastapi.staticfiles import StaticFiles
 
 from service import __doc__ as package_doc
-from service.pipeline import Health, PipelineStats, Supervisor
+from service.pipeline.runtime import PipelineStats
+from service.pipeline.supervisor import Health, Supervisor
 from service.scene import Scene
 from service.server import api, dashboard
 from service.server.frames import FrameViews

@@ -8,13 +8,13 @@ from __future__ import annotations
 
 import threading
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
 
 from service.errors import MeniscopeError
-from service.pipeline import LatestFrame
-from service.render import Renderer
+from service.pipeline.runtime import LatestFrame
 from service.scene import Scene
 
 
@@ -34,15 +34,23 @@ class FrameViews:
 
     def __init__(self, scene: Scene, scene_path: Path) -> None:
         self.scene, self.scene_path = scene, scene_path
-        self._renderer: Renderer | None = None
+        self._renderer: Any = None  # a service.render.Renderer, made on first use
         self._lock = threading.Lock()  # one render at a time; the renderer is not re-entrant
 
     def camera(self, frame: LatestFrame) -> bytes:
         return png(frame.pixels)
 
-    def render(self, frame: LatestFrame) -> bytes:
-        with self._lock:
+    def render(self, frame: LatestFrame) -> bytes | None:
+        """The render's PNG, or None while another request renders (the first compiles the ray tracer,
+        which on a fresh install takes a minute: requests meanwhile are turned away, not queued)."""
+        if not self._lock.acquire(blocking=False):
+            return None
+        try:
             if self._renderer is None:
+                from service.render import Renderer  # numba loads only when a render is asked for
+
                 self._renderer = Renderer(self.scene, supersample=1, sun_samples=2, threads=1)
             image = self._renderer.render(np.array([frame.coefficients]))[0]
+        finally:
+            self._lock.release()
         return png(image)

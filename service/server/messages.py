@@ -11,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from service.pipeline import TraceSnippet
+from service.pipeline.runtime import TraceSnippet
 from service.server.history import StoredWindow
 
 #: The ``schema`` of every window message.

@@ -14,7 +14,8 @@ from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metri
 from prometheus_client.registry import Collector
 
 from service.analysis.results import WindowResult
-from service.pipeline import Health, PipelineStats
+from service.pipeline.runtime import PipelineStats
+from service.pipeline.supervisor import Health
 
 STATUSES = ("ok", "settled", "unresolved", "failed")
 

@@ -12,7 +12,7 @@ import threading
 import time
 from typing import Callable
 
-from service.pipeline import FittedWindow, TraceSnippet
+from service.pipeline.runtime import FittedWindow, TraceSnippet
 from service.server.history import History, StoredWindow
 from service.server.hub import Hub
 from service.server.messages import trace_message, window_message
