@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import shutil
+import threading
 import time
 from pathlib import Path
 
@@ -10,6 +11,7 @@ from websockets.sync.client import connect
 
 from service import DEFAULT_MODELS
 from service.pipeline.demo import demo_recording
+from service.sources import FrameSender, open_source
 from tests.servicekit import request, running_service, service_settings, wait_for
 
 
@@ -101,3 +103,41 @@ def skipped(base: str) -> float:
     metrics = request("GET", base + "/metrics").body.decode()
     return float(next(line.split()[1] for line in metrics.splitlines()
                       if line.startswith("meniscope_websocket_messages_skipped_total")))
+
+
+class Camera:
+    """A stand-in network camera: the demo recording sent as ZeroMQ frames while ``on``."""
+
+    def __init__(self, recording: Path, endpoint: str = "tcp://127.0.0.1:*") -> None:
+        self.source = open_source(str(recording), speed=0.25, loop=True)
+        self.sender = FrameSender(endpoint, self.source.format)
+        self.endpoint = self.sender.endpoint
+        self.on = True
+        self.thread = threading.Thread(target=self._send, daemon=True)
+        self.thread.start()
+
+    def _send(self) -> None:
+        while self.on:
+            self.sender.send(self.source.read(64))
+
+    def unplug(self) -> None:
+        self.on = False
+        self.thread.join()
+        self.sender.close()
+        self.source.close()
+
+
+def test_a_camera_that_disappears_is_reported_and_followed_again_when_it_returns(tmp_path: Path,
+                                                                                  demo_cine: Path) -> None:
+    camera = Camera(demo_cine)
+    uri = camera.endpoint.replace("tcp://", "zmq+tcp://") + "?open_timeout=1"
+    with running_service(service_settings(tmp_path / "data", tmp_path, uri)) as base:
+        wait_for(lambda: ready(base), 20, "readiness on the camera's frames")
+        camera.unplug()
+        reply = wait_for(lambda: (r := request("GET", base + "/readyz")).status == 503 and r, 10, "not ready")
+        assert camera.endpoint.split(":")[-1] in reply.json()["reason"]
+        camera = Camera(demo_cine, camera.endpoint)  # plugged in again, same address
+        try:
+            wait_for(lambda: ready(base), 20, "readiness after the camera came back")
+        finally:
+            camera.unplug()

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import subprocess
+import sys
 import threading
 import time
 from pathlib import Path
@@ -150,3 +151,14 @@ def test_metrics_are_clean_for_promtool_and_count_what_was_published(session) ->
                  "meniscope_inference_latency_seconds_count", "meniscope_input_frames_per_second",
                  "meniscope_last_frequency_hertz", "meniscope_last_settling_time_seconds"):
         assert name in values, name
+
+
+def test_the_documented_subscriber_example_prints_windows(session) -> None:  # type: ignore[no-untyped-def]
+    base, _ = session
+    endpoint = request("GET", base + "/api/v1/status").json()["zmq_publish"]
+    example = Path(__file__).resolve().parents[1] / "docs" / "examples" / "window_subscriber.py"
+    out = subprocess.run([sys.executable, str(example), "--endpoint", endpoint, "--count", "2"],
+                         capture_output=True, text=True, timeout=60)
+    assert out.returncode == 0, out.stderr
+    lines = out.stdout.splitlines()
+    assert len(lines) == 2 and all(line.startswith("window ") for line in lines)

@@ -2,9 +2,10 @@
 
 Processes rather than threads because the fit is many small numpy and MINPACK calls that hold the
 interpreter lock, which inference, acquisition and the web server need; the workers run at a lower
-priority (nice 10) so that on a busy machine frames keep flowing and windows wait. At most ``2 x workers``
-windows are in flight; a window that finds no room is refused (the caller counts it), so a fit
-slower than the ejection rate costs windows, never memory or frames.
+priority (nice 10) so that on a busy machine frames keep flowing and windows wait. One window per
+worker is in flight and none waits behind it: a window that finds every worker busy is refused (the
+caller counts it), so a fit slower than the ejection rate costs windows, never memory or frames, and
+what is published is as fresh as the fit allows.
 """
 from __future__ import annotations
 
@@ -55,7 +56,7 @@ class FitPool:
         # spawn, not fork: forking a process whose other threads hold locks can deadlock the child
         self._pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"),
                                          initializer=_lower_priority)
-        self._slots = threading.BoundedSemaphore(2 * workers)
+        self._slots = threading.BoundedSemaphore(workers)
         self.broken = False
         warm = np.sin(np.arange(64) / 3.0)  # start the workers and import scipy now, not at the first window
         self._pool.submit(fit_one, Window(0, 0, 64, False, False), warm, 1.0, settings).result()

@@ -82,6 +82,7 @@ class PipelineStats:
     windows_skipped: int = 0  # closed while every fit slot was busy
     fps_in: float = 0.0
     fps_out: float = 0.0
+    last_frame_at: float = 0.0  # monotonic time (s) frames last arrived
     latest: LatestFrame | None = field(default=None, repr=False)
 
 
@@ -154,6 +155,7 @@ outlives it: fits of its last windows still arrive after it stopped); :meth:`run
                 if not len(batch):
                     continue
                 stats.frames_acquired += len(batch)
+                stats.last_frame_at = now
                 seen = self.source.stats
                 stats.frame_gaps += seen.gaps - lost.gaps
                 stats.frames_lost_upstream += seen.dropped - lost.dropped

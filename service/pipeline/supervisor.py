@@ -3,8 +3,8 @@
 A missing or corrupt model, an unreadable source or a camera that disappears is a
 :class:`MeniscopeError`; the supervisor reports it as the reason it is not ready and tries again
 after 1, 2, 4, ... s (at most ``retry_max_s``), so the service keeps answering and recovers by itself
-once the cause is gone. A source that ends (a replay without loop) leaves it not ready until the
-settings change.
+once the cause is gone. A replay without loop that ends leaves it not ready until the settings change;
+any other source that ends its stream is reconnected like one that failed.
 """
 from __future__ import annotations
 
@@ -92,9 +92,9 @@ class Supervisor:
     def _loop(self) -> None:
         attempts = 0
         while not self._closing.is_set():
-            settings = self.settings
-            self._wake.clear()
+            self._wake.clear()  # before reading the settings: a change from now on stops the next run
             self._run_stop.clear()
+            settings = self.settings
             try:
                 self._set("starting", "opening the model and the source", attempts)
                 ended = self._run_once(settings)
@@ -126,6 +126,9 @@ class Supervisor:
             self._source = source
             self._set("running", None)
             try:
-                return pipeline.run(self._run_stop)
+                ended = pipeline.run(self._run_stop)
             finally:
                 self._source = None
+        if ended and source.kind != "replay":  # a camera or sender that stops may come back: reconnect
+            raise MeniscopeError(uri, "the stream ended")
+        return ended

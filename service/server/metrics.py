@@ -7,6 +7,7 @@ no per-window labels. Each app has a registry of its own, so tests need no globa
 """
 from __future__ import annotations
 
+import time
 from typing import Callable, Iterator
 
 from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, disable_created_metrics
@@ -18,6 +19,8 @@ from service.pipeline.runtime import PipelineStats
 from service.pipeline.supervisor import Health
 
 STATUSES = ("ok", "settled", "unresolved", "failed")
+#: A running source that has sent nothing for this long (s) counts as down.
+SOURCE_SILENT_S = 2.0
 
 disable_created_metrics()  # no *_created series: nothing here reads them, and they double every counter
 
@@ -31,6 +34,7 @@ class _PipelineCollector(Collector):
 
     def collect(self) -> Iterator[Metric]:
         s, ready = self.stats, float(self.health().ready)
+        flowing = ready * (time.monotonic() - s.last_frame_at < SOURCE_SILENT_S)
         clients, skipped = self.websocket()
         for name, value, text in (
             ("frames_acquired", s.frames_acquired, "Frames read from the source."),
@@ -43,7 +47,7 @@ class _PipelineCollector(Collector):
         ):
             yield CounterMetricFamily(f"meniscope_{name}", text, value=value)
         for name, value, text in (
-            ("source_up", ready, "1 while frames flow from the source, else 0."),
+            ("source_up", flowing, f"1 while frames arrive from the source (within {SOURCE_SILENT_S:g} s), else 0."),
             ("ready", ready, "1 while the service is ready (model loaded, source running), else 0."),
             ("input_frames_per_second", s.fps_in, "Frames per second read from the source (last second)."),
             ("output_frames_per_second", s.fps_out, "Frames per second inferred (last second)."),
