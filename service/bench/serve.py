@@ -28,6 +28,7 @@ from urllib.parse import quote
 import numpy as np
 
 from service.analysis.results import WindowResult
+from service.bench import parse_pairs
 from service.errors import MeniscopeError
 from service.settings import ServiceSettings, default_data_dir
 
@@ -45,18 +46,6 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--fit-workers", type=int, default=1, help="fit worker processes (default 1)")
     p.add_argument("--out", type=Path, default=Path("bench-serve"), help="folder for the results")
     p.set_defaults(func=run)
-
-
-def parse_configs(text: str) -> list[tuple[int, int]]:
-    """"512x1,128x2" -> [(512, 1), (128, 2)]; a one-line error for anything else."""
-    out = []
-    for item in text.split(","):
-        try:
-            batch, threads = (int(v) for v in item.strip().lower().split("x"))
-        except ValueError:
-            raise MeniscopeError("--configs", f"expected BATCHxTHREADS like 512x1, got {item!r}") from None
-        out.append((batch, threads))
-    return out
 
 
 def measure(settings: ServiceSettings, seconds: float) -> dict:
@@ -188,7 +177,7 @@ def markdown(results: dict) -> str:
 def run(args: argparse.Namespace) -> int:
     from service.pipeline.demo import demo_recording
 
-    configs = parse_configs(args.configs)
+    configs = parse_pairs(args.configs, "--configs", "BATCHxTHREADS like 512x1")
     try:
         speeds = [float(v) for v in args.speeds.split(",")]
     except ValueError:

@@ -15,8 +15,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "a recording made by our simulator, in a loop. Settings (docs/service.md): defaults, then --config, then "
         "MENISCOPE_* environment variables, then these options.",
     )
-    p.add_argument("--source", help="source URI or recording path (default: the demo recording); see "
-                                    "`meniscope publish-frames` for the URI schemes")
+    p.add_argument("--source", help="source URI or recording path (default: the demo recording; URI schemes in "
+                                    "docs/service.md); a recording named here makes its folder the recordings "
+                                    "folder, unless recordings_dir is set")
     p.add_argument("--config", type=Path, help="settings file, TOML or JSON")
     p.add_argument("--host", help="address to bind (default 127.0.0.1: this machine only)")
     p.add_argument("--port", type=int, help="HTTP port (default 8000)")
@@ -29,7 +30,13 @@ def run(args: argparse.Namespace) -> int:
     from service.server.app import create_app
     from service.settings import load_settings
 
-    settings = load_settings(args.config, source=args.source, host=args.host, port=args.port)
+    settings = load_settings(args.config, host=args.host, port=args.port)
+    if args.source is not None:
+        folder = settings.recordings_dir
+        if folder is None and "://" not in args.source:  # the person at the console may name any recording
+            folder = Path(args.source).expanduser().resolve().parent
+        settings = load_settings(args.config, source=args.source, host=args.host, port=args.port,
+                                 recordings_dir=folder)
     if not settings.loopback and settings.token is None:
         print(f"meniscope serve: bound to {settings.host} without a token: settings cannot be changed over HTTP "
               "(set MENISCOPE_TOKEN)", file=sys.stderr)
