@@ -1,9 +1,13 @@
 """`meniscope serve` over HTTP: readiness that tells why, recovery, guarded configuration, slow clients."""
 from __future__ import annotations
 
+import base64
+import os
 import shutil
+import socket
 import threading
 import time
+from contextlib import closing
 from pathlib import Path
 
 import pytest
@@ -78,14 +82,13 @@ def test_without_a_token_only_a_loopback_service_can_be_reconfigured(tmp_path: P
 
 def test_a_websocket_client_that_stops_reading_slows_neither_the_pipeline_nor_other_clients(
         tmp_path: Path, demo_cine: Path) -> None:
-    # large, frequent trace messages fill a stalled client's socket buffers within a second or two
+    # large, frequent trace messages fill a stalled client's small socket buffers within a second or two
     settings = service_settings(tmp_path / "data", demo_cine.parent, demo(demo_cine), trace_hz=100.0,
                                 trace_frames=8192, client_queue=4, read_frames=16)
     with running_service(settings) as base:
         wait_for(lambda: ready(base), 20, "readiness")
         ws_url = base.replace("http", "ws") + "/ws"
-        with connect(ws_url, max_queue=1) as stalled, connect(ws_url) as reader:
-            stalled.recv(timeout=10)  # connected and served; from now on it reads nothing
+        with closing(stalled_websocket(base)), connect(ws_url) as reader:
             inferred = request("GET", base + "/api/v1/status").json()["frames"]["inferred"]
             started, received = time.monotonic(), 0
             while skipped(base) == 0:  # until the stalled client's buffers are full and it loses messages
@@ -96,6 +99,19 @@ def test_a_websocket_client_that_stops_reading_slows_neither_the_pipeline_nor_ot
             status = request("GET", base + "/api/v1/status").json()
         assert received >= 5 * seconds  # trace messages go out with inference batches, ~20 a second here
         assert status["frames"]["inferred"] > inferred + seconds * 4750 * 0.5  # 4,750 frames/s, with slack
+
+
+def stalled_websocket(base: str) -> socket.socket:
+    """A WebSocket client that completes the handshake on a tiny receive buffer and then reads nothing."""
+    sock = socket.socket()
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+    host, port = base.removeprefix("http://").split(":")
+    sock.connect((host, int(port)))
+    key = base64.b64encode(os.urandom(16)).decode()
+    sock.sendall(f"GET /ws HTTP/1.1\r\nHost: {host}:{port}\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
+                 f"Sec-WebSocket-Key: {key}\r\nSec-WebSocket-Version: 13\r\n\r\n".encode())
+    assert sock.recv(12) == b"HTTP/1.1 101"
+    return sock
 
 
 def skipped(base: str) -> float:
