@@ -102,8 +102,10 @@ class RateMeter:
 
 
 class Pipeline:
-    """One run of the pipeline over an open ``source`` with an inverse ``method`` and a ``fits`` pool (which
-outlives it: fits of its last windows still arrive after it stopped); :meth:`run` until it ends."""
+    """One run of the pipeline over an open ``source`` with an inverse ``method``; :meth:`run` until it ends.
+
+    The ``fits`` pool outlives the run: fits of its last windows may still arrive after it stopped.
+    """
 
     def __init__(self, settings: ServiceSettings, scene: Scene, source: FrameSource, method: InverseMethod,
                  fits: FitPool, sink: PipelineSink, stats: PipelineStats) -> None:
@@ -113,7 +115,7 @@ outlives it: fits of its last windows still arrive after it stopped); :meth:`run
         x, y = scene.camera.roi
         self._roi = (slice(None), slice(y, y + scene.camera.height_px), slice(x, x + scene.camera.width_px))
         fps = source.fps
-        period = fps / settings.ejection_hz if settings.ejection_hz else 4e-3 * fps
+        period = fps / settings.ejection_hz if settings.ejection_hz else 4e-3 * fps  # unknown rate: 2 ms apart
         self.segmenter = StreamingSegmenter(int(0.5 * period), int(settings.max_window_s * fps),
                                             settings.activity_threshold)
         self.activity = ActivityTracker()

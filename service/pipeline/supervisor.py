@@ -52,6 +52,7 @@ class Supervisor:
         self._health = Health("starting", None, time.time(), 0)
         self._source: FrameSource | None = None
         self._fits: FitPool | None = None
+        self._attempts = 0  # failed attempts in a row
         self._wake = threading.Event()  # interrupts a wait between attempts
         self._run_stop = threading.Event()  # stops the pipeline now running
         self._closing = threading.Event()
@@ -86,25 +87,23 @@ class Supervisor:
             pool = self._fits = FitPool(settings.fit_workers, settings.fit)
         return pool
 
-    def _set(self, state: State, reason: str | None, attempts: int = 0, source: dict | None = None) -> None:
-        self._health = Health(state, reason, time.time(), attempts, source or {"uri": self.settings.source})
+    def _set(self, state: State, reason: str | None) -> None:
+        self._health = Health(state, reason, time.time(), self._attempts, {"uri": self.settings.source})
 
     def _loop(self) -> None:
-        attempts = 0
         while not self._closing.is_set():
             self._wake.clear()  # before reading the settings: a change from now on stops the next run
             self._run_stop.clear()
             settings = self.settings
             try:
-                self._set("starting", "opening the model and the source", attempts)
+                self._set("starting", "opening the model and the source")
                 ended = self._run_once(settings)
-                attempts = 0
             except Exception as exc:  # noqa: BLE001 - any failure is reported and retried, never fatal
                 if not isinstance(exc, MeniscopeError):
                     log.exception("pipeline failed")
-                attempts += 1
-                delay = min(2.0 ** (attempts - 1), settings.retry_max_s)
-                self._set("retrying", f"{exc} (attempt {attempts}; next in {delay:g} s)", attempts)
+                self._attempts += 1
+                delay = min(2.0 ** (self._attempts - 1), settings.retry_max_s)
+                self._set("retrying", f"{exc} (attempt {self._attempts}; next in {delay:g} s)")
                 self._wake.wait(delay)
                 continue
             if ended:
@@ -123,7 +122,7 @@ class Supervisor:
             settings.source, settings.recordings_folder)
         with open_source(uri) as source:
             pipeline = Pipeline(settings, scene, source, method, self._fit_pool(settings), self.sink, self.stats)
-            self._source = source
+            self._source, self._attempts = source, 0  # it ran: a later failure starts the backoff afresh
             self._set("running", None)
             try:
                 ended = pipeline.run(self._run_stop)
