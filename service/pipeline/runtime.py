@@ -8,6 +8,7 @@ closed windows to the :class:`FitPool`. Results, the live trace and timings go t
 """
 from __future__ import annotations
 
+import logging
 import queue
 import threading
 import time
@@ -25,6 +26,11 @@ from service.pipeline.segmenter import ClosedWindow, StreamingSegmenter
 from service.scene import Scene
 from service.settings import ServiceSettings
 from service.sources import FrameBatch, FrameSource
+
+log = logging.getLogger(__name__)
+
+#: Seconds between two warnings that frames were dropped.
+DROP_REPORT_S = 10.0
 
 
 @dataclass(frozen=True)
@@ -125,6 +131,7 @@ class Pipeline:
         self._acquired = threading.Event()  # set when acquisition stopped (end, error or stop)
         self._error: BaseException | None = None
         self._fps = fps
+        self._reported = (time.monotonic(), stats.frames_dropped, stats.windows_skipped)
 
     def run(self, stop: threading.Event) -> bool:
         """Acquire and infer until ``stop`` is set or the stream ends (then True); raises what made it fail."""
@@ -194,7 +201,19 @@ class Pipeline:
             self._process(FrameBatch.concatenate([b for b, _ in taken]),
                           np.concatenate([np.full(len(b), t) for b, t in taken]))
             self.stats.fps_out = meter.add(frames, time.monotonic())
+            self._report_drops()
         return False
+
+    def _report_drops(self) -> None:
+        """Say so (a log warning, at most every ``DROP_REPORT_S``) when frames were dropped since the last time."""
+        now, s = time.monotonic(), self.stats
+        if now - self._reported[0] < DROP_REPORT_S:
+            return
+        dropped, skipped = s.frames_dropped - self._reported[1], s.windows_skipped - self._reported[2]
+        if dropped or skipped:
+            log.warning("behind the source for the last %.0f s: %d frames dropped (%.0f frames/s in, %.0f inferred), "
+                        "%d windows left unfitted", now - self._reported[0], dropped, s.fps_in, s.fps_out, skipped)
+        self._reported = (now, s.frames_dropped, s.windows_skipped)
 
     def _process(self, batch: FrameBatch, arrival: np.ndarray) -> None:
         """Infer one batch, cut windows and hand them to the fits; update the trace and the latest frame."""

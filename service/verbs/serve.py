@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import argparse
+import logging
 import sys
 from pathlib import Path
 
@@ -30,6 +31,7 @@ def run(args: argparse.Namespace) -> int:
     from service.server.app import create_app
     from service.settings import load_settings
 
+    logging.basicConfig(level=logging.WARNING, format="meniscope serve: %(levelname)s: %(message)s")
     settings = load_settings(args.config, host=args.host, port=args.port)
     if args.source is not None:
         folder = settings.recordings_dir
