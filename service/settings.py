@@ -60,6 +60,8 @@ class ServiceSettings(BaseSettings):
     max_window_s: Positive = Field(0.05, description="a window is cut (not fitted as one) beyond this")
     fit: FitSettings = FitSettings()
     fit_workers: Annotated[int, Field(ge=1, le=16)] = Field(1, description="processes fitting windows")
+    fit_nice: Annotated[int, Field(ge=0, le=19)] = Field(
+        10, description="niceness of the fit workers: 0 favours fresh windows, higher favours frames")
     # --- publishing
     host: str = "127.0.0.1"
     port: Annotated[int, Field(ge=0, le=65535)] = 8000

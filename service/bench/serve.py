@@ -44,6 +44,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help=f"BATCHxTHREADS inference settings, comma-separated (default {CONFIGS})")
     p.add_argument("--speeds", default="1", help="replay speeds, x the recorded rate, comma-separated (default 1)")
     p.add_argument("--fit-workers", type=int, default=1, help="fit worker processes (default 1)")
+    p.add_argument("--fit-nice", type=int, default=10, help="niceness of the fit workers (default 10)")
     p.add_argument("--out", type=Path, default=Path("bench-serve"), help="folder for the results")
     p.set_defaults(func=run)
 
@@ -152,7 +153,8 @@ def _fmt(x: float | None, spec: str = ".0f") -> str:
 
 def markdown(results: dict) -> str:
     lines = [
-        f"Serve benchmark: {results['source']}, {results['seconds']:g} s per run, fit workers {results['fit_workers']}, "
+        f"Serve benchmark: {results['source']}, {results['seconds']:g} s per run, fit workers {results['fit_workers']} "
+        f"at nice {results['fit_nice']}, "
         f"{os.cpu_count()} CPUs.",
         "",
         "| batch x threads | speed | frames/s in | frames/s inferred | dropped | windows closed / published / unfitted "
@@ -186,13 +188,14 @@ def run(args: argparse.Namespace) -> int:
     if not recording.is_file():
         raise MeniscopeError(recording, "no such recording")
     args.out.mkdir(parents=True, exist_ok=True)
-    results: dict = {"source": str(recording), "seconds": args.seconds, "fit_workers": args.fit_workers, "runs": []}
+    results: dict = {"source": str(recording), "seconds": args.seconds, "fit_workers": args.fit_workers,
+                     "fit_nice": args.fit_nice, "runs": []}
     for batch, threads in configs:
         for speed in speeds:
             name = f"x{speed:g}"
             settings = ServiceSettings(source=f"file://{quote(str(recording))}?speed={speed}&loop=1",
                                        recordings_dir=recording.parent, batch=batch, threads=threads,
-                                       fit_workers=args.fit_workers, zmq_publish=None)
+                                       fit_workers=args.fit_workers, fit_nice=args.fit_nice, zmq_publish=None)
             print(f"bench serve: batch {batch} x {threads} threads, {name} ...", flush=True)
             results["runs"].append({"batch": batch, "threads": threads, "run": name,
                                     **measure(settings, args.seconds)})

@@ -2,7 +2,7 @@
 
 Processes rather than threads because the fit is many small numpy and MINPACK calls that hold the
 interpreter lock, which inference, acquisition and the web server need; the workers run at a lower
-priority (nice 10) so that on a busy machine frames keep flowing and windows wait. One window per
+priority (``nice``, 10 by default) so that on a busy machine frames keep flowing and windows wait. One window per
 worker is in flight and none waits behind it: a window that finds every worker busy is refused (the
 caller counts it), so a fit slower than the ejection rate costs windows, never memory or frames, and
 what is published is as fresh as the fit allows.
@@ -26,12 +26,9 @@ from service.pipeline.segmenter import ClosedWindow
 
 #: What the pool calls with each finished fit: the window and its result (a failed one if the fit raised).
 OnFitted = Callable[[ClosedWindow, WindowResult], None]
-#: Niceness the workers add to their own: fits yield the CPU to inference.
-NICE = 10
 
-
-def _lower_priority() -> None:
-    os.nice(NICE)
+def _lower_priority(nice: int) -> None:
+    os.nice(nice)
 
 
 def fit_one(window: Window, values: np.ndarray, fps: float, settings: FitSettings) -> WindowResult:
@@ -49,13 +46,14 @@ def _failed(closed: ClosedWindow, exc: BaseException) -> WindowResult:
 
 
 class FitPool:
-    """``workers`` processes fitting windows with ``settings``; each result goes to the callback given with it."""
+    """``workers`` processes at ``nice`` fitting windows with ``settings``; each result goes to the callback
+    given with it."""
 
-    def __init__(self, workers: int, settings: FitSettings) -> None:
-        self.workers, self.settings = workers, settings
+    def __init__(self, workers: int, settings: FitSettings, nice: int = 10) -> None:
+        self.workers, self.settings, self.nice = workers, settings, nice
         # spawn, not fork: forking a process whose other threads hold locks can deadlock the child
         self._pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"),
-                                         initializer=_lower_priority)
+                                         initializer=_lower_priority, initargs=(nice,))
         self._slots = threading.BoundedSemaphore(workers)
         self.broken = False
         warm = np.sin(np.arange(64) / 3.0)  # start the workers and import scipy now, not at the first window

@@ -81,10 +81,11 @@ class Supervisor:
     def _fit_pool(self, settings: ServiceSettings) -> FitPool:
         """The fit workers for ``settings`` (started once, again only when the fit settings change)."""
         pool = self._fits
-        if pool is None or pool.broken or (pool.workers, pool.settings) != (settings.fit_workers, settings.fit):
+        wanted = (settings.fit_workers, settings.fit, settings.fit_nice)
+        if pool is None or pool.broken or (pool.workers, pool.settings, pool.nice) != wanted:
             if pool is not None:
                 pool.close()
-            pool = self._fits = FitPool(settings.fit_workers, settings.fit)
+            pool = self._fits = FitPool(*wanted)
         return pool
 
     def _set(self, state: State, reason: str | None) -> None:
