@@ -16,16 +16,18 @@ from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 from pydantic import BaseModel, ConfigDict, ValidationError
 
 from service.errors import MeniscopeError
+from service.pipeline.runtime import LatestFrame
+from service.server.components import Service
 from service.settings import Method, ServiceSettings, settings_error
 
 router = APIRouter()
 
 
-def _service(request: Request) -> Any:
+def _service(request: Request) -> Service:
     return request.app.state.service
 
 
-Svc = Annotated[Any, Depends(_service)]
+Svc = Annotated[Service, Depends(_service)]
 
 
 def require_token(request: Request, service: Svc) -> None:
@@ -143,7 +145,7 @@ def latest_coefficients(service: Svc) -> dict[str, Any]:
     return {"index": frame.index, "d_mm": d, "p": p, "a_mm": a, "b_mm": b, "centre_mm": frame.centre_mm}
 
 
-def _latest(service: Any) -> Any:
+def _latest(service: Service) -> LatestFrame:
     frame = service.stats.latest
     if frame is None:
         raise HTTPException(404, "no frame inferred yet")
