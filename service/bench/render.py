@@ -20,6 +20,7 @@ from typing import Callable
 import numpy as np
 from tqdm import tqdm
 
+from service.bench import parse_pairs
 from service.cli import add_scene_option
 from service.errors import MeniscopeError
 from service.physics import CoefficientRanges
@@ -48,16 +49,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def parse_settings(text: str) -> list[tuple[int, int]]:
     """"2x4,1x1" -> [(2, 4), (1, 1)]; a one-line error for anything else."""
-    out = []
-    for item in text.split(","):
-        try:
-            ss, sun = (int(v) for v in item.strip().lower().split("x"))
-        except ValueError:
-            raise MeniscopeError("--settings", f"expected SUPERSAMPLExSUN_SAMPLES like 2x4, got {item!r}") from None
-        if ss < 1 or sun < 1:
-            raise MeniscopeError("--settings", f"supersample and sun samples must be at least 1, got {item!r}")
-        out.append((ss, sun))
-    return out
+    return parse_pairs(text, "--settings", "SUPERSAMPLExSUN_SAMPLES like 2x4")
 
 
 def time_ours(render: Callable[[np.ndarray], np.ndarray], coeffs: np.ndarray, repeats: int,

@@ -1,0 +1,256 @@
+"""The live pipeline: source -> bounded queue -> batched inference -> activity and segmentation -> fits.
+
+Two threads and a process pool. The acquisition thread only reads the source and offers each batch to
+a queue of ``queue_batches`` reads; when the queue is full the batch is dropped and counted, so a
+camera is never made to wait and memory never grows. The inference thread takes everything queued
+(up to ``batch`` frames) in one ONNX call, scores frame activity, cuts windows at ejections and hands
+closed windows to the :class:`FitPool`. Results, the live trace and timings go to a :class:`PipelineSink`.
+"""
+from __future__ import annotations
+
+import logging
+import queue
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Protocol
+
+import numpy as np
+
+from service.analysis.results import WindowResult
+from service.errors import MeniscopeError
+from service.inverse.base import InverseMethod
+from service.pipeline.activity import ActivityTracker
+from service.pipeline.fitting import FitPool
+from service.pipeline.segmenter import ClosedWindow, StreamingSegmenter
+from service.scene import Scene
+from service.settings import ServiceSettings
+from service.sources import FrameBatch, FrameSource
+
+log = logging.getLogger(__name__)
+
+#: Seconds between two warnings that frames were dropped.
+DROP_REPORT_S = 10.0
+
+
+@dataclass(frozen=True)
+class FittedWindow:
+    """A window's result with its samples (mm, NaN where missing) and the time (monotonic s) it closed."""
+
+    result: WindowResult
+    values: np.ndarray
+    fps: float
+    closed_at: float
+
+
+@dataclass(frozen=True)
+class TraceSnippet:
+    """The latest ``values`` (mm, NaN where missing) at full frame rate from frame ``first_index``, and the
+    ejections among them."""
+
+    first_index: int
+    fps: float
+    values: np.ndarray
+    ejections: list[int]
+
+
+@dataclass(frozen=True)
+class LatestFrame:
+    """The last inferred frame: its ROI pixels as stored (H, W), coefficients d, p, a, b and D(0, t)."""
+
+    index: int
+    pixels: np.ndarray
+    bit_depth: int
+    coefficients: tuple[float, float, float, float]
+    centre_mm: float
+
+
+class PipelineSink(Protocol):
+    """Where the pipeline's output goes; every call must return at once (hand over, never wait)."""
+
+    def on_window(self, fitted: FittedWindow) -> None: ...
+
+    def on_trace(self, trace: TraceSnippet) -> None: ...
+
+    def on_inference(self, seconds: float, frames: int) -> None: ...
+
+
+@dataclass
+class PipelineStats:
+    """Counters since the service started (across source restarts) and the current rates (frames/s)."""
+
+    frames_acquired: int = 0
+    frames_inferred: int = 0
+    frames_dropped: int = 0  # read, but no room in the queue
+    frame_gaps: int = 0  # jumps in the source's frame indices
+    frames_lost_upstream: int = 0  # frames inside those jumps
+    windows_closed: int = 0
+    windows_skipped: int = 0  # closed while every fit slot was busy
+    fps_in: float = 0.0
+    fps_out: float = 0.0
+    last_frame_at: float = 0.0  # monotonic time (s) frames last arrived
+    latest: LatestFrame | None = field(default=None, repr=False)
+
+
+class RateMeter:
+    """Events per second, re-estimated once ``period`` s have passed."""
+
+    def __init__(self, period: float = 1.0) -> None:
+        self.period, self.rate = period, 0.0
+        self._t0, self._count = time.monotonic(), 0
+
+    def add(self, count: int, now: float) -> float:
+        self._count += count
+        if now - self._t0 >= self.period:
+            self.rate = self._count / (now - self._t0)
+            self._t0, self._count = now, 0
+        return self.rate
+
+
+class Pipeline:
+    """One run of the pipeline over an open ``source`` with an inverse ``method``; :meth:`run` until it ends.
+
+    The ``fits`` pool outlives the run: fits of its last windows may still arrive after it stopped.
+    """
+
+    def __init__(self, settings: ServiceSettings, scene: Scene, source: FrameSource, method: InverseMethod,
+                 fits: FitPool, sink: PipelineSink, stats: PipelineStats) -> None:
+        scene.check_roi(source.width, source.height, source.uri)
+        self.settings, self.source, self.method, self.fits = settings, source, method, fits
+        self.sink, self.stats = sink, stats
+        x, y = scene.camera.roi
+        self._roi = (slice(None), slice(y, y + scene.camera.height_px), slice(x, x + scene.camera.width_px))
+        fps = source.fps
+        period = fps / settings.ejection_hz if settings.ejection_hz else 4e-3 * fps  # unknown rate: 2 ms apart
+        self.segmenter = StreamingSegmenter(int(0.5 * period), int(settings.max_window_s * fps),
+                                            settings.activity_threshold)
+        self.activity = ActivityTracker()
+        self._queue: queue.Queue[tuple[FrameBatch, float]] = queue.Queue(settings.queue_batches)
+        self._trace, self._trace_first = np.empty(0), 0
+        self._trace_next = 0.0
+        self._acquired = threading.Event()  # set when acquisition stopped (end, error or stop)
+        self._error: BaseException | None = None
+        self._fps = fps
+        self._reported = (time.monotonic(), stats.frames_dropped, stats.windows_skipped)
+
+    def run(self, stop: threading.Event) -> bool:
+        """Acquire and infer until ``stop`` is set or the stream ends (then True); raises what made it fail."""
+        done = threading.Event()
+        reader = threading.Thread(target=self._acquire, args=(stop, done), name="meniscope-acquire", daemon=True)
+        reader.start()
+        ended = False
+        try:
+            ended = self._infer(stop)
+            if ended:
+                self._dispatch(self.segmenter.finish(time.monotonic()))
+        finally:
+            done.set()
+            reader.join()
+        if self._error is not None:
+            raise self._error
+        return ended
+
+    def _acquire(self, stop: threading.Event, done: threading.Event) -> None:
+        """Read the source and offer every batch to the queue; a full queue drops the batch."""
+        meter, stats = RateMeter(), self.stats
+        lost = self.source.stats
+        try:
+            while not (stop.is_set() or done.is_set()):
+                batch = self.source.read(self.settings.read_frames)
+                now = time.monotonic()
+                if batch is None:
+                    break
+                stats.fps_in = meter.add(len(batch), now)
+                if not len(batch):
+                    continue
+                stats.frames_acquired += len(batch)
+                stats.last_frame_at = now
+                seen = self.source.stats
+                stats.frame_gaps += seen.gaps - lost.gaps
+                stats.frames_lost_upstream += seen.dropped - lost.dropped
+                lost = seen
+                try:
+                    self._queue.put_nowait((batch, now))
+                except queue.Full:
+                    stats.frames_dropped += len(batch)
+        except MeniscopeError as exc:
+            self._error = exc
+        except Exception as exc:  # a camera library's own error: report it as the source's
+            self._error = MeniscopeError(self.source.uri, f"the source failed: {type(exc).__name__}: {exc}")
+        finally:
+            self._acquired.set()
+
+    def _infer(self, stop: threading.Event) -> bool:
+        """The inference loop; True when the stream ended (everything read was processed)."""
+        meter = RateMeter()
+        while not stop.is_set():
+            try:
+                taken = [self._queue.get(timeout=0.05)]
+            except queue.Empty:
+                if self._acquired.is_set():
+                    return self._error is None
+                self.stats.fps_out = meter.add(0, time.monotonic())
+                continue
+            frames = len(taken[0][0])
+            while frames < self.settings.batch:
+                try:
+                    taken.append(self._queue.get_nowait())
+                except queue.Empty:
+                    break
+                frames += len(taken[-1][0])
+            self._process(FrameBatch.concatenate([b for b, _ in taken]),
+                          np.concatenate([np.full(len(b), t) for b, t in taken]))
+            self.stats.fps_out = meter.add(frames, time.monotonic())
+            self._report_drops()
+        return False
+
+    def _report_drops(self) -> None:
+        """Say so (a log warning, at most every ``DROP_REPORT_S``) when frames were dropped since the last time."""
+        now, s = time.monotonic(), self.stats
+        if now - self._reported[0] < DROP_REPORT_S:
+            return
+        dropped, skipped = s.frames_dropped - self._reported[1], s.windows_skipped - self._reported[2]
+        if dropped or skipped:
+            log.warning("behind the source for the last %.0f s: %d frames dropped (%.0f frames/s in, %.0f inferred), "
+                        "%d windows left unfitted", now - self._reported[0], dropped, s.fps_in, s.fps_out, skipped)
+        self._reported = (now, s.frames_dropped, s.windows_skipped)
+
+    def _process(self, batch: FrameBatch, arrival: np.ndarray) -> None:
+        """Infer one batch, cut windows and hand them to the fits; update the trace and the latest frame."""
+        pixels = batch.pixels[self._roi]
+        t0 = time.perf_counter()
+        out = self.method.infer(pixels)
+        self.sink.on_inference(time.perf_counter() - t0, len(batch))
+        self.stats.frames_inferred += len(batch)
+        z = self.activity.update(pixels, batch.indices)
+        self._dispatch(self.segmenter.push(batch.indices, out.centre, z, arrival))
+        self.stats.latest = LatestFrame(int(batch.indices[-1]), pixels[-1].copy(), self.source.bit_depth,
+                                        tuple(float(c) for c in out.coefficients[-1]), float(out.centre[-1]))
+        self._update_trace(batch.indices, out.centre)
+
+    def _dispatch(self, closed: list[ClosedWindow]) -> None:
+        for window in closed:
+            self.stats.windows_closed += 1
+            if not self.fits.submit(window, self._fps, self._fitted):
+                self.stats.windows_skipped += 1
+
+    def _fitted(self, closed: ClosedWindow, result: WindowResult) -> None:
+        self.sink.on_window(FittedWindow(result, closed.values, self._fps, closed.closed_at))
+
+    def _update_trace(self, indices: np.ndarray, centre: np.ndarray) -> None:
+        """Keep the last ``trace_frames`` samples; send them ``trace_hz`` times a second."""
+        n = self.settings.trace_frames
+        end = int(indices[-1]) + 1
+        first, old_first = end - n, self._trace_first
+        dense = np.full(n, np.nan)
+        lo, hi = max(first, old_first), min(old_first + self._trace.size, end)
+        if hi > lo:  # earlier samples still inside the span
+            dense[lo - first : hi - first] = self._trace[lo - old_first : hi - old_first]
+        keep = indices >= first
+        dense[indices[keep] - first] = centre[keep]
+        self._trace, self._trace_first = dense, first
+        now = time.monotonic()
+        if now >= self._trace_next:
+            self._trace_next = now + 1.0 / self.settings.trace_hz
+            ejections = [e for e in self.segmenter.ejections if e >= first]
+            self.sink.on_trace(TraceSnippet(first, self.source.fps, dense.copy(), ejections))

@@ -1,0 +1,135 @@
+"""Keeps the pipeline running: opens the model and the source, restarts after failures, swaps settings.
+
+A missing or corrupt model, an unreadable source or a camera that disappears is a
+:class:`MeniscopeError`; the supervisor reports it as the reason it is not ready and tries again
+after 1, 2, 4, ... s (at most ``retry_max_s``), so the service keeps answering and recovers by itself
+once the cause is gone. A replay without loop that ends leaves it not ready until the settings change;
+any other source that ends its stream is reconnected like one that failed.
+"""
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+from service.errors import MeniscopeError
+from service.inverse.methods import open_method
+from service.pipeline.demo import demo_uri
+from service.pipeline.fitting import FitPool
+from service.pipeline.runtime import Pipeline, PipelineSink, PipelineStats
+from service.scene import Scene
+from service.settings import ServiceSettings, resolve_source
+from service.sources import FrameSource, open_source
+
+log = logging.getLogger(__name__)
+
+State = Literal["starting", "running", "retrying", "ended", "stopped"]
+
+
+@dataclass(frozen=True)
+class Health:
+    """What /readyz and /api/v1/status say: ready only while frames flow through a loaded model."""
+
+    state: State
+    reason: str | None
+    since: float  # wall-clock time (s since the epoch) of the last change
+    attempts: int  # failed attempts in a row
+    source: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def ready(self) -> bool:
+        return self.state == "running"
+
+
+class Supervisor:
+    """Runs :class:`Pipeline` for the current settings in a thread of its own until :meth:`stop`."""
+
+    def __init__(self, settings: ServiceSettings, sink: PipelineSink, stats: PipelineStats | None = None) -> None:
+        self.settings, self.sink = settings, sink
+        self.stats = stats or PipelineStats()
+        self._health = Health("starting", None, time.time(), 0)
+        self._source: FrameSource | None = None
+        self._fits: FitPool | None = None
+        self._attempts = 0  # failed attempts in a row
+        self._wake = threading.Event()  # interrupts a wait between attempts
+        self._run_stop = threading.Event()  # stops the pipeline now running
+        self._closing = threading.Event()
+        self._thread = threading.Thread(target=self._loop, name="meniscope-supervisor", daemon=True)
+
+    def start(self) -> "Supervisor":
+        self._thread.start()
+        return self
+
+    def stop(self, timeout: float = 10.0) -> None:
+        self._closing.set()
+        self._wake.set()
+        self._run_stop.set()
+        self._thread.join(timeout)
+
+    def reconfigure(self, settings: ServiceSettings) -> None:
+        """Switch to ``settings``: the running pipeline stops and one for the new settings starts."""
+        self.settings = settings
+        self._wake.set()
+        self._run_stop.set()
+
+    def health(self) -> Health:
+        h, source = self._health, self._source
+        return Health(h.state, h.reason, h.since, h.attempts, source.describe() if source is not None else h.source)
+
+    def _fit_pool(self, settings: ServiceSettings) -> FitPool:
+        """The fit workers for ``settings`` (started once, again only when the fit settings change)."""
+        pool = self._fits
+        wanted = (settings.fit_workers, settings.fit, settings.fit_nice)
+        if pool is None or pool.broken or (pool.workers, pool.settings, pool.nice) != wanted:
+            if pool is not None:
+                pool.close()
+            pool = self._fits = FitPool(*wanted)
+        return pool
+
+    def _set(self, state: State, reason: str | None) -> None:
+        self._health = Health(state, reason, time.time(), self._attempts, {"uri": self.settings.source})
+
+    def _loop(self) -> None:
+        while not self._closing.is_set():
+            self._wake.clear()  # before reading the settings: a change from now on stops the next run
+            self._run_stop.clear()
+            settings = self.settings
+            try:
+                self._set("starting", "opening the model and the source")
+                ended = self._run_once(settings)
+            except Exception as exc:  # noqa: BLE001 - any failure is reported and retried, never fatal
+                if not isinstance(exc, MeniscopeError):
+                    log.exception("pipeline failed")
+                self._attempts += 1
+                delay = min(2.0 ** (self._attempts - 1), settings.retry_max_s)
+                self._set("retrying", f"{exc} (attempt {self._attempts}; next in {delay:g} s)")
+                self._wake.wait(delay)
+                continue
+            if ended:
+                self._set("ended", "the source ended its stream: change the source to go on")
+                self._wake.wait()
+        self._set("stopped", "the service is stopping")
+        if self._fits is not None:
+            self._fits.close()
+
+    def _run_once(self, settings: ServiceSettings) -> bool:
+        """Open everything, run until stopped or ended; True when the stream ended by itself."""
+        scene = Scene.load(settings.scene)
+        method, _ = open_method(settings.method, scene, settings.models, settings.nearest_database,
+                                threads=settings.threads, batch=settings.batch)
+        self._fit_pool(settings)  # before the source opens: a replay's clock starts when it does
+        uri = demo_uri(settings.data_dir) if settings.source is None else resolve_source(
+            settings.source, settings.recordings_folder)
+        with open_source(uri) as source:
+            pipeline = Pipeline(settings, scene, source, method, self._fit_pool(settings), self.sink, self.stats)
+            self._source, self._attempts = source, 0  # it ran: a later failure starts the backoff afresh
+            self._set("running", None)
+            try:
+                ended = pipeline.run(self._run_stop)
+            finally:
+                self._source = None
+        if ended and source.kind != "replay":  # a camera or sender that stops may come back: reconnect
+            raise MeniscopeError(uri, "the stream ended")
+        return ended

@@ -1,0 +1,164 @@
+"""REST routes: health and readiness, status, window history, configuration, latest frame, metrics, WebSocket.
+
+Reading needs nothing; changing (PUT /api/v1/config) needs ``Authorization: Bearer <token>`` when a
+token is set, and a token must be set before anything can be changed on a service that is reachable
+from other machines (bound beyond loopback).
+"""
+from __future__ import annotations
+
+import secrets
+import time
+from typing import Annotated, Any
+
+from fastapi import APIRouter, Depends, HTTPException, Query, Request, Response, WebSocket
+from fastapi.responses import JSONResponse
+from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
+from pydantic import BaseModel, ConfigDict, ValidationError
+
+from service.errors import MeniscopeError
+from service.pipeline.runtime import LatestFrame
+from service.server.components import Service
+from service.settings import Method, ServiceSettings, settings_error
+
+router = APIRouter()
+
+
+def _service(request: Request) -> Service:
+    return request.app.state.service
+
+
+Svc = Annotated[Service, Depends(_service)]
+
+
+def require_token(request: Request, service: Svc) -> None:
+    """Allow a change only with the configured bearer token, or on loopback when none is configured."""
+    token = service.settings.token
+    if token is None:
+        if service.settings.loopback:
+            return
+        raise HTTPException(403, "changing settings on a service reachable from other machines needs a token: "
+                                 "set MENISCOPE_TOKEN")
+    given = request.headers.get("authorization", "")
+    if not secrets.compare_digest(given.encode(), f"Bearer {token.get_secret_value()}".encode()):
+        raise HTTPException(401, "missing or wrong bearer token", headers={"WWW-Authenticate": "Bearer"})
+
+
+@router.get("/healthz", tags=["health"])
+def healthz() -> dict[str, str]:
+    """The process answers (it may not be ready)."""
+    return {"status": "ok"}
+
+
+@router.get("/readyz", tags=["health"])
+def readyz(service: Svc) -> JSONResponse:
+    """200 while frames flow through a loaded model; 503 with the reason otherwise."""
+    health = service.health()
+    return JSONResponse({"ready": health.ready, "state": health.state, "reason": health.reason},
+                        status_code=200 if health.ready else 503)
+
+
+@router.get("/api/v1/status", tags=["status"])
+def status(service: Svc) -> dict[str, Any]:
+    """Source, frame rates in and out, frame and window counts, model, uptime."""
+    health, s, settings = service.health(), service.stats, service.settings
+    return {
+        "ready": health.ready, "state": health.state, "reason": health.reason, "attempts": health.attempts,
+        "source": health.source,
+        "fps_in": round(s.fps_in, 1), "fps_out": round(s.fps_out, 1),
+        "frames": {"acquired": s.frames_acquired, "inferred": s.frames_inferred, "dropped": s.frames_dropped,
+                   "gaps": s.frame_gaps, "lost_upstream": s.frames_lost_upstream},
+        "windows": {"closed": s.windows_closed, "skipped": s.windows_skipped,
+                    "unpublished": service.publishers.dropped if service.publishers else 0},
+        "model": {"dir": str(settings.models), "method": settings.method},
+        "zmq_publish": service.zmq.endpoint if service.zmq else None,
+        "uptime_s": round(time.time() - service.started, 3),
+    }
+
+
+@router.get("/api/v1/windows", tags=["windows"])
+def windows(service: Svc, since: Annotated[int | None, Query(ge=0, description="only ids above this")] = None,
+            limit: Annotated[int, Query(ge=1, le=10_000)] = 100) -> dict[str, Any]:
+    """Stored window results: after id ``since`` (oldest first), or else the newest ``limit``."""
+    rows = service.history.latest(limit) if since is None else service.history.since(since, limit)
+    return {"windows": [row.to_json() for row in rows], "last_id": rows[-1].id if rows else since}
+
+
+@router.get("/api/v1/windows/{window_id}", tags=["windows"])
+def window(window_id: int, service: Svc) -> dict[str, Any]:
+    row = service.history.get(window_id)
+    if row is None:
+        raise HTTPException(404, f"no window {window_id} (never stored, or past retention)")
+    return row.to_json()
+
+
+class ConfigChange(BaseModel):
+    """What PUT /api/v1/config may change."""
+
+    model_config = ConfigDict(extra="forbid")
+    source: str | None = None
+    method: Method | None = None
+
+
+@router.get("/api/v1/config", tags=["config"])
+def get_config(service: Svc) -> dict[str, Any]:
+    return service.settings.public()
+
+
+@router.put("/api/v1/config", tags=["config"], dependencies=[Depends(require_token)])
+def put_config(change: ConfigChange, service: Svc) -> dict[str, Any]:
+    """Change the source and/or the inverse method; the pipeline restarts with them."""
+    current: ServiceSettings = service.settings
+    updates = change.model_dump(exclude_unset=True)
+    try:
+        settings = ServiceSettings(**{**dict(current), **updates})
+    except ValidationError as exc:
+        raise HTTPException(422, str(settings_error(exc, "config"))) from None
+    except MeniscopeError as exc:
+        raise HTTPException(422, str(exc)) from None
+    service.reconfigure(settings)
+    return settings.public()
+
+
+@router.get("/api/v1/frames/latest.png", tags=["frames"], response_class=Response)
+def latest_frame(service: Svc) -> Response:
+    """The last inferred frame's ROI, stretched to its brightest pixel."""
+    return Response(service.frame_views().camera(_latest(service)), media_type="image/png",
+                    headers={"Cache-Control": "no-store"})
+
+
+@router.get("/api/v1/frames/latest/render.png", tags=["frames"], response_class=Response)
+def latest_render(service: Svc) -> Response:
+    """The scene rendered from the last frame's inferred coefficients, stretched the same way."""
+    try:
+        image = service.frame_views().render(_latest(service))
+    except MeniscopeError as exc:
+        raise HTTPException(503, str(exc)) from None
+    if image is None:
+        raise HTTPException(503, "the renderer is busy (the first render compiles it)", headers={"Retry-After": "5"})
+    return Response(image, media_type="image/png", headers={"Cache-Control": "no-store"})
+
+
+@router.get("/api/v1/frames/latest", tags=["frames"])
+def latest_coefficients(service: Svc) -> dict[str, Any]:
+    frame = _latest(service)
+    d, p, a, b = frame.coefficients
+    return {"index": frame.index, "d_mm": d, "p": p, "a_mm": a, "b_mm": b, "centre_mm": frame.centre_mm}
+
+
+def _latest(service: Service) -> LatestFrame:
+    frame = service.stats.latest
+    if frame is None:
+        raise HTTPException(404, "no frame inferred yet")
+    return frame
+
+
+@router.get("/metrics", tags=["metrics"], response_class=Response)
+def metrics(service: Svc) -> Response:
+    """Prometheus text format."""
+    return Response(generate_latest(service.metrics.registry), media_type=CONTENT_TYPE_LATEST)
+
+
+@router.websocket("/ws")
+async def ws(websocket: WebSocket) -> None:
+    """Every window result as it is made, and the live trace ``trace_hz`` times a second (docs/service.md)."""
+    await websocket.app.state.service.hub.serve(websocket)

@@ -1,0 +1,81 @@
+"""One running service: settings, pipeline supervisor, publishers, history, metrics, WebSocket hub.
+
+Built by :func:`service.server.app.create_app`, started and stopped by the app's lifespan, reached
+by the routes as ``request.app.state.service``.
+"""
+from __future__ import annotations
+
+import asyncio
+import time
+from dataclasses import dataclass, field
+
+from service.pipeline.runtime import PipelineStats
+from service.pipeline.supervisor import Health, Supervisor
+from service.scene import Scene
+from service.server.frames import FrameViews
+from service.server.history import History
+from service.server.hub import Hub
+from service.server.metrics import Metrics
+from service.server.publishers import Publishers
+from service.server.zmq_publisher import ZmqPublisher
+from service.settings import ServiceSettings
+
+#: The history database, in the data folder.
+HISTORY_FILE = "history.sqlite"
+
+
+@dataclass
+class Service:
+    """Everything the routes reach through ``request.app.state.service``."""
+
+    settings: ServiceSettings
+    stats: PipelineStats = field(default_factory=PipelineStats)
+    started: float = field(default_factory=time.time)
+    supervisor: Supervisor | None = None
+    publishers: Publishers | None = None
+    history: History | None = None
+    metrics: Metrics | None = None
+    hub: Hub | None = None
+    zmq: ZmqPublisher | None = None
+    views: FrameViews | None = None
+
+    def source_name(self) -> str:
+        return self.settings.source or "demo"
+
+    def websocket_counts(self) -> tuple[int, int]:
+        return (self.hub.clients, self.hub.skipped) if self.hub is not None else (0, 0)
+
+    def frame_views(self) -> FrameViews:
+        """The dashboard's pictures for the current scene (made on first use; the scene may be bad)."""
+        if self.views is None or self.views.scene_path != self.settings.scene:
+            self.views = FrameViews(Scene.load(self.settings.scene), self.settings.scene)
+        return self.views
+
+    def health(self) -> Health:
+        if self.supervisor is None:
+            return Health("starting", "the service is starting", self.started, 0)
+        return self.supervisor.health()
+
+    def start(self, loop: asyncio.AbstractEventLoop) -> None:
+        s = self.settings
+        self.history = History(s.data_dir / HISTORY_FILE, s.retention_days, s.retention_windows)
+        self.zmq = ZmqPublisher(s.zmq_publish) if s.zmq_publish else None
+        self.hub = Hub(loop, s.client_queue)
+        self.metrics = Metrics(self.stats, self.health, self.websocket_counts)
+        self.publishers = Publishers(self.history, self.metrics, self.zmq, self.source_name, self.hub).start()
+        self.supervisor = Supervisor(s, self.publishers, self.stats).start()
+
+    def stop(self) -> None:
+        if self.supervisor is not None:
+            self.supervisor.stop()
+        if self.publishers is not None:
+            self.publishers.stop()
+        if self.zmq is not None:
+            self.zmq.close()
+        if self.history is not None:
+            self.history.close()
+
+    def reconfigure(self, settings: ServiceSettings) -> None:
+        self.settings = settings
+        if self.supervisor is not None:
+            self.supervisor.reconfigure(settings)

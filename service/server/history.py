@@ -1,0 +1,122 @@
+"""Window results kept in SQLite (write-ahead log) across restarts, pruned by age and count.
+
+One row per published window: an id that only grows (what REST's ``since`` and the published
+messages carry), the time it was stored, the source and frame rate, and the :class:`WindowResult`
+as JSON. One writer (the publishing thread) and any number of readers (REST requests, each with a
+short-lived connection of its own), which WAL lets run side by side.
+"""
+from __future__ import annotations
+
+import json
+import sqlite3
+import time
+from contextlib import closing
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from service.analysis.results import WindowResult
+from service.errors import MeniscopeError
+
+SCHEMA = """
+CREATE TABLE IF NOT EXISTS windows (
+    id INTEGER PRIMARY KEY AUTOINCREMENT,
+    stored REAL NOT NULL,         -- seconds since the epoch
+    source TEXT NOT NULL,
+    fps REAL NOT NULL,
+    result TEXT NOT NULL          -- WindowResult as JSON
+);
+CREATE INDEX IF NOT EXISTS windows_stored ON windows (stored);
+"""
+#: Inserts between two retention passes.
+PRUNE_EVERY = 500
+
+
+@dataclass(frozen=True)
+class StoredWindow:
+    """A window result as kept: its id, when it was stored (s since the epoch), source and frame rate."""
+
+    id: int
+    stored: float
+    source: str
+    fps: float
+    result: WindowResult
+
+    def to_json(self) -> dict[str, Any]:
+        return {"id": self.id, "stored": self.stored, "source": self.source, "fps": self.fps,
+                "window": self.result.model_dump(mode="json")}
+
+
+class History:
+    """The database at ``path``, keeping windows for ``days`` and at most ``max_windows`` of them."""
+
+    def __init__(self, path: Path, days: float, max_windows: int) -> None:
+        self.path, self.days, self.max_windows = Path(path), days, max_windows
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            self._writer = self._connect(check_same_thread=False)  # used by one thread at a time
+            self._writer.execute("PRAGMA journal_mode=WAL")
+            self._writer.execute("PRAGMA synchronous=NORMAL")  # WAL: durable at checkpoints, no fsync per window
+            self._writer.executescript(SCHEMA)
+        except (OSError, sqlite3.Error) as exc:
+            raise MeniscopeError(self.path, f"cannot open the history database: {exc}") from None
+        self._inserts = 0
+        self.prune()
+
+    def _connect(self, check_same_thread: bool = True) -> sqlite3.Connection:
+        conn = sqlite3.connect(self.path, timeout=5.0, check_same_thread=check_same_thread, isolation_level=None)
+        conn.row_factory = sqlite3.Row
+        return conn
+
+    def add(self, result: WindowResult, source: str, fps: float, stored: float | None = None) -> int:
+        """Store one result; its id."""
+        cursor = self._writer.execute(
+            "INSERT INTO windows (stored, source, fps, result) VALUES (?, ?, ?, ?)",
+            (time.time() if stored is None else stored, source, fps, result.model_dump_json()),
+        )
+        self._inserts += 1
+        if self._inserts % PRUNE_EVERY == 0:
+            self.prune()
+        return int(cursor.lastrowid or 0)
+
+    def prune(self, now: float | None = None) -> int:
+        """Delete windows older than ``days`` or beyond the newest ``max_windows``; how many went."""
+        cutoff = (time.time() if now is None else now) - self.days * 86400.0
+        cursor = self._writer.execute(
+            "DELETE FROM windows WHERE stored < ? OR id <= (SELECT MAX(id) FROM windows) - ?",
+            (cutoff, self.max_windows),
+        )
+        return cursor.rowcount
+
+    def since(self, after: int = 0, limit: int = 100) -> list[StoredWindow]:
+        """Windows with id above ``after``, oldest first, at most ``limit``."""
+        with self._reader() as conn:
+            rows = conn.execute("SELECT * FROM windows WHERE id > ? ORDER BY id LIMIT ?", (after, limit)).fetchall()
+        return [_stored(row) for row in rows]
+
+    def latest(self, limit: int = 100) -> list[StoredWindow]:
+        """The newest ``limit`` windows, oldest first."""
+        with self._reader() as conn:
+            rows = conn.execute("SELECT * FROM windows ORDER BY id DESC LIMIT ?", (limit,)).fetchall()
+        return [_stored(row) for row in reversed(rows)]
+
+    def get(self, window_id: int) -> StoredWindow | None:
+        with self._reader() as conn:
+            row = conn.execute("SELECT * FROM windows WHERE id = ?", (window_id,)).fetchone()
+        return None if row is None else _stored(row)
+
+    def count(self) -> int:
+        with self._reader() as conn:
+            return int(conn.execute("SELECT COUNT(*) FROM windows").fetchone()[0])
+
+    def _reader(self) -> "closing[sqlite3.Connection]":
+        """A connection of its own for one read, closed after it."""
+        return closing(self._connect())
+
+    def close(self) -> None:
+        self._writer.close()
+
+
+def _stored(row: sqlite3.Row) -> StoredWindow:
+    return StoredWindow(row["id"], row["stored"], row["source"], row["fps"],
+                        WindowResult.model_validate(json.loads(row["result"])))

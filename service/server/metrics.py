@@ -1,0 +1,108 @@
+"""Prometheus metrics (names shared with deploy/'s alert rules and Grafana dashboard: keep them).
+
+Frame counters and rates are read from the pipeline's :class:`PipelineStats` when scraped (one
+source of truth, nothing counted twice); window histograms and counters are fed as results are
+published. Base units in names, ``_total`` counters, histograms (they aggregate across printers),
+no per-window labels. Each app has a registry of its own, so tests need no globals.
+"""
+from __future__ import annotations
+
+import time
+from typing import Callable, Iterator
+
+from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, disable_created_metrics
+from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric
+from prometheus_client.registry import Collector
+
+from service.analysis.results import WindowResult
+from service.pipeline.runtime import PipelineStats
+from service.pipeline.supervisor import Health
+
+STATUSES = ("ok", "settled", "unresolved", "failed")
+#: A running source that has sent nothing for this long (s) counts as down.
+SOURCE_SILENT_S = 2.0
+
+disable_created_metrics()  # no *_created series: nothing here reads them, and they double every counter
+
+
+class _PipelineCollector(Collector):
+    """Counters and gauges of the pipeline's statistics and health, as they are at scrape time."""
+
+    def __init__(self, stats: PipelineStats, health: Callable[[], Health],
+                 websocket: Callable[[], tuple[int, int]]) -> None:
+        self.stats, self.health, self.websocket = stats, health, websocket
+
+    def collect(self) -> Iterator[Metric]:
+        s, ready = self.stats, float(self.health().ready)
+        flowing = ready * (time.monotonic() - s.last_frame_at < SOURCE_SILENT_S)
+        clients, skipped = self.websocket()
+        for name, value, text in (
+            ("frames_acquired", s.frames_acquired, "Frames read from the source."),
+            ("frames_inferred", s.frames_inferred, "Frames run through the inverse model."),
+            ("frames_dropped", s.frames_dropped, "Frames read but dropped because inference was behind."),
+            ("frame_gaps", s.frame_gaps, "Jumps in the source's frame indices (frames lost before the service)."),
+            ("frames_lost_upstream", s.frames_lost_upstream, "Frames missing inside those jumps."),
+            ("windows_skipped", s.windows_skipped, "Windows closed while every fit worker was busy (not fitted)."),
+            ("websocket_messages_skipped", skipped, "Messages lagging WebSocket clients did not get."),
+        ):
+            yield CounterMetricFamily(f"meniscope_{name}", text, value=value)
+        for name, value, text in (
+            ("source_up", flowing, f"1 while frames arrive from the source (within {SOURCE_SILENT_S:g} s), else 0."),
+            ("ready", ready, "1 while the service is ready (model loaded, source running), else 0."),
+            ("input_frames_per_second", s.fps_in, "Frames per second read from the source (last second)."),
+            ("output_frames_per_second", s.fps_out, "Frames per second inferred (last second)."),
+            ("websocket_clients", clients, "Connected WebSocket clients."),
+        ):
+            yield GaugeMetricFamily(f"meniscope_{name}", text, value=value)
+
+
+class Metrics:
+    """The service's registry: pipeline statistics plus what :meth:`window` and :meth:`inference` record."""
+
+    def __init__(self, stats: PipelineStats, health: Callable[[], Health],
+                 websocket: Callable[[], tuple[int, int]]) -> None:
+        self.registry = r = CollectorRegistry()
+        r.register(_PipelineCollector(stats, health, websocket))
+        self.windows = Counter("meniscope_windows", "Windows published, by fit status.", ["status"], registry=r)
+        for status in STATUSES:
+            self.windows.labels(status)
+        self.unsettled = Counter("meniscope_windows_unsettled",
+                                 "Windows that ended at an ejection before the meniscus settled.", registry=r)
+        self.settling = Histogram("meniscope_settling_time_seconds", "Settling time of windows that settled.",
+                                  buckets=(5e-4, 1e-3, 2e-3, 3e-3, 4e-3, 5e-3, 6e-3, 8e-3, 1e-2, 1.5e-2, 2e-2, 5e-2),
+                                  registry=r)
+        self.frequency = Histogram("meniscope_oscillation_frequency_hertz", "Dominant mode frequency per window.",
+                                   buckets=(250, 500, 750, 1000, 1250, 1500, 1750, 2000, 2500, 3000, 4000, 6000),
+                                   registry=r)
+        self.decay = Histogram("meniscope_decay_rate_per_second", "Dominant mode decay rate per window.",
+                               buckets=(50, 100, 200, 300, 500, 750, 1000, 1500, 2000, 3000, 5000, 10000),
+                               registry=r)
+        self.inference = Histogram("meniscope_inference_latency_seconds", "Time of one batched inference call.",
+                                   buckets=(1e-4, 5e-4, 1e-3, 2.5e-3, 5e-3, 1e-2, 2.5e-2, 5e-2, 0.1, 0.25, 1.0),
+                                   registry=r)
+        self.publish = Histogram("meniscope_window_publish_latency_seconds",
+                                 "From the frame that closed a window being read to its result being published.",
+                                 buckets=(1e-3, 2.5e-3, 5e-3, 1e-2, 2.5e-2, 5e-2, 0.1, 0.25, 0.5, 1.0, 2.5, 10.0),
+                                 registry=r)
+        self.last_frequency = Gauge("meniscope_last_frequency_hertz", "Dominant frequency of the last fitted window.",
+                                    registry=r)
+        self.last_settling = Gauge("meniscope_last_settling_time_seconds",
+                                   "Settling time of the last window that settled.", registry=r)
+
+    def inference_call(self, seconds: float) -> None:
+        self.inference.observe(seconds)
+
+    def window(self, result: WindowResult, latency_s: float) -> None:
+        """Record one published window and how long after it closed it went out."""
+        self.windows.labels(result.status).inc()
+        self.publish.observe(latency_s)
+        if result.ends_at_ejection and result.status in ("ok", "unresolved") and not result.settled:
+            self.unsettled.inc()
+        if result.settling_time_s is not None:
+            self.settling.observe(result.settling_time_s)
+            self.last_settling.set(result.settling_time_s)
+        if result.status == "ok" and result.modes:
+            dominant = result.modes[0]
+            self.frequency.observe(dominant.frequency_hz)
+            self.decay.observe(dominant.decay_rate_per_s)
+            self.last_frequency.set(dominant.frequency_hz)

@@ -1,0 +1,180 @@
+"""What ``meniscope serve`` (and ``meniscope bench serve``) is configured by: one pydantic settings object.
+
+Layers, later ones winning: the defaults below (they run as they are), a config file (``--config``,
+TOML or JSON, the same keys), environment variables ``MENISCOPE_<KEY>`` (``MENISCOPE_SOURCE``,
+``MENISCOPE_PORT``, ``MENISCOPE_FIT__MAX_MODES`` for nested keys), then command-line options.
+Every problem is one :class:`MeniscopeError` line naming the setting.
+"""
+from __future__ import annotations
+
+import ipaddress
+import json
+import os
+import tomllib
+from contextvars import ContextVar
+from pathlib import Path
+from typing import Annotated, Any, Literal
+from urllib.parse import quote, unquote, urlsplit, urlunsplit
+
+from pydantic import Field, SecretStr, ValidationError, model_validator
+from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict
+
+from service import DEFAULT_MODELS, DEFAULT_SCENE
+from service.analysis.results import FitSettings
+from service.errors import MeniscopeError
+
+Method = Literal["network", "direct", "nearest", "nearest-approx"]
+Positive = Annotated[float, Field(gt=0, allow_inf_nan=False)]
+
+#: The config file being read by :func:`load_settings` (pydantic-settings builds sources per class).
+_CONFIG_FILE: ContextVar[Path | None] = ContextVar("meniscope_config_file", default=None)
+
+
+def default_data_dir() -> Path:
+    """``$XDG_CACHE_HOME/meniscope`` (``~/.cache/meniscope``): history database and the demo recording."""
+    return Path(os.environ.get("XDG_CACHE_HOME") or Path.home() / ".cache") / "meniscope"
+
+
+class ServiceSettings(BaseSettings):
+    """Every setting of the monitoring service, with defaults that run on a fresh install."""
+
+    model_config = SettingsConfigDict(env_prefix="MENISCOPE_", env_nested_delimiter="__", extra="forbid",
+                                      frozen=True)
+
+    # --- acquisition and inference
+    source: str | None = Field(None, description="frame source URI or recording path; none: the demo recording")
+    recordings_dir: Path | None = Field(None, description="file sources must lie here (default DATA_DIR/recordings)")
+    scene: Path = DEFAULT_SCENE
+    models: Path = DEFAULT_MODELS
+    method: Method = Field("network", description="network (fast), direct, nearest or nearest-approx (accurate, "
+                                                  "needs nearest_database)")
+    nearest_database: Path | None = Field(None, description="render database of the nearest methods")
+    read_frames: Annotated[int, Field(ge=1, le=4096)] = Field(128, description="frames per source read")
+    batch: Annotated[int, Field(ge=1, le=4096)] = Field(512, description="frames per inference call, at most")
+    threads: Annotated[int, Field(ge=1, le=64)] = Field(1, description="onnxruntime intra-op threads")
+    queue_batches: Annotated[int, Field(ge=1, le=1024)] = Field(
+        32, description="source reads waiting for inference before new ones are dropped")
+    # --- segmentation and fit
+    ejection_hz: Positive | None = Field(100.0, description="expected ejection rate: no two within half a period")
+    activity_threshold: Positive = Field(8.0, description="robust sigmas of frame change that mark an ejection")
+    max_window_s: Positive = Field(0.05, description="a window is cut (not fitted as one) beyond this")
+    fit: FitSettings = FitSettings()
+    fit_workers: Annotated[int, Field(ge=1, le=16)] = Field(1, description="processes fitting windows")
+    fit_nice: Annotated[int, Field(ge=0, le=19)] = Field(
+        10, description="niceness of the fit workers: 0 favours fresh windows, higher favours frames")
+    # --- publishing
+    host: str = "127.0.0.1"
+    port: Annotated[int, Field(ge=0, le=65535)] = 8000
+    token: SecretStr | None = Field(None, description="bearer token changing endpoints need when not on loopback")
+    zmq_publish: str | None = Field("tcp://127.0.0.1:5556", description="ZeroMQ PUB endpoint; empty: none")
+    data_dir: Path = Field(default_factory=default_data_dir)
+    retention_days: Positive = 7.0
+    retention_windows: Annotated[int, Field(ge=1)] = 1_000_000
+    trace_hz: Positive = Field(10.0, description="live trace messages per second")
+    trace_frames: Annotated[int, Field(ge=16, le=8192)] = Field(400, description="frames per trace message")
+    client_queue: Annotated[int, Field(ge=1, le=10_000)] = Field(64, description="messages a WebSocket client may lag")
+    retry_max_s: Positive = Field(30.0, description="longest wait between attempts to reopen a failed source")
+
+    @classmethod
+    def settings_customise_sources(
+        cls, settings_cls: type[BaseSettings], init_settings: PydanticBaseSettingsSource,
+        env_settings: PydanticBaseSettingsSource, dotenv_settings: PydanticBaseSettingsSource,
+        file_secret_settings: PydanticBaseSettingsSource,
+    ) -> tuple[PydanticBaseSettingsSource, ...]:
+        return init_settings, env_settings, _FileSource(settings_cls)
+
+    @model_validator(mode="after")
+    def _checked(self) -> "ServiceSettings":
+        if self.method.startswith("nearest") and self.nearest_database is None:
+            raise ValueError(f"method {self.method!r} needs nearest_database (a `meniscope dataset` folder)")
+        if self.source is not None:
+            resolve_source(self.source, self.recordings_folder)
+        return self
+
+    @property
+    def recordings_folder(self) -> Path:
+        return (self.recordings_dir or self.data_dir / "recordings").expanduser().resolve()
+
+    @property
+    def loopback(self) -> bool:
+        """True when only this machine can reach the HTTP port."""
+        if self.host == "localhost":
+            return True
+        try:
+            return ipaddress.ip_address(self.host).is_loopback
+        except ValueError:
+            return False
+
+    def public(self) -> dict[str, Any]:
+        """JSON-safe view for GET /api/v1/config: the token shown only as set or not."""
+        data = self.model_dump(mode="json", exclude={"token"})
+        data["token_set"] = self.token is not None
+        return data
+
+
+class _FileSource(PydanticBaseSettingsSource):
+    """The keys of the config file :func:`load_settings` was given (TOML, or JSON by extension)."""
+
+    def __init__(self, settings_cls: type[BaseSettings]) -> None:
+        super().__init__(settings_cls)
+        path = _CONFIG_FILE.get()
+        self._data = read_config(path) if path is not None else {}
+
+    def get_field_value(self, field: Any, field_name: str) -> tuple[Any, str, bool]:
+        return self._data.get(field_name), field_name, False
+
+    def __call__(self) -> dict[str, Any]:
+        return dict(self._data)
+
+
+def read_config(path: Path) -> dict[str, Any]:
+    """A config file's table of settings."""
+    try:
+        text = path.read_text()
+        data = json.loads(text) if path.suffix.lower() == ".json" else tomllib.loads(text)
+    except OSError as exc:
+        raise MeniscopeError(path, f"cannot read the config: {exc.strerror or exc}") from None
+    except (UnicodeDecodeError, ValueError) as exc:  # JSONDecodeError and TOMLDecodeError are ValueErrors
+        raise MeniscopeError(path, f"not a TOML or JSON config: {exc}") from None
+    if not isinstance(data, dict):
+        raise MeniscopeError(path, "the config must be a table of settings")
+    return data
+
+
+def load_settings(config: Path | None = None, **overrides: Any) -> ServiceSettings:
+    """Settings from defaults, ``config``, the environment and ``overrides`` (None values ignored)."""
+    token = _CONFIG_FILE.set(config)
+    try:
+        return ServiceSettings(**{k: v for k, v in overrides.items() if v is not None})
+    except ValidationError as exc:
+        raise settings_error(exc, config) from None
+    finally:
+        _CONFIG_FILE.reset(token)
+
+
+def settings_error(exc: ValidationError, where: Path | str | None = None) -> MeniscopeError:
+    """The first problem of a validation error as one line naming the setting."""
+    err = exc.errors()[0]
+    name = ".".join(str(p) for p in err["loc"]) or "settings"
+    if err["type"] == "extra_forbidden":
+        return MeniscopeError(where or "settings", f"unknown setting {name!r}")
+    msg = str(err["msg"]).removeprefix("Value error, ")
+    return MeniscopeError(where or "settings", f"{name}: {msg}" if err["loc"] else msg)
+
+
+def resolve_source(uri: str, recordings: Path) -> str:
+    """``uri`` with a file source made absolute inside ``recordings``; refuses one that would leave it.
+
+    Relative paths are taken from ``recordings``; symbolic links and ``..`` are resolved before the
+    check, so nothing outside the folder can be named. Other schemes (cameras, sockets) pass as given.
+    """
+    parts = urlsplit(uri) if "://" in uri else None
+    if parts is not None and parts.scheme.lower() != "file":
+        return uri
+    raw = unquote(parts.path) if parts is not None else uri
+    path = (recordings / Path(raw).expanduser()).resolve()
+    if not path.is_relative_to(recordings):
+        raise MeniscopeError(uri, f"file sources must lie in the recordings folder {recordings} "
+                                  "(setting recordings_dir, MENISCOPE_RECORDINGS_DIR)")
+    query = parts.query if parts is not None else ""
+    return urlunsplit(("file", "", quote(str(path)), query, ""))

@@ -1,0 +1,76 @@
+"""Running the real service in tests: uvicorn on a free port in a thread, and the demo recording."""
+from __future__ import annotations
+
+import json
+import threading
+import time
+import urllib.error
+import urllib.request
+from contextlib import contextmanager
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Iterator
+
+import uvicorn
+
+from service.server.app import create_app
+from service.settings import ServiceSettings
+
+
+@contextmanager
+def running_service(settings: ServiceSettings) -> Iterator[str]:
+    """Serve ``settings`` on 127.0.0.1 (a free port); yields the base URL, e.g. ``http://127.0.0.1:41234``."""
+    server = uvicorn.Server(uvicorn.Config(create_app(settings), host="127.0.0.1", port=0, log_level="warning",
+                                           ws="websockets-sansio"))
+    thread = threading.Thread(target=server.run, daemon=True)
+    thread.start()
+    deadline = time.monotonic() + 30
+    while not server.started:
+        if time.monotonic() > deadline or not thread.is_alive():
+            raise RuntimeError("the service did not start")
+        time.sleep(0.05)
+    port = server.servers[0].sockets[0].getsockname()[1]
+    try:
+        yield f"http://127.0.0.1:{port}"
+    finally:
+        server.should_exit = True
+        thread.join(20)
+
+
+def wait_for(predicate, timeout: float, what: str, interval: float = 0.1):  # type: ignore[no-untyped-def]
+    """Poll ``predicate()`` until it returns something truthy (returned), or fail saying ``what``."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        value = predicate()
+        if value:
+            return value
+        time.sleep(interval)
+    raise AssertionError(f"timed out after {timeout:g} s waiting for {what}")
+
+
+@dataclass(frozen=True)
+class Reply:
+    status: int
+    body: bytes
+    headers: dict[str, str]
+
+    def json(self) -> Any:
+        return json.loads(self.body)
+
+
+def request(method: str, url: str, body: Any = None, headers: dict[str, str] | None = None) -> Reply:
+    """One HTTP request with the standard library; any status is returned, not raised."""
+    data = None if body is None else json.dumps(body).encode()
+    req = urllib.request.Request(url, data=data, method=method,
+                                 headers={"Content-Type": "application/json", **(headers or {})})
+    try:
+        with urllib.request.urlopen(req, timeout=10) as resp:
+            return Reply(resp.status, resp.read(), dict(resp.headers))
+    except urllib.error.HTTPError as err:
+        return Reply(err.code, err.read(), dict(err.headers))
+
+
+def service_settings(data_dir: Path, recordings: Path, source: str | None, **overrides) -> ServiceSettings:  # type: ignore[no-untyped-def]
+    """Settings for a test service: its own data folder, a ZeroMQ port the system picks."""
+    return ServiceSettings(data_dir=data_dir, recordings_dir=recordings, source=source,
+                           zmq_publish="tcp://127.0.0.1:*", **overrides)

@@ -1,0 +1,62 @@
+"""`meniscope serve` as a user starts it: no arguments on a fresh data folder, and bad settings."""
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from tests.servicekit import request, wait_for
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def serve(tmp_path: Path, *args: str) -> subprocess.Popen:
+    env = {k: v for k, v in os.environ.items() if not k.startswith("MENISCOPE_")}
+    env.update(XDG_CACHE_HOME=str(tmp_path / "cache"), MENISCOPE_ZMQ_PUBLISH="tcp://127.0.0.1:*",
+               PYTHONPATH=str(ROOT))
+    return subprocess.Popen([sys.executable, "-m", "service.cli", "serve", *args], cwd=tmp_path, env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def test_with_no_arguments_it_runs_the_demo_and_shows_windows_within_30_seconds(tmp_path: Path) -> None:
+    port = free_port()
+    started = time.monotonic()
+    proc = serve(tmp_path, "--port", str(port))
+    try:
+        base = f"http://127.0.0.1:{port}"
+        wait_for(lambda: _answers(base + "/api/v1/windows?limit=1"), 30, "a window from the demo")
+        assert time.monotonic() - started < 30
+        status = request("GET", base + "/api/v1/status").json()
+        assert status["ready"] and status["source"]["uri"].endswith("demo.cine?speed=1&loop=1")
+        assert (tmp_path / "cache" / "meniscope" / "history.sqlite").is_file()
+    finally:
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=30)
+    assert proc.returncode == 0, err
+    assert "dashboard on http://127.0.0.1" in err
+
+
+def _answers(url: str) -> bool:
+    try:
+        return bool(request("GET", url).json()["windows"])
+    except OSError:
+        return False  # not listening yet
+
+
+def test_bad_settings_are_one_error_line_and_exit_status_2(tmp_path: Path) -> None:
+    (tmp_path / "serve.toml").write_text("batch = 0\n")
+    proc = serve(tmp_path, "--config", "serve.toml")
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 2
+    assert err.strip().splitlines()[-1] == ("meniscope serve: error: serve.toml: batch: Input should be greater "
+                                            "than or equal to 1")

@@ -1,0 +1,70 @@
+"""Service settings: defaults that run, file < environment < options, and file sources kept in their folder."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from service.errors import MeniscopeError
+from service.settings import ServiceSettings, load_settings, resolve_source
+
+
+@pytest.fixture(autouse=True)
+def no_meniscope_env(monkeypatch: pytest.MonkeyPatch) -> None:
+    for name in [n for n in __import__("os").environ if n.startswith("MENISCOPE_")]:
+        monkeypatch.delenv(name)
+
+
+def test_defaults_bind_loopback_port_8000_run_the_demo_with_the_fast_network() -> None:
+    s = load_settings()
+    assert (s.host, s.port, s.source, s.method, s.zmq_publish) == ("127.0.0.1", 8000, None, "network",
+                                                                   "tcp://127.0.0.1:5556")
+    assert s.loopback and s.token is None and s.models.joinpath("manifest.json").is_file()
+
+
+def test_a_config_file_is_overridden_by_the_environment_then_by_options(tmp_path: Path,
+                                                                         monkeypatch: pytest.MonkeyPatch) -> None:
+    config = tmp_path / "serve.toml"
+    config.write_text('port = 9000\nhost = "0.0.0.0"\nbatch = 64\n[fit]\nmax_modes = 1\n')
+    monkeypatch.setenv("MENISCOPE_PORT", "9100")
+    monkeypatch.setenv("MENISCOPE_TOKEN", "s3cret")
+    s = load_settings(config, port=9200)
+    assert (s.port, s.host, s.batch, s.fit.max_modes) == (9200, "0.0.0.0", 64, 1)
+    assert not s.loopback and s.token is not None and s.token.get_secret_value() == "s3cret"
+    assert "s3cret" not in json.dumps(s.public()) and s.public()["token_set"] is True
+    assert load_settings(config).port == 9100
+
+
+@pytest.mark.parametrize("text, problem", [
+    ("prot = 1\n", "unknown setting 'prot'"),
+    ("port = -1\n", "port: Input should be greater than or equal to 0"),
+    ('method = "fastest"\n', "method: Input should be"),
+    ('method = "nearest"\n', "needs nearest_database"),
+    ("port = [\n", "not a TOML or JSON config"),
+])
+def test_a_bad_config_is_one_line_naming_the_file_and_setting(tmp_path: Path, text: str, problem: str) -> None:
+    config = tmp_path / "serve.toml"
+    config.write_text(text)
+    with pytest.raises(MeniscopeError, match="serve.toml") as err:
+        load_settings(config)
+    assert problem in str(err.value) and "\n" not in str(err.value)
+
+
+def test_file_sources_resolve_inside_the_recordings_folder(tmp_path: Path) -> None:
+    (tmp_path / "rec.cine").touch()
+    assert resolve_source("rec.cine", tmp_path) == f"file://{tmp_path}/rec.cine"
+    assert resolve_source(f"file://{tmp_path}/rec.cine?loop=1", tmp_path) == f"file://{tmp_path}/rec.cine?loop=1"
+    assert resolve_source("zmq+tcp://10.0.0.5:5557", tmp_path) == "zmq+tcp://10.0.0.5:5557"
+
+
+@pytest.mark.parametrize("source", ["../secret.cine", "/etc/passwd", "file:///etc/passwd", "sub/../../x.cine",
+                                    "file://%2E%2E/x.cine", "link.cine"])
+def test_no_file_source_can_leave_the_recordings_folder(tmp_path: Path, source: str) -> None:
+    folder = tmp_path / "recordings"
+    folder.mkdir()
+    (folder / "link.cine").symlink_to(tmp_path / "outside.cine")
+    with pytest.raises(MeniscopeError, match="recordings folder"):
+        resolve_source(source, folder)
+    with pytest.raises(MeniscopeError, match="recordings folder"):
+        ServiceSettings(source=source, recordings_dir=folder)
