@@ -4,9 +4,16 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
+from hypothesis import settings
+
 
 from service import DEFAULT_SCENE
 from service.scene import Scene
+
+# The same examples on every run (CI must not fail by chance); `--hypothesis-profile explore` draws new ones.
+settings.register_profile("ci", derandomize=True, print_blob=True)
+settings.register_profile("explore", print_blob=True)
+settings.load_profile("ci")
 
 #: ../shared beside the checkout (specs and real Phantom recordings); may be absent.
 SHARED = Path(__file__).resolve().parents[1].parent / "shared"

@@ -76,7 +76,8 @@ def test_the_regularised_fit_recovers_frequency_and_decay_from_noisy_candidates(
     pull the fit to a faster curve that zig-zags through them: the objective's known weakness.)"""
     candidates, truth = _window(f0, g0, 190, np.random.default_rng(seed), decoys=0)
     fit = fit_window(candidates, FPS, seed=seed)
-    assert fit.frequency_hz == pytest.approx(f0, rel=0.02)
+    # 2 % where several cycles show; 3 % where the decay leaves about one (600 Hz at 500 /s: e^-1 in 1.2 cycles)
+    assert fit.frequency_hz == pytest.approx(f0, rel=0.02 if g0 / f0 < 0.5 else 0.03)
     # the min over candidates lets the curve pick among the near ones, so the decay is the loose figure
     assert fit.decay_rate_per_s == pytest.approx(g0, rel=0.3, abs=30.0)
     # the candidate chosen per frame follows the oscillation

@@ -195,7 +195,9 @@ class _Window:
 
         # MINPACK's lmder through leastsq: the same optimum as least_squares(method="lm"), 17 % less overhead
         # (full_output: an unconverged search is judged like any other fit, by BIC and its intervals, not warned of)
-        x = np.atleast_1d(leastsq(lambda x: evaluate(x)[0], x0, Dfun=lambda x: evaluate(x)[1], full_output=True)[0])
+        # and leastsq's own covariance (unused: _judge computes it safely) may overflow on absurd series
+        with np.errstate(over="ignore", invalid="ignore"):
+            x = np.atleast_1d(leastsq(lambda x: evaluate(x)[0], x0, Dfun=lambda x: evaluate(x)[1], full_output=True)[0])
         x[decay] = x[decay] ** 2
         return self._judge(order, _canonical(x))
 
