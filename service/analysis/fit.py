@@ -36,6 +36,8 @@ _MIN_DOF = 3  # residual degrees of freedom a model order needs to be tried
 _MAX_DECAY = 1.0
 #: A mode turning less than this many cycles over the window is a slow swing, not a measured frequency.
 _MIN_CYCLES = 0.8
+#: Series beyond this magnitude are refused: squares of their deviations would overflow float64.
+_MAX_VALUE = 1e150
 #: Residuals below this fraction of the window's peak deviation count as exact (float64 round-off).
 _EXACT = 1e-9
 _MAD_TO_SIGMA = 1.482602218505602
@@ -314,6 +316,10 @@ def _fit_window(values: ArrayLike, fps: float, settings: FitSettings, index: int
             reason=f"{int(finite.sum())} finite samples of {x.size}; testing for an oscillation needs {need}",
         )
     n, raw = np.flatnonzero(finite).astype(np.float64), x[finite]
+    largest = float(np.max(np.abs(raw)))
+    if largest > _MAX_VALUE:
+        return WindowResult(status="failed", **common, reason=f"values up to {largest:.3g}: beyond {_MAX_VALUE:.0e} "
+                            "the fit's sums of squares would overflow (a unit or a corrupt sample?)")
     centre = float(np.median(raw))
     spread = float(np.max(np.abs(raw - centre)))
     if spread <= 8 * np.finfo(float).eps * max(abs(centre), np.finfo(float).tiny):
