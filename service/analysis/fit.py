@@ -41,7 +41,7 @@ _MAX_VALUE = 1e150
 #: Residuals below this fraction of the window's peak deviation count as exact (float64 round-off).
 _EXACT = 1e-9
 _MAD_TO_SIGMA = 1.482602218505602
-_IRLS_STEPS = 100  # at most; the order-0 cost settles to 1e-10 in ~10-25 rounds
+_IRLS_STEPS = 100  # at most; the order-0 cost settles to 1e-6 (relative) in ~5-10 rounds
 #: The fit's matrices are small: a multi-threaded BLAS only fights the other threads for the cores
 #: (7x slower per window on a loaded 2-core machine), so each fit runs its BLAS on one thread.
 _BLAS = ThreadpoolController()
@@ -162,7 +162,7 @@ class _Window:
             model = design @ params
             minimised = self.residuals(model)[0]
             previous, cost = cost, float(minimised @ minimised)
-            if self.settings.loss == "linear" or previous - cost <= 1e-10 * cost:
+            if self.settings.loss == "linear" or previous - cost <= 1e-6 * cost:  # BIC differences that matter are >> 1e-6
                 break
             weight = 1.0 / np.sqrt(1.0 + ((model - self.y) / self.scale) ** 2)
         return params, cost
