@@ -211,9 +211,9 @@ needs_harminv = pytest.mark.skipif(not available(), reason="harminv is not insta
 
 @needs_harminv
 @settings(max_examples=25, deadline=None)
-@given(f1=st.floats(300.0, 4000.0), g1=st.floats(50.0, 1500.0), ratio=st.floats(2.2, 2.4), seed=st.integers(0, 99))
+@given(f1=st.floats(300.0, 2700.0), g1=st.floats(50.0, 1500.0), ratio=st.floats(2.2, 2.4), seed=st.integers(0, 99))
 def test_agrees_with_harminv_on_clean_signals(f1, g1, ratio, seed):
-    """Clean two-mode windows: every mode harminv finds is one of ours within 0.1 % in frequency and 2 % in
+    """Clean two-mode windows (mode 2 below 0.35 fps, as simulate draws them): every mode harminv finds is one of ours within 0.1 % in frequency and 2 % in
     decay rate, and we find both true modes (harminv sometimes misses the weaker one: the bench counts it)."""
     phases = np.random.default_rng(seed).uniform(0, 2 * np.pi, 2)
     y = series([(0.02, g1, f1, phases[0]), (0.007, 1.8 * g1, f1 * ratio, phases[1])], offset=0.01)
