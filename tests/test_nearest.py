@@ -97,3 +97,9 @@ def test_a_still_surface_fits_no_oscillation_and_nothing_is_nan(n: int) -> None:
 def test_unusable_windows_are_a_clear_error(candidates: np.ndarray, fps: float) -> None:
     with pytest.raises(MeniscopeError, match="candidates"):
         fit_window(candidates, fps)
+
+
+def test_the_regularised_fit_of_identical_candidates_is_a_flat_line() -> None:
+    """All candidates equal (a window of blank frames): a zero-width range must not break the search."""
+    fit = fit_window(np.full((20, 10), 0.0123), FPS)
+    assert fit.offset_mm == pytest.approx(0.0123) and fit.amplitude_mm < 1e-9

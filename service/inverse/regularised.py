@@ -69,7 +69,9 @@ def _spectral_start(nearest: np.ndarray, fps: float, bounds: list[tuple[float, f
     peak = np.flatnonzero(usable)[np.abs(spectrum[usable]).argmax()]
     x0 = np.array([np.sqrt(2) * nearest.std(), 0.0, 2 * np.pi * freqs[peak],
                    (-np.angle(spectrum[peak]) - np.pi / 2) % (2 * np.pi), zeta])
-    return np.clip(x0, [b[0] for b in bounds], [b[1] for b in bounds])
+    lower, upper = np.array(bounds).T
+    inset = 1e-6 * (upper - lower)  # strictly inside: DE rescales x0 to [0, 1] and rounding may leave a bound
+    return np.clip(x0, lower + inset, upper - inset)
 
 
 def fit_window(candidates: np.ndarray, fps: float, seed: int = 0) -> RegularisedFit:
@@ -83,12 +85,12 @@ def fit_window(candidates: np.ndarray, fps: float, seed: int = 0) -> Regularised
     t = np.arange(n) / fps
     duration = n / fps
     lo, hi = float(c.min()), float(c.max())
-    span = max(hi - lo, 1e-12)
+    span = max(hi - lo, 1e-6 * max(abs(lo), abs(hi), 1e-9))  # a width well above float64 rounding
     bounds = [(0.0, span),  # alpha
               (0.0, MAX_EFOLDS / duration),  # beta
               (np.pi / duration, 2 * np.pi * MAX_CYCLES_PER_FRAME * fps),  # delta
               (0.0, 2 * np.pi),  # eps
-              (lo, hi)]  # zeta
+              (lo, lo + span)]  # zeta (never a zero-width range: DE scales by it)
 
     def objective(x: np.ndarray) -> np.ndarray:
         x = x.reshape(5, -1)  # (5, S) candidates of the population
