@@ -132,7 +132,7 @@ class Evaluation:
         for k, window in enumerate(result.windows):
             rows = slice(start, start + len(window.frames))
             started = time.perf_counter()
-            fit = fit_window(database.centre[exact.index[rows]], fps, exact.distance[rows], seed=k)
+            fit = fit_window(database.centre[exact.index[rows]], fps, seed=k)
             fit_seconds.append(time.perf_counter() - started)
             chosen = exact.index[rows][np.arange(len(window.frames)), fit.chosen]
             pred[rows, :4] = database.coeffs[chosen]
