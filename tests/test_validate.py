@@ -83,6 +83,10 @@ def test_the_nearest_scores_match_an_independent_computation(document: dict, inp
     got = document["recordings"]["rec.cine"]["methods"]["nearest[large]"]
     assert got["rmse"]["centre"] == pytest.approx(rmse, rel=1e-6)
     assert got["centre_correlation"] == pytest.approx(np.corrcoef(centre, true[:, 4])[0, 1], rel=1e-6)
+    half = len(idx) // 2  # two windows of equal length: take each one's mean out
+    inside = [np.concatenate([v[:half] - v[:half].mean(), v[half:] - v[half:].mean()]) for v in (centre, true[:, 4])]
+    assert got["oscillation"]["rmse"] == pytest.approx(np.sqrt(np.mean((inside[0] - inside[1]) ** 2)), rel=1e-6)
+    assert got["oscillation"]["correlation"] == pytest.approx(np.corrcoef(*inside)[0, 1], rel=1e-6)
 
 
 def test_the_figures_are_written_and_named_in_the_document(validated: tuple[dict, Path], scene: Scene) -> None:

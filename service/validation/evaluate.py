@@ -31,14 +31,21 @@ K = 10
 
 @dataclass(frozen=True)
 class MethodResult:
-    """One method on one recording: predictions (M, 5) of the scored frames, its scores and its cost."""
+    """One method on one recording: predictions (M, 5) of the scored frames, its scores and its cost.
+
+    ``oscillation``: RMSE (mm) and correlation of D(0, t) with each window's mean taken out of both
+    prediction and truth, i.e. how well the motion inside a window is followed; the whole-recording
+    correlation of ``scores`` is dominated by the offsets d + p R that differ from window to window.
+    """
 
     pred: np.ndarray
     scores: Scores
+    oscillation: dict[str, float | None]
     seconds_per_frame: float
 
     def as_json(self) -> dict[str, Any]:
-        return {**self.scores.model_dump(mode="json"), "seconds_per_frame": self.seconds_per_frame}
+        return {**self.scores.model_dump(mode="json"), "oscillation": self.oscillation,
+                "seconds_per_frame": self.seconds_per_frame}
 
 
 @dataclass
@@ -59,6 +66,12 @@ class RecordingResult:
         return {"path": str(self.path), "fps": self.fps, "renderer": self.renderer, "windows": len(self.windows),
                 "frames_scored": len(self.frames), "methods": {k: m.as_json() for k, m in self.methods.items()},
                 "search": self.search, "window_fits": self.window_fits}
+
+
+def window_detrended(values: np.ndarray, lengths: list[int]) -> np.ndarray:
+    """Values (M,) of consecutive windows of ``lengths`` with each window's mean subtracted."""
+    starts = np.cumsum([0, *lengths[:-1]])
+    return values - np.repeat(np.add.reduceat(values, starts) / np.asarray(lengths), lengths)
 
 
 def _relative_errors(estimate: np.ndarray, truth: np.ndarray) -> np.ndarray:
@@ -104,7 +117,11 @@ class Evaluation:
         return result
 
     def _add(self, result: RecordingResult, name: str, pred: np.ndarray, seconds: float) -> None:
-        result.methods[name] = MethodResult(pred, score(pred, result.truth), seconds / len(pred))
+        lengths = [len(w.frames) for w in result.windows]
+        p, t = window_detrended(pred[:, 4], lengths), window_detrended(result.truth[:, 4], lengths)
+        corr = float(np.corrcoef(p, t)[0, 1]) if p.std() > 0 and t.std() > 0 else None
+        oscillation = {"rmse": float(np.sqrt(np.mean((p - t) ** 2))), "correlation": corr}
+        result.methods[name] = MethodResult(pred, score(pred, result.truth), oscillation, seconds / len(pred))
 
     def _nearest(self, result: RecordingResult, label: str, database: NearestDatabase, x: np.ndarray) -> None:
         """Exact, approximate and regularised nearest neighbours of one database, their costs and recall@K."""

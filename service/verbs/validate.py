@@ -41,6 +41,9 @@ def run(args: argparse.Namespace) -> int:
         for method, m in rec["methods"].items():
             r = "n/a" if m["centre_correlation"] is None else f"{m['centre_correlation']:.3f}"
             rmse = ", ".join(f"{k} {v:.3g}" for k, v in m["rmse"].items())
-            print(f"  {method:28s} RMSE {rmse}; D(0, t) r {r}; {m['seconds_per_frame'] * 1e3:.3g} ms/frame")
+            o = m["oscillation"]
+            ro = "n/a" if o["correlation"] is None else f"{o['correlation']:.3f}"
+            print(f"  {method:24s} RMSE {rmse}; D(0, t) r {r}; within windows: RMSE {o['rmse']:.3g}, r {ro}; "
+                  f"{m['seconds_per_frame'] * 1e3:.3g} ms/frame")
     print(f"{args.out / 'figures.json'}: written with {len(document['figures'])} figures")
     return 0
