@@ -118,7 +118,11 @@ def test_bad_input_is_one_line_naming_the_file(inputs: tuple[Path, list[Path]], 
     rec, databases = inputs
     bare = tmp_path / "bare.cine"
     shutil.copy(rec, bare)  # a recording without its truth file
+    other = tmp_path / "other.cine"
+    shutil.copy(rec, other)  # a recording whose truth says it was made for another scene
+    truth_path(other).write_text(json.dumps({**read_truth(rec), "scene_sha256": "0" * 64}))
     cases = [
+        (["--recording", str(other)], "other.cine: simulated for scene 000000000000, not this one"),
         (["--recording", str(bare), "--database", str(databases[0])], f"{truth_path(bare)}: missing"),
         (["--recording", str(rec), "--database", str(databases[0]), "--database", str(databases[0])],
          "--database: file and folder names must differ"),

@@ -79,7 +79,7 @@ def _relative_errors(estimate: np.ndarray, truth: np.ndarray) -> np.ndarray:
 
 
 class Evaluation:
-    """Inverse methods to compare: ``networks`` by name, ``databases`` by label; scene and fps fixed."""
+    """Inverse methods to compare on recordings of one scene: ``networks`` by name, ``databases`` by label."""
 
     def __init__(self, scene: Scene, networks: dict[str, InverseMethod], databases: dict[str, NearestDatabase]) -> None:
         self.scene, self.networks, self.databases = scene, networks, databases
@@ -100,8 +100,8 @@ class Evaluation:
         index = np.concatenate([w.frames for w in windows])  # (M,)
         if index.max(initial=-1) >= len(frames):
             raise MeniscopeError(path, f"holds {len(frames)} frames, its truth file scores up to frame {index.max()}")
-        result = RecordingResult(path=path, fps=float(facts["fps"]), renderer=str(truth.get("renderer", "Renderer")), windows=windows,
-                                 truth=np.concatenate([w.targets for w in windows]), frames=index)
+        result = RecordingResult(path=path, fps=float(facts["fps"]), renderer=str(truth.get("renderer", "Renderer")),
+                                 windows=windows, truth=np.concatenate([w.targets for w in windows]), frames=index)
         x = frames[index]  # (M, H, W) as stored
         bar.update()
         for name, method in self.networks.items():
