@@ -61,7 +61,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--lab-video", type=Path, required=True, help="unlabeled lab recording (.cine or .avi)")
     p.add_argument("--out", type=Path, required=True, help="model folder to write (new or empty)")
     p.add_argument("--samples", type=int, help="synthetic renders to train on (default 50000; --quick 1536)")
-    p.add_argument("--dataset", type=Path, help="a dataset folder from `meniscope dataset` to use (or create)")
+    p.add_argument("--dataset", type=Path, help="a dataset folder from `meniscope dataset` to use (or create, and keep: it then serves as the "
+                   "nearest-neighbour database too)")
     p.add_argument("--holdout", type=Path, help="a simulated recording (with .truth.json) no model sees, scored")
     p.add_argument("--seed", type=int, default=0, help="seed (default 0)")
     p.add_argument("--quick", action="store_true", help="a run of seconds for tests; its models are not useful")
