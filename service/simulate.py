@@ -164,7 +164,7 @@ def truth_path(recording: str | Path) -> Path:
 
 
 def truth_document(plan: Plan, scene: Scene, recording: Path, effects: CameraEffects, seed: int,
-                   ejection_hz: float, noise: str | None) -> dict[str, Any]:
+                   ejection_hz: float, noise: str | None, renderer: str) -> dict[str, Any]:
     """The sidecar's content (scene.md, "Recordings and ground truth"): JSON-safe, finite numbers."""
     x, y = scene.camera.roi
     R = scene.nozzle.radius_mm
@@ -182,6 +182,7 @@ def truth_document(plan: Plan, scene: Scene, recording: Path, effects: CameraEff
         "scene": scene.model_dump(mode="json"),
         "scene_sha256": scene.sha256,
         "seed": seed,
+        "renderer": renderer,
         "ejection_hz": ejection_hz,
         "ejections": [int(e) for e in starts],
         "time_origin": "t = (frame - start_frame) / fps, start_frame being the window's ejection",
@@ -239,7 +240,9 @@ def simulate(
     Deterministic by ``seed``: the motion comes from the first child of ``SeedSequence(seed)``, the
     camera noise of window k from child k of its second child. Frames outside the scene's ROI
     (``camera.roi``) are black before the camera effects. ``noise`` names the preset ``effects``
-    came from, for the record. Memory stays bounded: at most :data:`BATCH_FRAMES` frames at once.
+    came from, for the record; ``renderer`` is anything with ``render(coeffs (N, 4)) -> (N, H, W)`` linear
+    frames, ours by default (``service.render.blender.BlenderRenderer`` for a second renderer), and the
+    truth names its class. Memory stays bounded: at most :data:`BATCH_FRAMES` frames at once.
     """
     out = Path(out)
     check_output(out, effects.bit_depth)
@@ -267,7 +270,7 @@ def simulate(
                     linear[:, y:, x:] = renderer.render(plan.coefficients(k, start, stop))
                     writer.write(effects.apply(linear, rng), None)
                     bar.update(stop - start)
-        truth = truth_document(plan, scene, out, effects, seed, ejection_hz, noise)
+        truth = truth_document(plan, scene, out, effects, seed, ejection_hz, noise, type(renderer).__name__)
         try:
             sidecar.write_text(json.dumps(truth, indent=1, allow_nan=False) + "\n")
         except OSError as exc:

@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 
 from service.analysis.results import Report
-from service.analysis.score import ejection_matches, load_truth, truth_centre
+from service.analysis.score import ejection_matches, truth_centre
 from service.csvtable import read_columns
-from service.simulate import truth_path
+from service.validation.truth import read_truth
 
 REPORT_KEYS = {"schema", "source", "method", "ejections", "windows"}
 WINDOW_KEYS = {"index", "start_frame", "end_frame", "status", "reason", "modes", "offset_mm", "settling_time_s",
@@ -52,7 +52,7 @@ def test_analyze_writes_the_report_the_table_and_the_plot(recording: Path, tmp_p
     done = meniscope("analyze", recording, "--method", method, "--out", out, "--quiet")
     assert done.returncode == 0, done.stderr
     data = check_layout(out)
-    truth = load_truth(truth_path(recording))
+    truth = read_truth(recording)
     assert data["method"] == method and data["source"]["frames"] == 760 and data["source"]["fps"] == 19000
     assert ejection_matches(np.array(data["ejections"]), np.array(truth["ejections"])) == (4, 4, 4)
     table = read_columns(out.with_suffix(".frames.csv"), ("frame", "t_s", "d_mm", "p", "a_mm", "b_mm", "centre_mm"))
@@ -73,7 +73,7 @@ def test_analyze_at_a_known_rate_and_from_the_printers_file(recording: Path, tmp
 
 
 def test_fit_recovers_the_true_motion_of_every_window(recording: Path, tmp_path: Path):
-    truth = load_truth(truth_path(recording))
+    truth = read_truth(recording)
     series = tmp_path / "series.csv"
     values = truth_centre(truth)
     values[[300, 301, 650]] = np.nan  # missing samples: empty cells

@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import math
 import re
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -219,3 +220,23 @@ def test_the_verb_reports_bad_input_in_one_line(tmp_path: Path, capsys: pytest.C
     err = capsys.readouterr().err
     assert message in err and err.count("\n") == 1
     assert not (tmp_path / "x.cine").exists()
+
+
+@pytest.mark.skipif(shutil.which("blender") is None, reason="blender not on PATH (Debian: apt install blender)")
+def test_the_verb_can_render_with_blender_as_a_second_renderer(tmp_path: Path, scene: Scene,
+                                                               capsys: pytest.CaptureFixture) -> None:
+    """A 16-frame window (5 of transient, 11 of oscillation) through Cycles: the truth names the renderer,
+    and the frames show the same scene as ours without being ours."""
+    out = tmp_path / "cycles.cine"
+    argv = ["simulate", "--out", str(out), "--renderer", "blender", "--blender-samples", "4", "--windows", "1",
+            "--ejection-hz", str(19000 / 16), "--noise", "none", "--seed", "3"]
+    assert main(argv) == 0
+    assert "16 frames" in capsys.readouterr().out
+    truth = json.loads(truth_path(out).read_text())
+    assert truth["renderer"] == "BlenderRenderer"
+    simulate(scene, tmp_path / "ours.cine", windows=1, seed=3, ejection_hz=19000 / 16,
+             effects=noise_preset("none", 12))
+    with open_recording(out) as rec, open_recording(tmp_path / "ours.cine") as other:
+        cycles, ours = np.asarray(rec.read(0, 16), np.float64), np.asarray(other.read(0, 16), np.float64)
+    assert not np.array_equal(cycles, ours)
+    assert np.corrcoef(cycles.ravel(), ours.ravel())[0, 1] > 0.8

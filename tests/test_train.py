@@ -16,6 +16,7 @@ from service.inverse.manifest import MANIFEST, load_manifest
 from service.inverse.network import NetworkMethod
 from service.recordings import open_recording
 from service.scene import Scene
+from service.validation.report import lab_frames, reconstructions, validate
 
 pytest.importorskip("torch", reason="training needs the train extra (torch)")
 
@@ -45,11 +46,27 @@ def test_train_exports_both_methods_with_a_manifest_and_plots(trained: tuple[Pat
     _, _, models = trained
     manifest = load_manifest(models, scene)
     assert set(manifest.methods) == {"network", "direct"}
-    for name in ("network.onnx", "direct.onnx", "losses.png", "validation.png"):
+    for name in ("network.onnx", "direct.onnx", "autoencoder.onnx", "losses.png", "validation.png"):
         assert (models / name).stat().st_size > 0
     assert set(manifest.validation["network"]) == {"synthetic", "recording"}
-    for entry in manifest.methods.values():
+    for entry in (*manifest.methods.values(), manifest.autoencoder):
         assert entry.parity_max_abs <= PARITY_MM
+    assert manifest.autoencoder.file == "autoencoder.onnx" and "autoencoder" not in manifest.methods
+
+
+def test_validate_shows_lab_frames_beside_their_vae_reconstructions(trained: tuple[Path, Path, Path], scene: Scene,
+                                                                    tmp_path: Path) -> None:
+    """The exported autoencoder graph reproduces what the VAE saw: its ``normalised`` output is the
+    pooled, standardised frame, and the reconstruction figure is drawn from it."""
+    lab, holdout, models = trained
+    frames = lab_frames(lab, scene, count=4)
+    shown, recon = reconstructions(models, load_manifest(models, scene), frames)
+    assert shown.shape == recon.shape == (4, 32, 32)
+    pooled = frames.astype(np.float64).reshape(4, 32, 3, 32, 3).mean(axis=(2, 4))
+    expected = (pooled - pooled.mean(axis=(1, 2), keepdims=True)) / pooled.std(axis=(1, 2), ddof=1, keepdims=True)
+    np.testing.assert_allclose(shown, expected, atol=1e-3)
+    document = validate(scene, models, [], [holdout], tmp_path, lab_video=lab)
+    assert (tmp_path / document["figures"]["reconstructions"]).stat().st_size > 10_000
 
 
 def test_the_runtime_method_infers_raw_frames_of_any_batch_size(trained: tuple[Path, Path, Path], scene: Scene) -> None:

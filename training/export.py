@@ -3,7 +3,8 @@
 The graph's input is the scene's ROI as stored, uint8 or uint16 of shape (N, H, W) with a dynamic
 batch; normalisation is inside the graph, so ``service.inverse.network`` only hands frames over.
 Outputs: ``coefficients`` (N, 4) float32, columns d (mm), p (-), a (mm), b (mm), and ``centre``
-(N,) float32, D(0, t) in mm.
+(N,) float32, D(0, t) in mm. The VAE's reconstruction graph (``autoencoder.onnx``, for the validation
+figures) takes the same input and outputs ``normalised`` and ``reconstruction`` instead.
 
 Exporter: the TorchScript one (``dynamo=False``). torch 2.13's default dynamo exporter needs the
 onnxscript package and takes ~14 s per graph against < 1 s; the TorchScript exporter cannot take a
@@ -32,8 +33,10 @@ INPUT_DTYPES = {"uint8": TensorProto.UINT8, "uint16": TensorProto.UINT16}
 _FLOAT_INPUT = "frames_float32"
 
 
-def export_onnx(model: nn.Module, path: Path, height: int, width: int, dtype: str = "uint16") -> Path:
-    """Write ``model`` (frames (N, H, W) -> coefficients, centre) as a single self-contained .onnx file.
+def export_onnx(model: nn.Module, path: Path, height: int, width: int, dtype: str = "uint16",
+                outputs: tuple[str, ...] = tuple(OUTPUTS)) -> Path:
+    """Write ``model`` (frames (N, H, W) -> ``outputs``, by default coefficients and centre) as a single
+    self-contained .onnx file.
 
     ``dtype`` is the stored pixel type the graph takes; uint16 also serves uint8 recordings, whose
     frames the runtime widens losslessly.
@@ -42,7 +45,7 @@ def export_onnx(model: nn.Module, path: Path, height: int, width: int, dtype: st
         raise ValueError(f"input dtype {dtype!r} is not one of {sorted(INPUT_DTYPES)}")
     model = model.eval()
     buffer = io.BytesIO()
-    dynamic = {name: {0: "batch"} for name in (_FLOAT_INPUT, *OUTPUTS)}
+    dynamic = {name: {0: "batch"} for name in (_FLOAT_INPUT, *outputs)}
     with warnings.catch_warnings():  # the TorchScript exporter announces its deprecation (module docstring)
         warnings.simplefilter("ignore", DeprecationWarning)
         torch.onnx.export(
@@ -51,7 +54,7 @@ def export_onnx(model: nn.Module, path: Path, height: int, width: int, dtype: st
             buffer,
             dynamo=False,
             input_names=[_FLOAT_INPUT],
-            output_names=list(OUTPUTS),
+            output_names=list(outputs),
             dynamic_axes=dynamic,
             opset_version=OPSET,
         )
@@ -72,16 +75,16 @@ def _cast_input(proto: onnx.ModelProto, elem_type: int) -> None:
     graph.node.insert(0, helper.make_node("Cast", [INPUT], [_FLOAT_INPUT], to=TensorProto.FLOAT, name="cast_frames"))
 
 
-def onnx_outputs(path: Path, frames: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Coefficients (N, 4) and centre (N,) of an exported graph, run by onnxruntime's CPU provider."""
+def onnx_outputs(path: Path, frames: np.ndarray, outputs: tuple[str, ...] = tuple(OUTPUTS)) -> list[np.ndarray]:
+    """The named outputs of an exported graph (by default coefficients (N, 4) and centre (N,)), run by
+    onnxruntime's CPU provider."""
     session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
-    coefficients, centre = session.run(list(OUTPUTS), {INPUT: frames})
-    return coefficients, centre
+    return session.run(list(outputs), {INPUT: frames})
 
 
-def parity(model: nn.Module, path: Path, frames: np.ndarray) -> float:
-    """Largest absolute difference between torch and onnxruntime over both outputs (mm, and - for p)."""
+def parity(model: nn.Module, path: Path, frames: np.ndarray, outputs: tuple[str, ...] = tuple(OUTPUTS)) -> float:
+    """Largest absolute difference between torch and onnxruntime over all outputs (in their units)."""
     with torch.no_grad():
         expected = [t.numpy() for t in model.eval()(torch.from_numpy(frames))]
-    got = onnx_outputs(path, frames)
+    got = onnx_outputs(path, frames, outputs)
     return float(max(np.abs(e - g).max(initial=0.0) for e, g in zip(expected, got)))

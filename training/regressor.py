@@ -10,11 +10,9 @@ import numpy as np
 import torch
 from torch import nn
 
+from service.validation.truth import TARGETS
 from training.normalise import Normalise
 from training.vae import Encoder
-
-#: Regression targets, in order: Eq. 1's d (mm), p (-), a (mm), b (mm), then D(0, t) (mm).
-TARGETS = ("d", "p", "a", "b", "centre")
 
 
 def targets(coefficients: np.ndarray, centre: np.ndarray) -> np.ndarray:

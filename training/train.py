@@ -26,23 +26,24 @@ from tqdm import tqdm
 
 from service.errors import MeniscopeError
 from service.inverse.manifest import (
-    MANIFEST, InputSpec, Manifest, MethodEntry, Scores, TrainingSummary, load_manifest, write_manifest,
+    AUTOENCODER_OUTPUTS, MANIFEST, InputSpec, Manifest, MethodEntry, TrainingSummary, load_manifest,
+    write_manifest,
 )
-from service.physics import WindowTruth
-from service.recordings import open_recording
+from service.recordings.roi import read_roi_frames
 from service.scene import Scene
-from service.simulate import truth_path
+from service.validation.truth import oscillation_truth, read_truth, score
 from training.dataset import Dataset, DatasetConfig, generate, open_dataset
 from training.direct import DirectCNN
 from training.export import export_onnx, parity
 from training.normalise import Normalise, downsample_factor
-from training.regressor import TARGETS, Head, LatentRegressor, targets
-from training.vae import VAE, Encoder, NetConfig, vae_loss
+from training.regressor import Head, LatentRegressor, targets
+from training.vae import VAE, Encoder, NetConfig, Reconstruction, vae_loss
 
 #: What each exported method is, for the manifest.
 DESCRIPTIONS = {
     "network": "VAE encoder (trained on lab frames) + regressor (trained on renders), Price et al. 2022 Sec. 3.2 (b)",
     "direct": "CNN trained end to end on renders: the baseline Sec. 3.2 argued against",
+    "autoencoder": "VAE (trained on lab frames): frames -> normalised input and its reconstruction, for figures",
 }
 History = dict[str, list[float]]  # "train", "val": mean loss per epoch
 #: Frames per chunk when normalising, encoding or predicting outside the optimiser (bounds memory).
@@ -81,33 +82,6 @@ def seed_everything(seed: int, threads: int) -> torch.Generator:
     torch.set_num_threads(threads)
     torch.use_deterministic_algorithms(True)
     return torch.Generator().manual_seed(seed)
-
-
-def read_roi_frames(path: Path, scene: Scene, limit: int | None = None, run: int = 512) -> tuple[np.ndarray, dict]:
-    """The scene's ROI of a recording, as stored: (N, H, W) uint8 | uint16, and facts about it.
-
-    With ``limit`` below the frame count, ``limit`` frames are read as evenly spaced runs of at
-    most ``run`` consecutive frames, so that every part of the recording is represented.
-    """
-    cam = scene.camera
-    x, y = cam.roi
-    with open_recording(path) as rec:
-        scene.check_roi(rec.width, rec.height, path)
-        total = len(rec)
-        if total == 0:
-            raise MeniscopeError(path, "the recording holds no frames")
-        take = total if limit is None else min(limit, total)
-        runs = math.ceil(take / run)
-        starts = np.linspace(0, total, runs + 1).astype(int)[:-1]  # (runs,), spaced >= take / runs
-        counts = np.diff(np.linspace(0, take, runs + 1).astype(int))  # (runs,), summing to take
-        out = np.empty((take, cam.height_px, cam.width_px), rec.dtype)  # (N, H, W)
-        done = 0
-        for start, count in tqdm(zip(starts, counts), total=runs, desc=f"read {path.name}", unit="run", disable=None):
-            out[done : done + count] = rec.read(int(start), int(count))[:, y : y + cam.height_px, x : x + cam.width_px]
-            done += count
-        facts = {"path": str(path), "frames_total": total, "frames_used": take, "fps": rec.fps,
-                 "width": rec.width, "height": rec.height, "bit_depth": rec.bit_depth}
-    return out, facts
 
 
 @torch.no_grad()
@@ -240,30 +214,6 @@ def train_direct(
     return model, history
 
 
-def score(pred: np.ndarray, true: np.ndarray) -> Scores:
-    """Per-target RMSE and the centre displacement's correlation, of predictions and truths (N, 5)."""
-    err = np.sqrt(np.mean((pred.astype(np.float64) - true) ** 2, axis=0))  # (5,)
-    p, t = pred[:, 4].astype(np.float64), true[:, 4].astype(np.float64)
-    corr = float(np.corrcoef(p, t)[0, 1]) if len(p) > 1 and p.std() > 0 and t.std() > 0 else None
-    return Scores(frames=len(pred), rmse={k: float(v) for k, v in zip(TARGETS, err)}, centre_correlation=corr)
-
-
-def oscillation_truth(truth: dict, scene: Scene) -> tuple[np.ndarray, np.ndarray]:
-    """Frames and true targets of a simulated recording, from its ``.truth.json`` (scene.md).
-
-    Only frames after each ejection's transient: the transient's bulge lies outside the
-    coefficient ranges the models are trained on. Returns frame indices (M,) and targets (M, 5).
-    """
-    fps, radius = float(truth["recording"]["fps"]), scene.nozzle.radius_mm
-    frames, targets = [], []
-    for window in truth["windows"]:
-        idx = np.arange(window["oscillation_start_frame"], window["end_frame"])  # (m,)
-        coeffs = WindowTruth(**window["truth"]).coefficients((idx - window["start_frame"]) / fps)
-        frames.append(idx)
-        targets.append(np.column_stack([coeffs.to_array(), coeffs.centre(radius)]))  # (m, 5)
-    return np.concatenate(frames), np.concatenate(targets)
-
-
 def plot_losses(histories: dict[str, History], path: Path) -> Path:
     """One panel per model: training and validation loss per epoch (log scale), as a PNG."""
     import matplotlib
@@ -376,7 +326,7 @@ def train_models(
     results = {"synthetic": {name: (_predict(m, val_frames), y[val_idx].numpy()) for name, m in models.items()}}
     if holdout_video is not None:
         held, _ = read_roi_frames(holdout_video, scene)
-        idx, true = oscillation_truth(json.loads(truth_path(holdout_video).read_text()), scene)
+        idx, true = oscillation_truth(read_truth(holdout_video), scene)
         results["recording"] = {name: (_predict(m, held[idx]), true) for name, m in models.items()}
 
     probe = val_frames[:256].astype(config.input_dtype)
@@ -384,6 +334,11 @@ def train_models(
     for name, model in models.items():
         path = export_onnx(model, out / f"{name}.onnx", height, width, config.input_dtype)
         methods[name] = MethodEntry(file=path.name, description=DESCRIPTIONS[name], parity_max_abs=parity(model, path, probe))
+    reconstruction = Reconstruction(normalise, vae).eval()
+    path = export_onnx(reconstruction, out / "autoencoder.onnx", height, width, config.input_dtype,
+                       tuple(AUTOENCODER_OUTPUTS))
+    autoencoder = MethodEntry(file=path.name, description=DESCRIPTIONS["autoencoder"],
+                              parity_max_abs=parity(reconstruction, path, probe, tuple(AUTOENCODER_OUTPUTS)))
     histories = {"VAE (negative ELBO)": vae_history, "regressor (standardised MSE)": regressor_history,
                  "direct CNN (standardised MSE)": direct_history}
     plot_losses(histories, out / "losses.png")
@@ -396,6 +351,7 @@ def train_models(
         input=InputSpec(height=height, width=width, dtype=config.input_dtype, downsample=normalise.factor,
                         model_height=x.shape[2], model_width=x.shape[3]),
         methods=methods,
+        autoencoder=autoencoder,
         training=TrainingSummary(dataset=dataset_facts, lab_video=lab_facts, config=asdict(config),
                                  seconds=time.perf_counter() - started,
                                  losses={name: h["val"][-1] for name, h in histories.items()}),

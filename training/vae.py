@@ -13,6 +13,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from training.normalise import Normalise
+
 
 @dataclass(frozen=True)
 class NetConfig:
@@ -113,3 +115,21 @@ def vae_loss(
     recon_term = 0.5 * (recon - x).pow(2).flatten(1).sum(1)  # (N,)
     kl = -0.5 * (1 + logvar - mu.pow(2) - logvar.exp()).sum(1)  # (N,)
     return (recon_term + beta * kl).mean(), kl.mean()
+
+
+class Reconstruction(nn.Module):
+    """Stored frames (N, H, W) -> the VAE's input (N, 1, h, w) and its reconstruction from the posterior mean.
+
+    Exported beside the inverse graphs (``autoencoder.onnx``) so that ``meniscope validate`` can show
+    lab frames next to their reconstructions (Price et al. 2022, Fig. 13) without torch.
+    """
+
+    def __init__(self, normalise: Normalise, vae: VAE) -> None:
+        super().__init__()
+        self.normalise = normalise
+        self.vae = vae
+
+    def forward(self, frames: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        x = self.normalise(frames)  # (N, 1, h, w)
+        mu, _ = self.vae.encoder(x)  # (N, latent): no sampling
+        return x, self.vae.decoder(mu)

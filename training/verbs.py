@@ -1,4 +1,12 @@
-"""The offline verbs, added to ``meniscope`` through the ``meniscope.verbs`` entry point: ``dataset``, ``train``."""
+"""The offline verbs, added to ``meniscope`` through the ``meniscope.verbs`` entry point: ``dataset``, ``database``,
+``train``.
+
+The nearest-neighbour database (Price et al. 2022, Sec. 3.2 (a)) is a dataset folder: renders with the
+coefficients they were made from. ``meniscope database`` renders one apart from the training renders
+(seed 1, where ``train`` uses seed 0) and indexes it once to check it; ``meniscope train --dataset DIR``
+keeps its training renders in DIR, which is a database too. Model folders stay small (they are committed)
+and never hold a database; ``meniscope validate --database DIR`` and the nearest-neighbour methods name it.
+"""
 from __future__ import annotations
 
 import argparse
@@ -10,17 +18,12 @@ from service.errors import MeniscopeError
 from service.scene import Scene
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:
-    p = subparsers.add_parser(
-        "dataset",
-        help="render a training set of random shapes through a randomised camera",
-        description="Render SAMPLES frames of random Eq. 1 shapes (jittered scene, randomised camera) into a "
-        "memory-mappable folder: frames.npy, coeffs.npy, centre.npy, manifest.json.",
-    )
+def _render_options(p: argparse.ArgumentParser, seed: int) -> None:
+    """The options of a folder of renders (``dataset`` and ``database``): scene, size, seed, workers, storage."""
     add_scene_option(p)
-    p.add_argument("--out", type=Path, required=True, help="dataset folder to create (new or empty)")
+    p.add_argument("--out", type=Path, required=True, help="folder to create (new or empty)")
     p.add_argument("--samples", type=int, default=20000, help="frames to render (default 20000)")
-    p.add_argument("--seed", type=int, default=0, help="seed (default 0); the files do not depend on --workers")
+    p.add_argument("--seed", type=int, default=seed, help=f"seed (default {seed}); the files do not depend on --workers")
     p.add_argument("--workers", type=int, default=os.cpu_count() or 1,
                    help="processes rendering chunks (default: one per CPU core)")
     p.add_argument("--scheduler", metavar="ADDRESS",
@@ -28,7 +31,27 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    "processes; needs the scale extra here and meniscope on every worker")
     p.add_argument("--chunk-size", type=int, default=2048, help="frames per chunk and per jittered scene (default 2048)")
     p.add_argument("--bit-depth", type=int, default=8, help="stored bits: 8 (uint8) or 10, 12, 16 (uint16); default 8")
-    p.set_defaults(func=run)
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser(
+        "dataset",
+        help="render a training set of random shapes through a randomised camera",
+        description="Render SAMPLES frames of random Eq. 1 shapes (jittered scene, randomised camera) into a "
+        "memory-mappable folder: frames.npy, coeffs.npy, centre.npy, manifest.json.",
+    )
+    _render_options(p, seed=0)
+    p.set_defaults(func=run, index=False)
+
+    p = subparsers.add_parser(
+        "database",
+        help="render the nearest-neighbour database (renders with their coefficients) and index it",
+        description="Render SAMPLES frames as `meniscope dataset` does, seeded apart from the training renders, "
+        "then build the exact and approximate (PCA + FLANN) search index once to check it. The paper compares "
+        "20,000 and 100,000 renders.",
+    )
+    _render_options(p, seed=1)
+    p.set_defaults(func=run, index=True)
 
     p = subparsers.add_parser(
         "train",
@@ -41,7 +64,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--lab-video", type=Path, required=True, help="unlabeled lab recording (.cine or .avi)")
     p.add_argument("--out", type=Path, required=True, help="model folder to write (new or empty)")
     p.add_argument("--samples", type=int, help="synthetic renders to train on (default 50000; --quick 1536)")
-    p.add_argument("--dataset", type=Path, help="a dataset folder from `meniscope dataset` to use (or create)")
+    p.add_argument("--dataset", type=Path, help="a dataset folder from `meniscope dataset` to use (or create, and keep: it then serves as the "
+                   "nearest-neighbour database too)")
     p.add_argument("--holdout", type=Path, help="a simulated recording (with .truth.json) no model sees, scored")
     p.add_argument("--seed", type=int, default=0, help="seed (default 0)")
     p.add_argument("--quick", action="store_true", help="a run of seconds for tests; its models are not useful")
@@ -88,4 +112,12 @@ def run(args: argparse.Namespace) -> int:
     frames = manifest["frames"]
     print(f"{args.out}: {manifest['samples']} frames {frames['dtype']} {frames['shape'][1]}x{frames['shape'][2]} "
           f"in {manifest['chunks']} chunks")
+    if args.index:
+        import time
+
+        from service.inverse.nearest import NearestDatabase
+
+        started = time.perf_counter()
+        database = NearestDatabase.load(args.out)
+        print(f"{args.out}: indexed {len(database)} renders in {time.perf_counter() - started:.1f} s")
     return 0

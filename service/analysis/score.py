@@ -7,21 +7,13 @@ counted as missed, not dropped.
 """
 from __future__ import annotations
 
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from service.analysis.results import Report
 from service.inverse.base import InverseOutput
-from service.jsonfile import read_schema_json
 from service.physics import WindowTruth
-from service.simulate import SCHEMA as TRUTH_SCHEMA
-
-
-def load_truth(path: str | Path) -> dict[str, Any]:
-    """A ``meniscope.truth/1`` sidecar, or a MeniscopeError naming the file."""
-    return read_schema_json(Path(path), TRUTH_SCHEMA, "no ground truth beside the recording (`meniscope simulate` writes one)")
 
 
 def truth_coefficients(truth: dict[str, Any]) -> np.ndarray:

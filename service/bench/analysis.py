@@ -22,12 +22,13 @@ import numpy as np
 
 from service import DEFAULT_MODELS
 from service.analysis.offline import analyse_recording
-from service.analysis.score import load_truth, summary
+from service.analysis.score import summary
 from service.cli import add_scene_option
 from service.errors import MeniscopeError, require_folder_of
 from service.inverse.methods import DATABASE_METHODS, METHODS, open_method
 from service.scene import Scene
 from service.simulate import truth_path
+from service.validation.truth import read_truth
 
 #: Summary figures averaged over a method's recordings, as (key, label, format) of the table.
 COLUMNS = (
@@ -69,7 +70,7 @@ def run_method(method: str, recordings: list[Path], scene: Scene, models: Path, 
     setup_s = time.perf_counter() - start
     rows = []
     for path in recordings:
-        truth = load_truth(truth_path(path))
+        truth = read_truth(path)
         start = time.perf_counter()
         analysis = analyse_recording(path, scene, method, models, database, progress=False, opened=opened)
         seconds = time.perf_counter() - start

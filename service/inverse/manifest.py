@@ -26,6 +26,12 @@ OUTPUTS = {
     "centre": "float32 (N,): centre displacement D(0, t) (mm)",
 }
 
+#: Outputs of the VAE's reconstruction graph (``autoencoder.onnx``), which takes the same input.
+AUTOENCODER_OUTPUTS = {
+    "normalised": "float32 (N, 1, h, w): the frames as the networks see them (pooled, standardised)",
+    "reconstruction": "float32 (N, 1, h, w): the VAE decoder's output from the encoder's posterior mean",
+}
+
 Finite = Annotated[float, Field(allow_inf_nan=False)]
 
 
@@ -85,8 +91,9 @@ class Manifest(_Record):
     input: InputSpec
     outputs: dict[str, str] = OUTPUTS
     methods: dict[str, MethodEntry]
+    autoencoder: MethodEntry | None = None  # the VAE's reconstruction graph, for figures: not an inverse method
     training: TrainingSummary
-    validation: dict[str, dict[str, Scores]] = {}  # method -> data set ("synthetic", "recording") -> scores
+    validation: dict[str, dict[str, Scores]] = {}  # method -> data set ("synthetic", "recording", ...) -> scores
     files: dict[str, str]  # every other file of the folder (relative path) -> sha256
 
     model_config = ConfigDict(extra="forbid", frozen=True, populate_by_name=True)
@@ -150,7 +157,8 @@ def load_manifest(model_dir: str | Path, scene: Scene) -> Manifest:
             raise MeniscopeError(file, f"missing: {MANIFEST} lists it")
         if sha256_file(file) != expected:
             raise MeniscopeError(file, f"sha256 differs from {MANIFEST}: the file changed after training")
-    for method, entry in manifest.methods.items():
+    graphs = {**manifest.methods, **({"autoencoder": manifest.autoencoder} if manifest.autoencoder else {})}
+    for method, entry in graphs.items():
         if entry.file not in manifest.files:
             raise MeniscopeError(path, f"method {method!r} names {entry.file!r}, which the manifest does not hash")
     return manifest

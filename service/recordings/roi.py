@@ -1,12 +1,46 @@
-"""The scene's region of interest of a recording, streamed in chunks so that any length fits in memory."""
+"""The scene's region of interest read out of a recording, as stored: what every inverse method takes;
+whole (evenly spaced runs, for training) or streamed in chunks (any length, for analysis)."""
 from __future__ import annotations
 
+import math
+from pathlib import Path
 from typing import Iterator
 
 import numpy as np
+from tqdm import tqdm
 
+from service.errors import MeniscopeError
+from service.recordings import open_recording
 from service.recordings.base import Recording
 from service.scene import Scene
+
+
+def read_roi_frames(path: str | Path, scene: Scene, limit: int | None = None, run: int = 512) -> tuple[np.ndarray, dict]:
+    """The scene's ROI of a recording, as stored: (N, H, W) uint8 | uint16, and facts about it.
+
+    With ``limit`` below the frame count, ``limit`` frames are read as evenly spaced runs of at
+    most ``run`` consecutive frames, so that every part of the recording is represented.
+    """
+    path = Path(path)
+    cam = scene.camera
+    x, y = cam.roi
+    with open_recording(path) as rec:
+        scene.check_roi(rec.width, rec.height, path)
+        total = len(rec)
+        if total == 0:
+            raise MeniscopeError(path, "the recording holds no frames")
+        take = total if limit is None else min(limit, total)
+        runs = math.ceil(take / run)
+        starts = np.linspace(0, total, runs + 1).astype(int)[:-1]  # (runs,), spaced >= take / runs
+        counts = np.diff(np.linspace(0, take, runs + 1).astype(int))  # (runs,), summing to take
+        out = np.empty((take, cam.height_px, cam.width_px), rec.dtype)  # (N, H, W)
+        done = 0
+        for start, count in tqdm(zip(starts, counts), total=runs, desc=f"read {path.name}", unit="run", disable=None):
+            out[done : done + count] = rec.read(int(start), int(count))[:, y : y + cam.height_px, x : x + cam.width_px]
+            done += count
+        facts = {"path": str(path), "frames_total": total, "frames_used": take, "fps": rec.fps,
+                 "width": rec.width, "height": rec.height, "bit_depth": rec.bit_depth}
+    return out, facts
 
 
 def roi_chunks(recording: Recording, scene: Scene, chunk: int = 1024) -> Iterator[tuple[int, np.ndarray]]:

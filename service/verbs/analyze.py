@@ -90,9 +90,10 @@ def run_analyze(args: argparse.Namespace) -> int:
     from service import DEFAULT_MODELS
     from service.analysis.offline import Ejections, analyse_recording, write_per_frame
     from service.analysis.plot import plot_report
-    from service.analysis.score import load_truth, truth_centre
+    from service.analysis.score import truth_centre
     from service.scene import Scene
     from service.simulate import truth_path
+    from service.validation.truth import read_truth
 
     settings = _settings(args)
     report_path, csv_path, png_path = _outputs(args.out)
@@ -103,7 +104,7 @@ def run_analyze(args: argparse.Namespace) -> int:
     report.write(report_path)
     write_per_frame(csv_path, analysis.per_frame, report.source.fps)
     sidecar = truth_path(args.recording)
-    truth = truth_centre(load_truth(sidecar)) if sidecar.exists() else None
+    truth = truth_centre(read_truth(args.recording)) if sidecar.exists() else None
     plot_report(report, analysis.fitted, png_path, truth)
     _print_summary(report, (report_path, csv_path, png_path))
     return 0

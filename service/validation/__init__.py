@@ -1,0 +1,1 @@
+"""Validation of the inverse methods against recordings with known motion (``meniscope validate``)."""

@@ -1,0 +1,63 @@
+"""Ground truth of simulated recordings (scene.md, "Recordings and ground truth") and per-frame scores against it."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from service.inverse.manifest import Scores
+from service.jsonfile import read_schema_json
+from service.physics import WindowTruth
+from service.scene import Scene
+from service.simulate import SCHEMA, truth_path
+
+#: Per-frame targets, in order: Eq. 1's d (mm), p (-), a (mm), b (mm), then D(0, t) (mm).
+TARGETS = ("d", "p", "a", "b", "centre")
+
+
+@dataclass(frozen=True)
+class TruthWindow:
+    """The oscillating part of one window: recording frame indices (m,), their times (m,) in s from the
+    window's ejection, true targets (m, 5) in :data:`TARGETS` order, and the window's true motion."""
+
+    frames: np.ndarray
+    t: np.ndarray
+    targets: np.ndarray
+    motion: WindowTruth
+
+
+def read_truth(recording: str | Path) -> dict:
+    """The ``.truth.json`` beside a recording; a one-line error when it is missing or not a truth file."""
+    return read_schema_json(truth_path(recording), SCHEMA, "not a simulated recording (`meniscope simulate` writes one)")
+
+
+def truth_windows(truth: dict, scene: Scene) -> list[TruthWindow]:
+    """Every window of a simulated recording, from the frame after its ejection's transient to its end.
+
+    Only frames after the transient: the ejection's bulge lies outside the coefficient ranges the
+    models are trained on and the databases hold.
+    """
+    fps, radius = float(truth["recording"]["fps"]), scene.nozzle.radius_mm
+    windows = []
+    for window in truth["windows"]:
+        idx = np.arange(window["oscillation_start_frame"], window["end_frame"])  # (m,)
+        t = (idx - window["start_frame"]) / fps
+        motion = WindowTruth(**window["truth"])
+        coeffs = motion.coefficients(t)
+        windows.append(TruthWindow(idx, t, np.column_stack([coeffs.to_array(), coeffs.centre(radius)]), motion))
+    return windows
+
+
+def oscillation_truth(truth: dict, scene: Scene) -> tuple[np.ndarray, np.ndarray]:
+    """Frame indices (M,) and true targets (M, 5) of all windows' oscillating frames (:func:`truth_windows`)."""
+    windows = truth_windows(truth, scene)
+    return np.concatenate([w.frames for w in windows]), np.concatenate([w.targets for w in windows])
+
+
+def score(pred: np.ndarray, true: np.ndarray) -> Scores:
+    """Per-target RMSE and the centre displacement's correlation, of predictions and truths (N, 5)."""
+    err = np.sqrt(np.mean((pred.astype(np.float64) - true) ** 2, axis=0))  # (5,)
+    p, t = pred[:, 4].astype(np.float64), true[:, 4].astype(np.float64)
+    corr = float(np.corrcoef(p, t)[0, 1]) if len(p) > 1 and p.std() > 0 and t.std() > 0 else None
+    return Scores(frames=len(pred), rmse={k: float(v) for k, v in zip(TARGETS, err)}, centre_correlation=corr)
