@@ -16,6 +16,8 @@ from websockets.sync.client import connect
 
 from service import DEFAULT_MODELS, DEFAULT_SCENE
 from service.analysis.fit import fit_window
+from service.analysis.results import FitSettings
+from service.analysis.steady import window_steady_centre
 from service.inverse.network import NetworkMethod
 from service.pipeline.demo import DEMO_TRUTH, demo_recording
 from service.recordings import open_recording
@@ -80,13 +82,15 @@ def session(demo_cine: Path, tmp_path_factory: pytest.TempPathFactory):  # type:
 
 @pytest.fixture(scope="module")
 def offline(demo_cine: Path) -> dict[int, float]:
-    """The dominant frequency of each truth window, analysed offline: same model, same fit, whole file."""
+    """The dominant frequency of each truth window, analysed offline: same model, same steady D(0, t), same fit."""
+    scene, fps = Scene.load(DEFAULT_SCENE), TRUTH["recording"]["fps"]
     with open_recording(demo_cine) as rec:
-        centre = NetworkMethod(DEFAULT_MODELS, Scene.load(DEFAULT_SCENE)).infer(rec.read(0, len(rec))).centre
+        coeffs = NetworkMethod(DEFAULT_MODELS, scene).infer(rec.read(0, len(rec))).coefficients
     out = {}
     for w in TRUTH["windows"]:
         s, e = w["start_frame"], w["end_frame"]
-        result = fit_window(centre[s:e], TRUTH["recording"]["fps"], starts_at_ejection=True, ends_at_ejection=True)
+        steady = window_steady_centre(coeffs[s:e], scene.nozzle.radius_mm, FitSettings().transient_frames(fps))
+        result = fit_window(steady, fps, starts_at_ejection=True, ends_at_ejection=True)
         out[s] = result.modes[0].frequency_hz if result.modes else float("nan")
     return out
 

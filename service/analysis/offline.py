@@ -3,7 +3,7 @@
 A recording is streamed in chunks (any length fits in memory): each chunk's ROI feeds the video
 activity (ejection detection) and the per-frame inverse method. The window-level ``regularised``
 method then replaces each window's per-frame values by the neighbour candidates its damped
-sinusoid passes through. Every window's :func:`steady_centre` is fitted by
+sinusoid passes through. Every window's steady D(0, t) (:mod:`service.analysis.steady`) is fitted by
 :func:`service.analysis.fit.fit_windows`.
 """
 from __future__ import annotations
@@ -18,6 +18,7 @@ from tqdm import tqdm
 from service.analysis.fit import fit_windows
 from service.analysis.results import FitSettings, Report, Source
 from service.analysis.segment import Window, find_ejections, frame_activity, frame_steps, series_activity, windows_between
+from service.analysis.steady import steady_centre
 from service.csvtable import write_columns
 from service.errors import MeniscopeError
 from service.inverse import regularised
@@ -43,7 +44,7 @@ class Ejections:
 @dataclass(frozen=True)
 class Analysis:
     """A report, the per-frame estimates behind it (``per_frame.coefficients`` (N, 4), ``centre`` (N,) mm) and
-    the series its windows were fitted to (``fitted`` (N,) mm, see :func:`steady_centre`)."""
+    the series its windows were fitted to (``fitted`` (N,) mm, see :mod:`service.analysis.steady`)."""
 
     report: Report
     per_frame: InverseOutput
@@ -98,21 +99,6 @@ def analyse_recording(
     results = fit_windows(steady, fps, windows, settings, progress=progress)
     report = Report(source=source, method=method, ejections=cuts.tolist(), windows=results, fit=settings)
     return Analysis(report, InverseOutput(coefficients=coefficients, centre=centre), steady)
-
-
-def steady_centre(coefficients: np.ndarray, windows: list[Window], radius_mm: float, transient: int) -> np.ndarray:
-    """D(0, t) as Eq. 1 has it within a window: the window's d + p R (medians over its frames after the
-    transient) plus each frame's a + b. Shape (N,), mm.
-
-    Eq. 1 holds d and p constant between ejections; taking them per frame would add their per-frame
-    estimation noise to the oscillation (on the shipped models it is most of the D(0, t) error).
-    """
-    d, p, a, b = np.asarray(coefficients, np.float64).T
-    steady = np.empty(len(a))
-    for w in windows:
-        lo = w.start + (transient if w.starts_at_ejection and w.end - w.start > transient else 0)
-        steady[w.start : w.end] = np.nanmedian(d[lo : w.end]) + np.nanmedian(p[lo : w.end]) * radius_mm
-    return steady + a + b
 
 
 def _regularise(db: NearestDatabase, candidates: np.ndarray, windows: list[Window], fps: float,

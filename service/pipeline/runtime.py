@@ -12,12 +12,13 @@ import logging
 import queue
 import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Protocol
 
 import numpy as np
 
 from service.analysis.results import WindowResult
+from service.analysis.steady import window_steady_centre
 from service.errors import MeniscopeError
 from service.inverse.base import InverseMethod
 from service.pipeline.activity import ActivityTracker
@@ -131,6 +132,7 @@ class Pipeline:
         self._acquired = threading.Event()  # set when acquisition stopped (end, error or stop)
         self._error: BaseException | None = None
         self._fps = fps
+        self._radius, self._transient = scene.nozzle.radius_mm, settings.fit.transient_frames(fps)
         self._reported = (time.monotonic(), stats.frames_dropped, stats.windows_skipped)
 
     def run(self, stop: threading.Event) -> bool:
@@ -223,13 +225,16 @@ class Pipeline:
         self.sink.on_inference(time.perf_counter() - t0, len(batch))
         self.stats.frames_inferred += len(batch)
         z = self.activity.update(pixels, batch.indices)
-        self._dispatch(self.segmenter.push(batch.indices, out.centre, z, arrival))
+        self._dispatch(self.segmenter.push(batch.indices, out.coefficients, z, arrival))
         self.stats.latest = LatestFrame(int(batch.indices[-1]), pixels[-1].copy(), self.source.bit_depth,
                                         tuple(float(c) for c in out.coefficients[-1]), float(out.centre[-1]))
         self._update_trace(batch.indices, out.centre)
 
     def _dispatch(self, closed: list[ClosedWindow]) -> None:
+        """Each closed window's steady D(0, t) (as ``meniscope analyze`` fits it) to the fit workers."""
         for window in closed:
+            skip = self._transient if window.window.starts_at_ejection else 0
+            window = replace(window, values=window_steady_centre(window.values, self._radius, skip))
             self.stats.windows_closed += 1
             if not self.fits.submit(window, self._fps, self._fitted):
                 self.stats.windows_skipped += 1

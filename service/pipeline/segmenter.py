@@ -21,7 +21,8 @@ from service.analysis.segment import Window
 class ClosedWindow:
     """A window whose frames are all in: its place in the stream, its samples and when it closed.
 
-    ``values``: (end - start,) centre displacement, mm, NaN where frames are missing;
+    ``values``: (end - start, ...) what was pushed per frame (the coefficients d, p, a, b, or a displacement),
+    NaN where frames are missing;
     ``closed_at``: monotonic time (s) the frame that closed it was acquired.
     """
 
@@ -31,7 +32,7 @@ class ClosedWindow:
 
 
 class StreamingSegmenter:
-    """Cuts consecutive batches of (frame index, centre, activity, arrival time) into closed windows."""
+    """Cuts consecutive batches of (frame index, per-frame values, activity, arrival time) into closed windows."""
 
     def __init__(self, min_gap: int, max_frames: int, threshold: float) -> None:
         self.min_gap, self.max_frames, self.threshold = max(1, min_gap), max(2, max_frames), threshold
@@ -45,9 +46,9 @@ class StreamingSegmenter:
         self._above = False  # whether the last frame's activity was above the threshold
         self._last_ejection: int | None = None
 
-    def push(self, indices: np.ndarray, centre: np.ndarray, activity: np.ndarray,
+    def push(self, indices: np.ndarray, values: np.ndarray, activity: np.ndarray,
              arrival: np.ndarray) -> list[ClosedWindow]:
-        """Add a batch (all (N,), indices increasing); the windows it closes, in order."""
+        """Add a batch (indices, activity, arrival (N,), increasing; values (N, ...)); the windows it closes."""
         closed: list[ClosedWindow] = []
         if self._next is not None and indices[0] - self._next >= self.max_frames:
             closed += self._close(False, float(arrival[0]))  # a gap as long as a window: start afresh
@@ -55,8 +56,8 @@ class StreamingSegmenter:
         first = int(indices[0]) if self._next is None else self._next
         dense = np.arange(first, int(indices[-1]) + 1)
         slot = indices - first
-        x = np.full(dense.size, np.nan)
-        x[slot] = centre
+        x = np.full((dense.size, *np.shape(values)[1:]), np.nan)
+        x[slot] = values
         z = np.zeros(dense.size)
         z[slot] = activity
         when = np.full(dense.size, np.inf)
@@ -98,16 +99,16 @@ class StreamingSegmenter:
         return kept
 
     def _append(self, values: np.ndarray) -> None:
-        if values.size:
+        if len(values):
             self._pieces.append(values)
-            self._length += values.size
+            self._length += len(values)
 
     def _close(self, at_ejection: bool, closed_at: float) -> list[ClosedWindow]:
         """The current window as a closed one (none if it is empty), and an empty one started."""
         if self._length == 0:
             return []
         values = np.concatenate(self._pieces)
-        window = Window(self._count, self._start, self._start + values.size, self._at_ejection, at_ejection)
+        window = Window(self._count, self._start, self._start + len(values), self._at_ejection, at_ejection)
         self._count += 1
         self._pieces, self._length = [], 0
         return [ClosedWindow(window, values, closed_at)]

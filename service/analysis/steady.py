@@ -1,0 +1,35 @@
+"""Eq. 1 within a window: d and p hold still between ejections, only a and b oscillate.
+
+The window fit therefore takes each window's steady D(0, t): its d + p R once (medians) plus each
+frame's a + b, in ``meniscope analyze`` and ``meniscope serve`` alike.
+"""
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+
+from service.analysis.segment import Window
+
+
+def window_steady_centre(coefficients: np.ndarray, radius_mm: float, skip: int = 0) -> np.ndarray:
+    """D(0, t) of one window's frames as Eq. 1 has it: the window's d + p R (medians over its frames after
+    the first ``skip``, the ejection's transient) plus each frame's a + b. (m, 4) -> (m,), mm; NaN rows stay NaN.
+
+    Eq. 1 holds d and p constant between ejections; taking them per frame would add their per-frame
+    estimation noise to the oscillation (on the shipped models it is most of the D(0, t) error).
+    """
+    d, p, a, b = np.asarray(coefficients, np.float64).T
+    lo = skip if len(d) > skip else 0
+    with warnings.catch_warnings():  # a window whose frames are all missing: NaN, which the fit reports
+        warnings.simplefilter("ignore", RuntimeWarning)
+        return np.nanmedian(d[lo:]) + np.nanmedian(p[lo:]) * radius_mm + a + b
+
+
+def steady_centre(coefficients: np.ndarray, windows: list[Window], radius_mm: float, transient: int) -> np.ndarray:
+    """:func:`window_steady_centre` of every window of a recording, shape (N,), mm."""
+    steady = np.empty(len(coefficients))
+    for w in windows:
+        skip = transient if w.starts_at_ejection else 0
+        steady[w.start : w.end] = window_steady_centre(coefficients[w.start : w.end], radius_mm, skip)
+    return steady
