@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 
 from service.analysis.results import Report
-from service.analysis.score import ejection_matches, truth_centre
+from service.analysis.score import ejection_matches
 from service.csvtable import read_columns
-from service.validation.truth import read_truth
+from service.validation.truth import read_truth, truth_centre
 
 REPORT_KEYS = {"schema", "source", "method", "ejections", "windows"}
 WINDOW_KEYS = {"index", "start_frame", "end_frame", "status", "reason", "modes", "offset_mm", "settling_time_s",

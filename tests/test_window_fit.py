@@ -98,7 +98,7 @@ def test_frequency_near_nyquist():
 def test_below_one_cycle_per_window_is_not_a_made_up_frequency():
     r = fit_window(series([(0.02, 0.0, 30.0, 0.0)], noise=1e-4), FPS)  # 0.3 cycle: a slow swing
     assert r.status in ("unresolved", "settled") and r.reason
-    assert all(m.frequency_ci_hz is None or m.frequency_ci_hz[0] > 0 for m in r.modes) or r.status == "unresolved"
+    assert r.status == "settled" or "cycles in the window" in r.reason  # the reason names the slow swing
     json_clean(r)
 
 

@@ -16,7 +16,6 @@ On disk, a folder that ``numpy.load(..., mmap_mode="r")`` maps without reading i
 """
 from __future__ import annotations
 
-import hashlib
 import json
 from concurrent.futures import Future
 from dataclasses import dataclass
@@ -31,6 +30,7 @@ from tqdm import tqdm
 
 from service.camera_effects import BitDepth, EffectRanges, apply_effects, pixel_dtype
 from service.errors import MeniscopeError
+from service.inverse.manifest import sha256_file
 from service.jsonfile import read_schema_json
 from service.physics import CoefficientRanges, centre_displacement
 from service.render import Renderer
@@ -138,14 +138,6 @@ def _chunks(config: DatasetConfig, engine: Engine) -> Iterator[tuple[int, tuple[
         yield k, pending.pop(k).result()
 
 
-def _sha256(path: Path) -> str:
-    digest = hashlib.sha256()
-    with path.open("rb") as f:
-        for block in iter(lambda: f.read(1 << 22), b""):
-            digest.update(block)
-    return digest.hexdigest()
-
-
 def generate(config: DatasetConfig, out: str | Path, workers: int = 1, scheduler: str | None = None) -> dict[str, Any]:
     """Write the dataset folder ``out`` (new or empty) with ``workers`` local processes, or on the Dask
     cluster whose scheduler is at ``scheduler`` (``tcp://host:8786``); returns the manifest. The files are
@@ -189,7 +181,7 @@ def _write(config: DatasetConfig, out: Path, engine: Engine) -> dict[str, Any]:
             "samples": config.samples,
             "chunks": config.chunks,
             "frames": {"shape": list(config.shape), "dtype": pixel_dtype(config.bit_depth).name},
-            "files": {name: _sha256(out / name) for name in FILES},
+            "files": {name: sha256_file(out / name) for name in FILES},
         }
         (out / "manifest.json").write_text(json.dumps(manifest, indent=1, allow_nan=False) + "\n")
     except BaseException as exc:
@@ -247,7 +239,7 @@ def open_dataset(path: str | Path, scene: Scene | None = None, verify: bool = Fa
             raise MeniscopeError(file, f"corrupt or truncated: {exc}") from None
         if array.shape != tuple(shape) or array.dtype != want:
             raise MeniscopeError(file, f"holds {array.dtype} {array.shape}, the manifest says {want} {tuple(shape)}")
-        if verify and _sha256(file) != manifest.get("files", {}).get(name):
+        if verify and sha256_file(file) != manifest.get("files", {}).get(name):
             raise MeniscopeError(file, "sha256 differs from the manifest: the file changed after it was written")
         arrays[name.removesuffix(".npy")] = array
     return Dataset(path=path, manifest=manifest, config=config, **arrays)

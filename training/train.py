@@ -29,6 +29,7 @@ from service.inverse.manifest import (
     AUTOENCODER_OUTPUTS, MANIFEST, InputSpec, Manifest, MethodEntry, TrainingSummary, load_manifest,
     write_manifest,
 )
+from service.plotting import pyplot
 from service.recordings.roi import read_roi_frames
 from service.scene import Scene
 from service.validation.truth import oscillation_truth, read_truth, score
@@ -216,10 +217,7 @@ def train_direct(
 
 def plot_losses(histories: dict[str, History], path: Path) -> Path:
     """One panel per model: training and validation loss per epoch (log scale), as a PNG."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     fig, axes = plt.subplots(1, len(histories), figsize=(4 * len(histories), 3.2), squeeze=False)
     for ax, (name, history) in zip(axes[0], histories.items()):
@@ -240,10 +238,7 @@ def plot_validation(results: dict[str, dict[str, tuple[np.ndarray, np.ndarray]]]
 
     ``results[data set][method]`` is (predictions, truths), each (N, 5) in :data:`TARGETS` order.
     """
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     rows, cols = len(results), max(len(r) for r in results.values())
     fig, axes = plt.subplots(rows, cols, figsize=(3.6 * cols, 3.4 * rows), squeeze=False)

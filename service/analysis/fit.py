@@ -25,7 +25,7 @@ from tqdm import tqdm
 
 from service.analysis.pencil import MatrixPencil
 from service.analysis.results import FitSettings, WindowResult
-from service.analysis.segment import Window
+from service.analysis.segment import Window, robust_sigma
 from service.analysis.settling import damping_ratio, quality_factor, settle, tolerance
 from service.physics import damped_mode
 
@@ -40,7 +40,6 @@ _MIN_CYCLES = 0.8
 _MAX_VALUE = 1e150
 #: Residuals below this fraction of the window's peak deviation count as exact (float64 round-off).
 _EXACT = 1e-9
-_MAD_TO_SIGMA = 1.482602218505602
 _IRLS_STEPS = 100  # at most; the order-0 cost settles to 1e-6 (relative) in ~5-10 rounds
 #: The fit's matrices are small: a multi-threaded BLAS only fights the other threads for the cores
 #: (7x slower per window on a loaded 2-core machine), so each fit runs its BLAS on one thread.
@@ -52,16 +51,11 @@ def min_samples(order: int) -> int:
     return _BASE + _PER_MODE * order + _MIN_DOF
 
 
-def _robust_sigma(values: np.ndarray) -> float:
-    """1.4826 * MAD: the standard deviation of the Gaussian part of ``values``."""
-    return float(_MAD_TO_SIGMA * np.median(np.abs(values - np.median(values)))) if values.size else 0.0
-
-
 def _noise_from_differences(n: np.ndarray, y: np.ndarray) -> float:
     """Noise level from first differences of consecutive samples (an over-estimate when the signal is fast)."""
     consecutive = np.diff(n) == 1
     diffs = np.diff(y)[consecutive] if consecutive.sum() >= 3 else np.diff(y)
-    return _robust_sigma(diffs) / np.sqrt(2.0)
+    return robust_sigma(diffs) / np.sqrt(2.0)
 
 
 def _columns(n: np.ndarray, params: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -358,7 +352,7 @@ def _result(
         offset_mm=centre + spread * fit.params[0],
         drift_mm_per_s=spread * fit.params[1] * fps,
         r2=1.0 - ss_res / ss_tot,
-        noise_mm=spread * _robust_sigma(window.y - model),
+        noise_mm=spread * robust_sigma(window.y - model),
     )
     if fit.order == 0:
         return _without_modes(fit, problem, window, spread, settings, common, numbers)

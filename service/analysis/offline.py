@@ -8,7 +8,6 @@ sinusoid passes through. Every window's steady D(0, t) (:mod:`service.analysis.s
 """
 from __future__ import annotations
 
-import hashlib
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -23,6 +22,7 @@ from service.csvtable import write_columns
 from service.errors import MeniscopeError
 from service.inverse import regularised
 from service.inverse.base import InverseMethod, InverseOutput
+from service.inverse.manifest import sha256_file
 from service.inverse.methods import open_method
 from service.inverse.nearest import NearestDatabase
 from service.recordings import open_recording
@@ -51,15 +51,6 @@ class Analysis:
     fitted: np.ndarray
 
 
-def file_sha256(path: Path) -> str:
-    """Hex SHA-256 of a file, read in 1 MiB blocks."""
-    digest = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
-
-
 def analyse_recording(
     path: Path, scene: Scene, method: str, models: Path, database: Path | None = None,
     ejections: Ejections = Ejections(), settings: FitSettings = FitSettings(), progress: bool = True,
@@ -84,13 +75,14 @@ def analyse_recording(
                 part = slice(start, start + len(frames))
                 steps[part] = frame_steps(frames, previous)
                 previous = frames[-1]
-                out = inverse.infer(frames)
-                coefficients[part], centre[part] = out.coefficients, out.centre
-                if candidates is not None:
+                if candidates is None:
+                    out = inverse.infer(frames)
+                    coefficients[part], centre[part] = out.coefficients, out.centre
+                else:  # the window fit below picks every frame's values among these; one search serves
                     candidates[part] = db.search(frames, k=CANDIDATES, exact=True).index
                 bar.update(len(frames))
         source = Source(path=str(path), frames=n, fps=fps, width=rec.width, height=rec.height,
-                        sha256=file_sha256(path))
+                        sha256=sha256_file(path))
     cuts, _ = find_ejections(frame_activity(steps), fps, ejections.file, ejections.hz)
     windows = windows_between(cuts, n)
     if candidates is not None:

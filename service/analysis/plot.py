@@ -9,6 +9,7 @@ import numpy as np
 from service.analysis.fit import model_curve
 from service.analysis.results import Report
 from service.errors import MeniscopeError
+from service.plotting import pyplot
 
 #: Windows drawn at most: beyond this the curves are too dense to read.
 MAX_WINDOWS = 12
@@ -17,10 +18,7 @@ _COLOURS = {"ok": "tab:red", "settled": "tab:green", "unresolved": "tab:orange",
 
 def plot_report(report: Report, centre_mm: np.ndarray, path: Path, truth_mm: np.ndarray | None = None) -> Path:
     """Draw the first :data:`MAX_WINDOWS` windows of ``report`` over ``centre_mm`` (N,) and write ``path``."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     fps = report.source.fps
     windows = report.windows[:MAX_WINDOWS]

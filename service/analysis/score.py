@@ -13,26 +13,7 @@ import numpy as np
 
 from service.analysis.results import Report
 from service.inverse.base import InverseOutput
-from service.physics import WindowTruth
-
-
-def truth_coefficients(truth: dict[str, Any]) -> np.ndarray:
-    """True d, p, a, b (Eq. 1) of every frame of the recording, shape (frames, 4), transients included."""
-    fps = truth["recording"]["fps"]
-    coeffs = np.full((truth["recording"]["frames"], 4), np.nan)
-    transient = truth["transient"]["frames"]
-    for w in truth["windows"]:
-        frames = np.arange(w["start_frame"], w["end_frame"])
-        coeffs[frames] = WindowTruth(**w["truth"]).coefficients((frames - w["start_frame"]) / fps).to_array()
-        bulge = frames < w["oscillation_start_frame"]
-        coeffs[frames[bulge], 2] += w["bulge_mm"] * np.sin(np.pi * (frames[bulge] - w["start_frame"] + 0.5) / transient)
-    return coeffs
-
-
-def truth_centre(truth: dict[str, Any]) -> np.ndarray:
-    """True D(0, t) = d + p R + a + b (mm) of every frame, shape (frames,)."""
-    d, p, a, b = truth_coefficients(truth).T
-    return d + p * truth["scene"]["nozzle"]["radius_mm"] + a + b
+from service.validation.truth import truth_coefficients, truth_centre
 
 
 def ejection_matches(found: np.ndarray, true: np.ndarray, tolerance: int = 2) -> tuple[int, int, int]:

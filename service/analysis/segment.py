@@ -91,11 +91,16 @@ def read_ejections(path: str | Path, fps: float, n_frames: int) -> np.ndarray:
     return np.sort(frames)
 
 
+def robust_sigma(values: np.ndarray) -> float:
+    """1.4826 * MAD: the standard deviation of the Gaussian part of ``values`` (0 for none)."""
+    return float(_MAD_TO_SIGMA * np.median(np.abs(values - np.median(values)))) if values.size else 0.0
+
+
 def robust_z(values: ArrayLike) -> np.ndarray:
     """(x - median) / (1.4826 MAD): a score that a few huge values do not shrink; shape as given."""
     x = np.nan_to_num(np.asarray(values, dtype=np.float64), nan=0.0, posinf=0.0, neginf=0.0)
     centre = np.median(x)
-    spread = _MAD_TO_SIGMA * np.median(np.abs(x - centre))
+    spread = robust_sigma(x)
     if spread == 0:
         spread = np.mean(np.abs(x - centre)) or 1.0
     return (x - centre) / spread
@@ -204,8 +209,7 @@ def burst_period(bursts: np.ndarray, min_frames: int, min_correlation: float = 0
 
 
 def detect_ejections(
-    activity: ArrayLike, fps: float, expected_hz: float | None = None, transient_frames: int = 6,
-    threshold: float = 8.0, relative: float = 0.3,
+    activity: ArrayLike, fps: float, transient_frames: int = 6, threshold: float = 8.0, relative: float = 0.3,
 ) -> np.ndarray:
     """Ejection frames: the starts of the activity's strongest bursts, followed from one to the next.
 
@@ -213,13 +217,13 @@ def detect_ejections(
     searched for one period after the last, within +-10 % of it, from the strongest burst on in both
     directions: a weak ejection is still found, a strong oscillation peak between two is not taken.
     Otherwise every burst above ``threshold`` robust sigmas (times sqrt(transient_frames), as it sums
-    that many frames) and ``relative`` times the strongest
-    counts, the strongest kept when two are closer than half the expected period (:data:`MIN_EJECTION_PERIOD_S`
-    when no rate is expected). Returns sorted frame indices, shape (E,), int64.
+    that many frames) and ``relative`` times the strongest counts, the strongest kept when two are
+    closer than :data:`MIN_EJECTION_PERIOD_S`. (A known rate is :func:`ejections_at_rate`'s.) Returns
+    sorted frame indices, shape (E,), int64.
     """
     a = robust_z(activity)
     z = burst(a, transient_frames)
-    separation = 0.5 * fps / expected_hz if expected_hz else MIN_EJECTION_PERIOD_S * fps
+    separation = MIN_EJECTION_PERIOD_S * fps
     period = burst_period(z, max(2, int(separation)))
     if period is not None:
         peaks = _follow(z, period, relative, transient_frames)

@@ -10,6 +10,7 @@ import warnings
 import numpy as np
 
 from service.analysis.segment import Window
+from service.physics import centre_displacement
 
 
 def window_steady_centre(coefficients: np.ndarray, radius_mm: float, skip: int = 0) -> np.ndarray:
@@ -23,7 +24,7 @@ def window_steady_centre(coefficients: np.ndarray, radius_mm: float, skip: int =
     lo = skip if len(d) > skip else 0
     with warnings.catch_warnings():  # a window whose frames are all missing: NaN, which the fit reports
         warnings.simplefilter("ignore", RuntimeWarning)
-        return np.nanmedian(d[lo:]) + np.nanmedian(p[lo:]) * radius_mm + a + b
+        return centre_displacement(np.nanmedian(d[lo:]), np.nanmedian(p[lo:]), a, b, radius_mm)
 
 
 def steady_centre(coefficients: np.ndarray, windows: list[Window], radius_mm: float, transient: int) -> np.ndarray:

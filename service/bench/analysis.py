@@ -25,7 +25,7 @@ from service.analysis.offline import analyse_recording
 from service.analysis.score import summary
 from service.cli import add_scene_option
 from service.errors import MeniscopeError, require_folder_of
-from service.inverse.methods import DATABASE_METHODS, METHODS, open_method
+from service.inverse.methods import DATABASE_METHODS, METHODS, database_folder, open_method
 from service.scene import Scene
 from service.simulate import truth_path
 from service.validation.truth import read_truth
@@ -81,6 +81,12 @@ def run_method(method: str, recordings: list[Path], scene: Scene, models: Path, 
     return {"setup_s": setup_s, "peak_memory_mb": peak_mb, "rows": rows}
 
 
+def run_method_apart(method: str, recordings: list[Path], scene: Scene, models: Path, database: Path | None) -> dict:
+    """:func:`run_method` in a fresh process, so that its peak memory is the method's own."""
+    with ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn")) as pool:
+        return pool.submit(run_method, method, recordings, scene, models, database).result()
+
+
 def aggregate(rows: list[dict]) -> dict:
     """Means over recordings of each summary figure (None where no recording had it); frames/s overall."""
     out = {"recordings": len(rows), "frames_per_s": sum(r["frames"] for r in rows) / sum(r["seconds"] for r in rows)}
@@ -110,16 +116,14 @@ def run(args: argparse.Namespace) -> int:
     unknown = [m for m in methods if m not in METHODS]
     if unknown or not methods:
         raise MeniscopeError("--methods", f"unknown {unknown}; choose from {', '.join(METHODS)}")
-    if any(m in DATABASE_METHODS for m in methods) and args.database is None and not (args.models / "database").is_dir():
-        raise MeniscopeError("--database", "the nearest-neighbour methods need a render database")
+    if any(m in DATABASE_METHODS for m in methods):
+        database_folder(args.models, args.database)  # refuses a missing database before any method runs
     require_folder_of(args.out)
     recordings = recordings_in(args.recordings)
     scene = Scene.load(args.scene)
     results: dict = {"recordings": [p.name for p in recordings], "methods": {}, "per_recording": {}}
-    context = multiprocessing.get_context("spawn")  # a fresh process per method: its own peak memory
     for method in methods:
-        with ProcessPoolExecutor(1, mp_context=context) as pool:
-            measured = pool.submit(run_method, method, recordings, scene, args.models, args.database).result()
+        measured = run_method_apart(method, recordings, scene, args.models, args.database)
         rows = measured["rows"]
         by_noise = defaultdict(list)
         for r in rows:

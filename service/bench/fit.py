@@ -79,6 +79,17 @@ def measure(series: np.ndarray, truth: np.ndarray, method: str) -> dict:
     }
 
 
+def compare(noise_mm: list[float], windows: int, seed: int) -> dict:
+    """Ours and (when installed) harminv on ``windows`` fresh windows per noise level (seeds ``seed``, ``seed + 1``...)."""
+    methods = ["ours", "harminv"] if available() else ["ours"]
+    results: dict = {"fps": FPS, "frames": FRAMES, "levels": []}
+    for k, noise in enumerate(noise_mm):
+        series, truth = draw_windows(windows, noise, seed + k)
+        fit_window(series[0], FPS)  # warm-up: imports and first-call costs are not a window's
+        results["levels"].append({"noise_mm": noise, "methods": {m: measure(series, truth, m) for m in methods}})
+    return results
+
+
 def markdown(results: dict) -> str:
     """One row per noise level and method."""
     lines = ["| noise (mm) | method | ms/window (median) | dominant found | frequency error median / p90 | "
@@ -100,12 +111,7 @@ def run(args: argparse.Namespace) -> int:
     if args.windows < 1 or any(not np.isfinite(v) or v < 0 for v in levels):
         raise MeniscopeError("--noise-mm", "windows must be >= 1 and noise levels finite and >= 0")
     require_folder_of(args.out)
-    methods = ["ours", "harminv"] if available() else ["ours"]
-    results = {"fps": FPS, "frames": FRAMES, "levels": []}
-    for k, noise in enumerate(levels):
-        series, truth = draw_windows(args.windows, noise, args.seed + k)
-        fit_window(series[0], FPS)  # warm-up: imports and first-call costs are not a window's
-        results["levels"].append({"noise_mm": noise, "methods": {m: measure(series, truth, m) for m in methods}})
+    results = compare(levels, args.windows, args.seed)
     args.out.write_text(json.dumps(results, indent=2, allow_nan=False) + "\n")
     table = markdown(results)
     args.out.with_suffix(".md").write_text(table)

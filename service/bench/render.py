@@ -24,6 +24,7 @@ from service.bench import parse_pairs
 from service.cli import add_scene_option
 from service.errors import MeniscopeError
 from service.physics import CoefficientRanges
+from service.plotting import pyplot
 from service.scene import Scene
 
 #: (frames, samples) for a full run and for ``--quick``.
@@ -102,10 +103,7 @@ def markdown(results: dict) -> str:
 
 def figure(ours: np.ndarray, cycles: np.ndarray, agreement, path: Path, label: str = "ours", rows: int = 4) -> None:
     """PNG of ``rows`` frames, ours | Cycles | Cycles - ours: best, middle and worst centroid distances."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     both = np.flatnonzero(agreement.both_found)
     pool = both[np.argsort(agreement.distance_px[both])] if both.size else np.arange(len(ours))

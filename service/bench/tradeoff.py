@@ -14,16 +14,15 @@ from __future__ import annotations
 
 import argparse
 import json
-import multiprocessing
 import subprocess
 import sys
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 from service import DEFAULT_MODELS
 from service.bench import analysis, fit
 from service.cli import add_scene_option
 from service.errors import MeniscopeError
+from service.plotting import pyplot
 from service.scene import Scene
 
 #: (windows per recording, seeds, fit windows, render frames flag, serve seconds) of the two modes.
@@ -94,12 +93,9 @@ def misses(row: dict) -> list[str]:
 def method_rows(label: str, method: str, db: Path | None, folders: dict[str, Path], scene: Scene,
                 models: Path) -> list[dict]:
     """One row per noise level for one method, measured in a fresh process (its own peak memory)."""
-    context = multiprocessing.get_context("spawn")
     rows = []
     for noise, folder in folders.items():
-        recs = analysis.recordings_in(folder)
-        with ProcessPoolExecutor(1, mp_context=context) as pool:
-            measured = pool.submit(analysis.run_method, method, recs, scene, models, db).result()
+        measured = analysis.run_method_apart(method, analysis.recordings_in(folder), scene, models, db)
         figures = analysis.aggregate(measured["rows"])
         windows = sum(r["windows_fitted"] for r in measured["rows"])
         seconds = sum(r["seconds"] for r in measured["rows"])
@@ -134,10 +130,7 @@ def markdown(results: dict) -> str:
 
 def pareto(rows: list[dict], path: Path) -> None:
     """Frames/s (log) against the dominant frequency's median error, one labelled point per method and noise."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     fig, ax = plt.subplots(figsize=(8, 5), layout="constrained")
     for r in rows:
@@ -166,19 +159,13 @@ def run(args: argparse.Namespace) -> int:
     folders = recordings(args.out, args.scene, windows, seeds)
     rows = [row for label, method, db in methods(args.database)
             for row in method_rows(label, method, db, folders, scene, args.models)]
-    levels = []
-    for k, (noise, sigma) in enumerate(zip(NOISES, (2e-4, 1e-3))):
-        series, truth = fit.draw_windows(fit_windows, sigma, k)
-        fit.fit_window(series[0], fit.FPS)
-        levels.append({"noise_mm": sigma, "methods": {m: fit.measure(series, truth, m)
-                                                      for m in (("ours", "harminv") if fit.available() else ("ours",))}})
     _meniscope("bench", "render", "--scene", args.scene, *render_flags, "--out", args.out / "render")
     rec = sorted(folders[NOISES[0]].glob("*.cine"))[0]
     _meniscope("bench", "serve", "--source", rec, "--seconds", serve_s, "--configs", "512x1", "--speeds", "1",
                "--out", args.out / "serve")
     serve = json.loads((args.out / "serve" / "serve.json").read_text())["runs"][0]
     results = {"mode": args.mode, "databases": [str(d) for d in args.database], "methods": rows,
-               "fit": {"fps": fit.FPS, "frames": fit.FRAMES, "levels": levels},
+               "fit": fit.compare([2e-4, 1e-3], fit_windows, 0),
                "render": json.loads((args.out / "render" / "render.json").read_text()),
                "render_md": str(args.out / "render" / "render.md"),
                "serve": serve, "realtime_factor": serve["frames_per_s_inferred"] / CAMERA_FPS}

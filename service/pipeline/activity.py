@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from service.analysis.segment import robust_z
+from service.analysis.segment import frame_steps, robust_z
 
 
 class ActivityTracker:
@@ -18,20 +18,17 @@ class ActivityTracker:
 
     def __init__(self, stride: int = 3, history: int = 2048) -> None:
         self.stride, self.history = stride, history
-        self._previous: np.ndarray | None = None  # last frame of the previous batch, subsampled, float32
+        self._previous: np.ndarray | None = None  # last frame of the previous batch, subsampled
         self._last_index: int | None = None
         self._steps = np.empty(0)
 
     def update(self, pixels: np.ndarray, indices: np.ndarray) -> np.ndarray:
         """z-scores (N,) of frames ``pixels`` (N, H, W) with frame ``indices`` (N,); 0 after a gap."""
-        x = pixels[:, :: self.stride, :: self.stride].astype(np.float32)
+        x = pixels[:, :: self.stride, :: self.stride]
         follows = self._previous is not None and self._last_index == indices[0] - 1
-        before = self._previous[None] if follows else x[:1]
-        steps = np.abs(np.diff(x, axis=0, prepend=before)).mean(axis=(1, 2), dtype=np.float64)
+        steps = frame_steps(x, self._previous if follows else None)  # NaN at frame 0 unless it follows
         steps[1:][np.diff(indices) != 1] = np.nan  # no step across frames lost in between
-        if not follows:
-            steps[0] = np.nan
-        self._previous, self._last_index = x[-1], int(indices[-1])
+        self._previous, self._last_index = x[-1].copy(), int(indices[-1])  # the batch buffer may be reused
         scored = robust_z(np.concatenate([self._steps, steps]))[-len(steps):]
         self._steps = np.concatenate([self._steps, steps[np.isfinite(steps)]])[-self.history:]
         return np.where(np.isfinite(steps), scored, 0.0)

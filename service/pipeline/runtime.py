@@ -18,6 +18,7 @@ from typing import Protocol
 import numpy as np
 
 from service.analysis.results import WindowResult
+from service.analysis.segment import MIN_EJECTION_PERIOD_S
 from service.analysis.steady import window_steady_centre
 from service.errors import MeniscopeError
 from service.inverse.base import InverseMethod
@@ -122,7 +123,7 @@ class Pipeline:
         x, y = scene.camera.roi
         self._roi = (slice(None), slice(y, y + scene.camera.height_px), slice(x, x + scene.camera.width_px))
         fps = source.fps
-        period = fps / settings.ejection_hz if settings.ejection_hz else 4e-3 * fps  # unknown rate: 2 ms apart
+        period = fps / settings.ejection_hz if settings.ejection_hz else MIN_EJECTION_PERIOD_S * fps
         self.segmenter = StreamingSegmenter(int(0.5 * period), int(settings.max_window_s * fps),
                                             settings.activity_threshold)
         self.activity = ActivityTracker()

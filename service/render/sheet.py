@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from service.physics import CoefficientRanges, displacement
+from service.plotting import pyplot
 from service.render.camera import project
 from service.render.renderer import Renderer
 
@@ -39,10 +40,7 @@ def rim_outline(renderer: Renderer, points: int = 181) -> tuple[np.ndarray, np.n
 def write_sheet(renderer: Renderer, path: str | Path, ranges: CoefficientRanges = CoefficientRanges(),
                 columns: int = 7, profiles: int = 3, seed: int = 0) -> np.ndarray:
     """Write the PNG sheet to ``path``; returns the coefficients drawn, (4 columns + profiles, 4)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     sweep = sweep_coefficients(ranges, columns)
     draws = ranges.sample(profiles, np.random.default_rng(seed))

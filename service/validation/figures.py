@@ -7,21 +7,13 @@ from pathlib import Path
 
 import numpy as np
 
+from service.plotting import pyplot
 from service.validation.evaluate import RecordingResult
-
-
-def _pyplot():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
 
 
 def plot_centre_series(result: RecordingResult, path: Path, windows: int = 3) -> Path:
     """Inferred (dots) and true (line) D(0, t) over the first ``windows`` windows, one panel per method."""
-    plt = _pyplot()
+    plt = pyplot()
     shown = sum(len(w.frames) for w in result.windows[:windows])
     t_ms = result.frames[:shown] / result.fps * 1e3
     names = list(result.methods)
@@ -52,7 +44,7 @@ def _scaled(images: np.ndarray) -> np.ndarray:
 
 def plot_rows(rows: dict[str, np.ndarray], path: Path, title: str) -> Path:
     """A grid of images: one row per entry of ``rows`` (label -> (N, h, w)), each image stretched on its own."""
-    plt = _pyplot()
+    plt = pyplot()
     n = max(len(images) for images in rows.values())
     fig, axes = plt.subplots(len(rows), n, figsize=(1.4 * n, 1.5 * len(rows) + 0.4), squeeze=False)
     for row, (label, images) in zip(axes, rows.items()):

@@ -8,9 +8,9 @@ import numpy as np
 
 from service.inverse.manifest import Scores
 from service.jsonfile import read_schema_json
-from service.physics import WindowTruth
+from service.physics import WindowTruth, centre_displacement
 from service.scene import Scene
-from service.simulate import SCHEMA, truth_path
+from service.simulate import SCHEMA, Transient, truth_path
 
 #: Per-frame targets, in order: Eq. 1's d (mm), p (-), a (mm), b (mm), then D(0, t) (mm).
 TARGETS = ("d", "p", "a", "b", "centre")
@@ -32,6 +32,24 @@ def read_truth(recording: str | Path) -> dict:
     return read_schema_json(truth_path(recording), SCHEMA, "not a simulated recording (`meniscope simulate` writes one)")
 
 
+def truth_coefficients(truth: dict) -> np.ndarray:
+    """True d, p, a, b (Eq. 1) of every frame of the recording, shape (frames, 4), transients included."""
+    fps = truth["recording"]["fps"]
+    coeffs = np.full((truth["recording"]["frames"], 4), np.nan)
+    transient = truth["transient"]["frames"]
+    for w in truth["windows"]:
+        frames = np.arange(w["start_frame"], w["end_frame"])
+        coeffs[frames] = WindowTruth(**w["truth"]).coefficients((frames - w["start_frame"]) / fps).to_array()
+        bulge = frames < w["oscillation_start_frame"]
+        coeffs[frames[bulge], 2] += w["bulge_mm"] * Transient().profile(transient)[frames[bulge] - w["start_frame"]]
+    return coeffs
+
+
+def truth_centre(truth: dict) -> np.ndarray:
+    """True D(0, t) = d + p R + a + b (mm) of every frame, shape (frames,)."""
+    return centre_displacement(*truth_coefficients(truth).T, truth["scene"]["nozzle"]["radius_mm"])
+
+
 def truth_windows(truth: dict, scene: Scene) -> list[TruthWindow]:
     """Every window of a simulated recording, from the frame after its ejection's transient to its end.
 
@@ -39,13 +57,13 @@ def truth_windows(truth: dict, scene: Scene) -> list[TruthWindow]:
     models are trained on and the databases hold.
     """
     fps, radius = float(truth["recording"]["fps"]), scene.nozzle.radius_mm
+    coeffs = truth_coefficients(truth)
     windows = []
     for window in truth["windows"]:
         idx = np.arange(window["oscillation_start_frame"], window["end_frame"])  # (m,)
-        t = (idx - window["start_frame"]) / fps
-        motion = WindowTruth(**window["truth"])
-        coeffs = motion.coefficients(t)
-        windows.append(TruthWindow(idx, t, np.column_stack([coeffs.to_array(), coeffs.centre(radius)]), motion))
+        c = coeffs[idx]
+        targets = np.column_stack([c, centre_displacement(*c.T, radius)])
+        windows.append(TruthWindow(idx, (idx - window["start_frame"]) / fps, targets, WindowTruth(**window["truth"])))
     return windows
 
 

@@ -90,10 +90,9 @@ def run_analyze(args: argparse.Namespace) -> int:
     from service import DEFAULT_MODELS
     from service.analysis.offline import Ejections, analyse_recording, write_per_frame
     from service.analysis.plot import plot_report
-    from service.analysis.score import truth_centre
+    from service.validation.truth import read_truth, truth_centre
     from service.scene import Scene
     from service.simulate import truth_path
-    from service.validation.truth import read_truth
 
     settings = _settings(args)
     report_path, csv_path, png_path = _outputs(args.out)
@@ -114,10 +113,11 @@ def run_fit(args: argparse.Namespace) -> int:
     import numpy as np
 
     from service.analysis.fit import model_curve
-    from service.analysis.offline import Ejections, analyse_series, file_sha256
+    from service.analysis.offline import Ejections, analyse_series
     from service.analysis.plot import plot_report
     from service.analysis.results import Source
     from service.csvtable import read_columns, write_columns
+    from service.inverse.manifest import sha256_file
 
     if not (math.isfinite(args.fps) and args.fps > 0):
         raise MeniscopeError("--fps", f"must be a positive number, got {args.fps}")
@@ -126,7 +126,7 @@ def run_fit(args: argparse.Namespace) -> int:
     values = read_columns(args.series, (args.column,), allow_empty=True)[:, 0]
     if values.size == 0:
         raise MeniscopeError(args.series, f"no rows in column {args.column!r}")
-    source = Source(path=str(args.series), frames=values.size, fps=args.fps, sha256=file_sha256(args.series))
+    source = Source(path=str(args.series), frames=values.size, fps=args.fps, sha256=sha256_file(args.series))
     report = analyse_series(values, args.fps, source, Ejections(args.ejections, args.ejection_hz), settings,
                             progress=not args.quiet)
     report.write(report_path)
