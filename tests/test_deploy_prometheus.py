@@ -43,7 +43,10 @@ def test_promtool_accepts_the_rules() -> None:
 def test_every_alert_fires_in_the_rule_unit_tests() -> None:
     result = _promtool("test", "rules", "tests/alerts_test.yml")
     assert result.returncode == 0, result.stdout + result.stderr
-    tests = yaml.safe_load((PROMETHEUS / "tests/alerts_test.yml").read_text())["tests"]
+    unit = yaml.safe_load((PROMETHEUS / "tests/alerts_test.yml").read_text())
+    groups = [group["name"] for path in RULE_FILES for group in yaml.safe_load(path.read_text())["groups"]]
+    assert sorted(unit["group_eval_order"]) == sorted(groups), "an unlisted group is evaluated in random order"
+    tests = unit["tests"]
     fired = {case["alertname"] for t in tests for case in t.get("alert_rule_test", []) if case["exp_alerts"]}
     assert fired == ALERTS == {r["alert"] for r in _rules() if "alert" in r}
 
