@@ -107,6 +107,45 @@ def _soft_l1(r: np.ndarray, scale: float) -> tuple[np.ndarray, np.ndarray]:
     return r * weight, weight * (1.0 - z / (2.0 * root * (root + 1.0)))
 
 
+class _Search:
+    """One LM search of a :class:`_Window` in x = params with sqrt(g) for g, so that g >= 0 without
+    bounds: residuals and Jacobian (MINPACK asks for both at each x, so computed once per x)."""
+
+    def __init__(self, window: "_Window", start: np.ndarray) -> None:
+        self.window, self.decay = window, np.s_[_BASE + 3 :: _PER_MODE]
+        self.x0 = start.copy()
+        self.x0[self.decay] = np.sqrt(self.x0[self.decay])
+        self._key: bytes | None = None
+
+    def _evaluate(self, x: np.ndarray) -> None:
+        """Residuals and Jacobian at x, unless x is the point last evaluated."""
+        key = x.tobytes()
+        if key == self._key:
+            return
+        p = self.params(x)
+        model, j = _columns(self.window.n, p)
+        j[:, self.decay] *= 2.0 * x[self.decay]
+        self._r, dr = self.window.residuals(model)
+        j *= dr[:, None]
+        self._j, self._key = j, key
+
+    def params(self, x: np.ndarray) -> np.ndarray:
+        """Model parameters (g = x^2) of a search point."""
+        p = x.copy()
+        p[self.decay] = x[self.decay] ** 2
+        return p
+
+    def residuals(self, x: np.ndarray) -> np.ndarray:
+        """Residuals as minimised at x, shape (N,)."""
+        self._evaluate(x)
+        return self._r
+
+    def jacobian(self, x: np.ndarray) -> np.ndarray:
+        """Their Jacobian in x, shape (N, k)."""
+        self._evaluate(x)
+        return self._j
+
+
 @dataclass(frozen=True)
 class _OrderFit:
     """The least-squares optimum for one model order, in normalised units (per sample, per scale)."""
@@ -182,34 +221,15 @@ class _Window:
         return baseline.bic < self.bic(cost, 1)
 
     def fit(self, order: int, start: np.ndarray) -> _OrderFit:
-        """Refine ``start`` by LM in (w, sqrt g), so that g >= 0 without bounds; then covariance in (w, g)."""
-        decay = np.s_[_BASE + 3 :: _PER_MODE]
-        x0 = start.copy()
-        x0[decay] = np.sqrt(x0[decay])
-
-        last: dict[str, object] = {}
-
-        def evaluate(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-            """Residuals and their Jacobian in x; MINPACK asks for both at each x, so computed once."""
-            key = x.tobytes()
-            if last.get("key") != key:
-                p = x.copy()
-                p[decay] = x[decay] ** 2
-                model, j = _columns(self.n, p)
-                j[:, decay] *= 2.0 * x[decay]
-                r, dr = self.residuals(model)
-                j *= dr[:, None]
-                last.update(key=key, r=r, j=j)
-            return last["r"], last["j"]
-
+        """Refine ``start`` by LM (:class:`_Search`); then covariance in (w, g)."""
+        search = _Search(self, start)
         # MINPACK's lmder through leastsq: the same optimum as least_squares(method="lm"), 17 % less overhead
         # (full_output: an unconverged search is judged like any other fit, by BIC and its intervals, not warned of)
         # and leastsq's own covariance (unused: _judge computes it safely) may overflow on absurd series
         with np.errstate(over="ignore", invalid="ignore"):
-            x = np.atleast_1d(leastsq(lambda x: evaluate(x)[0], x0, Dfun=lambda x: evaluate(x)[1], full_output=True,
-                                      ftol=_LM_TOLERANCE, xtol=_LM_TOLERANCE, maxfev=_LM_EVALUATIONS * (x0.size + 1))[0])
-        x[decay] = x[decay] ** 2
-        return self._judge(order, _canonical(x))
+            x = leastsq(search.residuals, search.x0, Dfun=search.jacobian, full_output=True, ftol=_LM_TOLERANCE,
+                        xtol=_LM_TOLERANCE, maxfev=_LM_EVALUATIONS * (search.x0.size + 1))[0]
+        return self._judge(order, _canonical(search.params(np.atleast_1d(x))))
 
     def _judge(self, order: int, params: np.ndarray) -> _OrderFit:
         """Cost, BIC, CI half-widths and (for modes) whether they are resolved."""
