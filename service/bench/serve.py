@@ -27,7 +27,6 @@ from urllib.parse import quote
 
 import numpy as np
 
-from service.analysis.results import WindowResult
 from service.bench import parse_pairs
 from service.errors import MeniscopeError
 from service.settings import ServiceSettings, default_data_dir
@@ -51,7 +50,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def measure(settings: ServiceSettings, seconds: float) -> dict:
     """One run: start the pipeline with publishers, wait until frames flow, count for ``seconds``."""
-    from service.pipeline.runtime import PipelineStats
+    from service.pipeline.runtime import FittedWindow, PipelineStats
     from service.pipeline.supervisor import Supervisor
     from service.server.history import History
     from service.server.hub import Hub
@@ -59,12 +58,13 @@ def measure(settings: ServiceSettings, seconds: float) -> dict:
     from service.server.publishers import Publishers
     from service.server.zmq_publisher import ZmqPublisher
 
-    latencies: list[float] = []
+    stages: list[tuple[float, float, float]] = []  # per published window: to dispatch, to fitted, to published (s)
 
-    class Recorded(Metrics):
-        def window(self, result: WindowResult, latency_s: float) -> None:
-            super().window(result, latency_s)
-            latencies.append(latency_s)
+    class Timed(Publishers):
+        def _window(self, fitted: FittedWindow) -> None:
+            super()._window(fitted)
+            stages.append((fitted.dispatched_at - fitted.closed_at, fitted.fitted_at - fitted.dispatched_at,
+                           time.monotonic() - fitted.fitted_at))
 
     stats = PipelineStats()
     supervisor: Supervisor | None = None
@@ -72,8 +72,8 @@ def measure(settings: ServiceSettings, seconds: float) -> dict:
     with tempfile.TemporaryDirectory(prefix="meniscope-bench-") as tmp:
         history = History(Path(tmp) / "history.sqlite", 1.0, 1_000_000)
         zmq = ZmqPublisher("tcp://127.0.0.1:*")
-        metrics = Recorded(stats, lambda: supervisor.health(), lambda: (0, 0))  # type: ignore[union-attr]
-        publishers = Publishers(history, metrics, zmq, lambda: "bench", Hub(loop, 1)).start()
+        metrics = Metrics(stats, lambda: supervisor.health(), lambda: (0, 0))  # type: ignore[union-attr]
+        publishers = Timed(history, metrics, zmq, lambda: "bench", Hub(loop, 1)).start()
         supervisor = Supervisor(settings, publishers, stats).start()
         try:
             deadline = time.monotonic() + 120
@@ -83,10 +83,10 @@ def measure(settings: ServiceSettings, seconds: float) -> dict:
                 time.sleep(0.05)
             time.sleep(1.0)  # past the start: fit workers warm, queues in their steady state
             start = (time.monotonic(), os.getloadavg()[0], stats.frames_acquired, stats.frames_inferred,
-                     stats.frames_dropped, stats.windows_closed, stats.windows_skipped, len(latencies))
+                     stats.frames_dropped, stats.windows_closed, stats.windows_skipped, len(stages))
             time.sleep(seconds)
             end = (time.monotonic(), os.getloadavg()[0], stats.frames_acquired, stats.frames_inferred,
-                   stats.frames_dropped, stats.windows_closed, stats.windows_skipped, len(latencies))
+                   stats.frames_dropped, stats.windows_closed, stats.windows_skipped, len(stages))
         finally:
             supervisor.stop()
             publishers.stop()
@@ -95,14 +95,17 @@ def measure(settings: ServiceSettings, seconds: float) -> dict:
             loop.close()
     elapsed = end[0] - start[0]
     acquired, inferred, dropped, closed, skipped, published = (e - s for e, s in zip(end[2:], start[2:]))
-    window_latency = np.array(latencies[start[7]:end[7]]) * 1e3
+    parts = np.array(stages[start[7]:end[7]]).reshape(-1, 3) * 1e3
+    window_latency = parts.sum(axis=1)
+    pct = lambda v, q: float(np.percentile(v, q)) if v.size else None  # noqa: E731
     return {
         "seconds": elapsed, "load_average": [start[1], end[1]],
         "frames_per_s_in": acquired / elapsed, "frames_per_s_inferred": inferred / elapsed,
         "dropped_fraction": dropped / max(acquired, 1),
         "windows_closed": closed, "windows_published": published, "windows_skipped": skipped,
-        "publish_latency_ms_p50": float(np.percentile(window_latency, 50)) if window_latency.size else None,
-        "publish_latency_ms_p99": float(np.percentile(window_latency, 99)) if window_latency.size else None,
+        "publish_latency_ms_p50": pct(window_latency, 50), "publish_latency_ms_p99": pct(window_latency, 99),
+        # where it goes: the closing frame waiting for inference and segmentation, the fit workers, publishing
+        **{f"{stage}_ms_p{q}": pct(parts[:, k], q) for k, stage in enumerate(("to_fit", "fit", "publish")) for q in (50, 99)},
         "inference_calls": metrics.registry.get_sample_value("meniscope_inference_latency_seconds_count"),
     }
 
@@ -163,15 +166,17 @@ def markdown(results: dict) -> str:
         f"{os.cpu_count()} CPUs.",
         "",
         "| batch x threads | speed | frames/s in | frames/s inferred | dropped | windows closed / published / unfitted "
-        "| publish latency p50 / p99 (ms) | load average |",
-        "|---|---|---|---|---|---|---|---|",
+        "| publish latency p50 / p99 (ms) | of which: to the fit / fit / publishing, p50 (p99) | load average |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for r in results["runs"]:
         lines.append(
             f"| {r['batch']} x {r['threads']} | {r['run']} | {_fmt(r['frames_per_s_in'])} | "
             f"{_fmt(r['frames_per_s_inferred'])} | {r['dropped_fraction']:.1%} | {r['windows_closed']} / "
             f"{r['windows_published']} / {r['windows_skipped']} | {_fmt(r['publish_latency_ms_p50'], '.1f')} / "
-            f"{_fmt(r['publish_latency_ms_p99'], '.1f')} | {r['load_average'][0]:.1f} -> {r['load_average'][1]:.1f} |")
+            f"{_fmt(r['publish_latency_ms_p99'], '.1f')} | "
+            + " / ".join(f"{_fmt(r[f'{k}_ms_p50'], '.1f')} ({_fmt(r[f'{k}_ms_p99'], '.1f')})" for k in ("to_fit", "fit", "publish"))
+            + f" | {r['load_average'][0]:.1f} -> {r['load_average'][1]:.1f} |")
     c = results["stage_costs"]
     lines += ["", f"CPU per frame, each stage alone on one thread ({c['windows_fitted']} windows fitted):", "",
               "| stage | CPU us/frame |", "|---|---|"]

@@ -13,6 +13,7 @@ import queue
 import threading
 import time
 from dataclasses import dataclass, field, replace
+from functools import partial
 from typing import Protocol
 
 import numpy as np
@@ -37,12 +38,15 @@ DROP_REPORT_S = 10.0
 
 @dataclass(frozen=True)
 class FittedWindow:
-    """A window's result with its samples (mm, NaN where missing) and the time (monotonic s) it closed."""
+    """A window's result with its samples (mm, NaN where missing) and when (monotonic s) the frame that
+    closed it was read, the window went to the fit workers and its fit came back: where latency goes."""
 
     result: WindowResult
     values: np.ndarray
     fps: float
     closed_at: float
+    dispatched_at: float
+    fitted_at: float
 
 
 @dataclass(frozen=True)
@@ -237,11 +241,13 @@ class Pipeline:
             skip = self._transient if window.window.starts_at_ejection else 0
             window = replace(window, values=window_steady_centre(window.values, self._radius, skip))
             self.stats.windows_closed += 1
-            if not self.fits.submit(window, self._fps, self._fitted):
+            dispatched_at = time.monotonic()
+            if not self.fits.submit(window, self._fps, partial(self._fitted, dispatched_at)):
                 self.stats.windows_skipped += 1
 
-    def _fitted(self, closed: ClosedWindow, result: WindowResult) -> None:
-        self.sink.on_window(FittedWindow(result, closed.values, self._fps, closed.closed_at))
+    def _fitted(self, dispatched_at: float, closed: ClosedWindow, result: WindowResult) -> None:
+        self.sink.on_window(FittedWindow(result, closed.values, self._fps, closed.closed_at, dispatched_at,
+                                         time.monotonic()))
 
     def _update_trace(self, indices: np.ndarray, centre: np.ndarray) -> None:
         """Keep the last ``trace_frames`` samples; send them ``trace_hz`` times a second."""
