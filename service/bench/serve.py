@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import itertools
 import json
 import os
 import tempfile
@@ -27,6 +28,7 @@ from urllib.parse import quote
 
 import numpy as np
 
+from service.analysis.results import FitSettings
 from service.bench import parse_pairs
 from service.errors import MeniscopeError
 from service.settings import ServiceSettings, default_data_dir
@@ -44,6 +46,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--speeds", default="1", help="replay speeds, x the recorded rate, comma-separated (default 1)")
     p.add_argument("--fit-workers", type=int, default=1, help="fit worker processes (default 1)")
     p.add_argument("--fit-nice", type=int, default=10, help="niceness of the fit workers (default 10)")
+    p.add_argument("--max-modes", default="2", help="fit model orders to compare, comma-separated: 1 fits half the "
+                   "models of 2 (default 2, the service's default)")
     p.add_argument("--out", type=Path, default=Path("bench-serve"), help="folder for the results")
     p.set_defaults(func=run)
 
@@ -114,7 +118,6 @@ def stage_costs(recording: Path, configs: list[tuple[int, int]], frames: int = 3
     """CPU microseconds per frame of each stage (one thread at a time), and the fit's milliseconds per window."""
     from service import DEFAULT_MODELS, DEFAULT_SCENE
     from service.analysis.fit import fit_window
-    from service.analysis.results import FitSettings
     from service.analysis.steady import window_steady_centre
     from service.inverse.network import NetworkMethod
     from service.pipeline.activity import ActivityTracker
@@ -165,13 +168,13 @@ def markdown(results: dict) -> str:
         f"at nice {results['fit_nice']}, "
         f"{os.cpu_count()} CPUs.",
         "",
-        "| batch x threads | speed | frames/s in | frames/s inferred | dropped | windows closed / published / unfitted "
+        "| batch x threads | speed | fit modes | frames/s in | frames/s inferred | dropped | windows closed / published / unfitted "
         "| publish latency p50 / p99 (ms) | of which: to the fit / fit / publishing, p50 (p99) | load average |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in results["runs"]:
         lines.append(
-            f"| {r['batch']} x {r['threads']} | {r['run']} | {_fmt(r['frames_per_s_in'])} | "
+            f"| {r['batch']} x {r['threads']} | {r['run']} | {r.get('max_modes', 2)} | {_fmt(r['frames_per_s_in'])} | "
             f"{_fmt(r['frames_per_s_inferred'])} | {r['dropped_fraction']:.1%} | {r['windows_closed']} / "
             f"{r['windows_published']} / {r['windows_skipped']} | {_fmt(r['publish_latency_ms_p50'], '.1f')} / "
             f"{_fmt(r['publish_latency_ms_p99'], '.1f')} | "
@@ -194,6 +197,11 @@ def run(args: argparse.Namespace) -> int:
         speeds = [float(v) for v in args.speeds.split(",")]
     except ValueError:
         raise MeniscopeError("--speeds", f"expected numbers like 1,0.5, got {args.speeds!r}") from None
+    try:
+        max_modes = [int(v) for v in args.max_modes.split(",")]
+        [FitSettings(max_modes=m) for m in max_modes]
+    except ValueError:
+        raise MeniscopeError("--max-modes", f"expected orders 0 to 2 like 1,2, got {args.max_modes!r}") from None
     recording = (args.source or demo_recording(default_data_dir())).resolve()
     if not recording.is_file():
         raise MeniscopeError(recording, "no such recording")
@@ -201,13 +209,14 @@ def run(args: argparse.Namespace) -> int:
     results: dict = {"source": str(recording), "seconds": args.seconds, "fit_workers": args.fit_workers,
                      "fit_nice": args.fit_nice, "runs": []}
     for batch, threads in configs:
-        for speed in speeds:
+        for speed, modes in itertools.product(speeds, max_modes):
             name = f"x{speed:g}"
             settings = ServiceSettings(source=f"file://{quote(str(recording))}?speed={speed}&loop=1",
                                        recordings_dir=recording.parent, batch=batch, threads=threads,
-                                       fit_workers=args.fit_workers, fit_nice=args.fit_nice, zmq_publish=None)
-            print(f"bench serve: batch {batch} x {threads} threads, {name} ...", flush=True)
-            results["runs"].append({"batch": batch, "threads": threads, "run": name,
+                                       fit=FitSettings(max_modes=modes), fit_workers=args.fit_workers,
+                                       fit_nice=args.fit_nice, zmq_publish=None)
+            print(f"bench serve: batch {batch} x {threads} threads, {name}, up to {modes} modes ...", flush=True)
+            results["runs"].append({"batch": batch, "threads": threads, "run": name, "max_modes": modes,
                                     **measure(settings, args.seconds)})
     results["stage_costs"] = stage_costs(recording, configs)
     (args.out / "serve.json").write_text(json.dumps(results, indent=1))
