@@ -68,6 +68,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    "nearest-neighbour database too)")
     p.add_argument("--holdout", type=Path, help="a simulated recording (with .truth.json) no model sees, scored")
     p.add_argument("--seed", type=int, default=0, help="seed (default 0)")
+    p.add_argument("--input-px", type=int, help="model input height after in-graph pooling (default 32: the ROI "
+                   "pooled 3x3; 48 pools 2x2, slower and sees finer highlights); must divide the ROI")
     p.add_argument("--quick", action="store_true", help="a run of seconds for tests; its models are not useful")
     p.set_defaults(func=run_train)
 
@@ -75,8 +77,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def run_train(args: argparse.Namespace) -> int:
     from dataclasses import replace
 
-    from training.train import TrainConfig, train_models  # torch loads only when the verb runs
+    from training.normalise import downsample_factor  # torch loads only when the verb runs
+    from training.train import TrainConfig, train_models
 
+    scene = Scene.load(args.scene)
     config = TrainConfig.quick() if args.quick else TrainConfig()
     if args.samples is not None:
         if args.samples < 64:
@@ -85,7 +89,13 @@ def run_train(args: argparse.Namespace) -> int:
     if args.seed < 0:
         raise MeniscopeError("--seed", f"must be zero or positive, got {args.seed}")
     config = replace(config, seed=args.seed)
-    manifest = train_models(Scene.load(args.scene), args.lab_video, args.out, config, dataset=args.dataset,
+    if args.input_px is not None:
+        try:
+            downsample_factor(scene, args.input_px)
+        except MeniscopeError as exc:
+            raise MeniscopeError("--input-px", exc.problem) from None
+        config = replace(config, net=replace(config.net, input_px=args.input_px))
+    manifest = train_models(scene, args.lab_video, args.out, config, dataset=args.dataset,
                             holdout_video=args.holdout)
     print(f"{args.out}: {', '.join(sorted(manifest.methods))} exported in {manifest.training.seconds:.0f} s")
     for name, by_data in manifest.validation.items():
