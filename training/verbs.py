@@ -1,5 +1,5 @@
 """The offline verbs, added to ``meniscope`` through the ``meniscope.verbs`` entry point: ``dataset``, ``database``,
-``train``.
+``train``, ``quantize``.
 
 The nearest-neighbour database (Price et al. 2022, Sec. 3.2 (a)) is a dataset folder: renders with the
 coefficients they were made from. ``meniscope database`` renders one apart from the training renders
@@ -73,6 +73,24 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--quick", action="store_true", help="a run of seconds for tests; its models are not useful")
     p.set_defaults(func=run_train)
 
+    p = subparsers.add_parser(
+        "quantize",
+        help="write an int8 copy of a model folder, with its parity against the float one",
+        description="Quantise the inverse graphs of MODELS (the convolutions after the first) to int8 with "
+        "onnxruntime into OUT, and record in OUT's manifest how, and how far the int8 outputs lie from the float "
+        "ones on renders no model saw. Serve or bench it like any model folder (--models OUT).",
+    )
+    add_scene_option(p)
+    p.add_argument("--models", type=Path, required=True, help="the float model folder (`meniscope train`)")
+    p.add_argument("--out", type=Path, required=True, help="model folder to write (new or empty)")
+    p.add_argument("--mode", choices=["static", "dynamic"], default="static",
+                   help="static: activation ranges calibrated on renders, fast on the CPU (default); dynamic: "
+                   "ranges measured per batch at run time")
+    p.add_argument("--calibration", type=int, default=512, help="renders the static ranges come from (default 512)")
+    p.add_argument("--parity", type=int, default=512, help="renders the int8 and float outputs are compared on "
+                   "(default 512)")
+    p.set_defaults(func=run_quantize)
+
 
 def run_train(args: argparse.Namespace) -> int:
     from dataclasses import replace
@@ -103,6 +121,20 @@ def run_train(args: argparse.Namespace) -> int:
             rmse = ", ".join(f"{k} {v:.3g}" for k, v in s.rmse.items())
             r = "n/a" if s.centre_correlation is None else f"{s.centre_correlation:.3f}"
             print(f"  {name} on {data} ({s.frames} frames): RMSE {rmse}; D(0, t) correlation {r}")
+    return 0
+
+
+def run_quantize(args: argparse.Namespace) -> int:
+    from training.quantize import quantize_models  # onnx loads only when the verb runs
+
+    for option, value in (("--calibration", args.calibration), ("--parity", args.parity)):
+        if value < 2:
+            raise MeniscopeError(option, f"must be at least 2 renders, got {value}")
+    manifest = quantize_models(args.models, args.out, Scene.load(args.scene), args.mode, args.calibration, args.parity)
+    for name, p in manifest.quantisation.parity.items():
+        diffs = ", ".join(f"{k} {v:.3g}" for k, v in p.max_abs.items())
+        print(f"{args.out}: {name} int8 ({args.mode}); largest |int8 - float| on {p.frames} renders: {diffs}; "
+              f"D(0) RMSE {p.float32.rmse['centre']:.4g} -> {p.int8.rmse['centre']:.4g} mm")
     return 0
 
 
