@@ -22,6 +22,7 @@ from service import DEFAULT_MODELS
 from service.bench import analysis, fit
 from service.cli import add_scene_option
 from service.errors import MeniscopeError
+from service.inverse.manifest import load_manifest
 from service.plotting import pyplot
 from service.scene import Scene
 
@@ -39,6 +40,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     add_scene_option(p)
     p.add_argument("--mode", choices=list(MODES), default="full", help="quick: a smoke run of minutes (default full)")
     p.add_argument("--models", type=Path, default=DEFAULT_MODELS, help="model folder (default: the shipped one)")
+    p.add_argument("--more-models", type=Path, action="append", default=[],
+                   help="another model folder (another input size, an int8 copy from `meniscope quantize`) whose "
+                   "learned methods are measured as rows of their own; repeat for more")
     p.add_argument("--database", type=Path, action="append", default=[],
                    help="render database(s) for the nearest-neighbour methods (`meniscope database`); repeat for "
                    "20k and 100k; none: those methods are left out, and the table says so")
@@ -69,13 +73,17 @@ def recordings(out: Path, scene: Path, windows: int, seeds: tuple[int, ...]) -> 
     return folders
 
 
-def methods(databases: list[Path]) -> list[tuple[str, str, Path | None]]:
-    """(label, method, database) of every method measured: the networks, then per database the nearest ones."""
-    rows = [("network", "network", None), ("direct", "direct", None)]
+def methods(models: list[Path], databases: list[Path], scene: Scene) -> list[tuple[str, str, Path, Path | None]]:
+    """(label, method, model folder, database) of every method measured: the learned ones of each model folder,
+    then per database the nearest ones."""
+    rows = []
+    for folder in models:
+        manifest = load_manifest(folder, scene)
+        rows += [(manifest.label(m), m, folder, None) for m in manifest.methods]
     for db in databases:
-        rows += [(f"nearest {db.name}", "nearest", db), (f"nearest-approx {db.name}", "nearest-approx", db)]
+        rows += [(f"{m} {db.name}", m, models[0], db) for m in ("nearest", "nearest-approx")]
     if databases:
-        rows.append((f"regularised {databases[0].name}", "regularised", databases[0]))
+        rows.append((f"regularised {databases[0].name}", "regularised", models[0], databases[0]))
     return rows
 
 
@@ -157,8 +165,8 @@ def run(args: argparse.Namespace) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     scene = Scene.load(args.scene)
     folders = recordings(args.out, args.scene, windows, seeds)
-    rows = [row for label, method, db in methods(args.database)
-            for row in method_rows(label, method, db, folders, scene, args.models)]
+    rows = [row for label, method, models, db in methods([args.models, *args.more_models], args.database, scene)
+            for row in method_rows(label, method, db, folders, scene, models)]
     _meniscope("bench", "render", "--scene", args.scene, *render_flags, "--out", args.out / "render")
     rec = sorted(folders[NOISES[0]].glob("*.cine"))[0]
     _meniscope("bench", "serve", "--source", rec, "--seconds", serve_s, "--configs", "512x1", "--speeds", "1",

@@ -125,6 +125,11 @@ class Manifest(_Record):
     def to_json(self) -> str:
         return json.dumps(self.model_dump(mode="json", by_alias=True), indent=1, allow_nan=False) + "\n"
 
+    def label(self, method: str) -> str:
+        """How benchmarks name one of its methods: the name, the model input size and any quantisation."""
+        q = self.quantisation
+        return f"{method} {self.input.model_height}px" + (f" int8 {q.mode}" if q else "")
+
 
 def sha256_file(path: Path) -> str:
     """Hex sha256 of a file, read in 4 MiB blocks."""
