@@ -1,13 +1,15 @@
 """``meniscope quantize``: an int8 copy of a model folder's inverse graphs, with its accuracy cost measured.
 
-onnxruntime's quantiser rewrites the convolutions after the first (and their ReLUs) to 8-bit integer arithmetic:
-``static`` (QDQ) with activation ranges calibrated on synthetic renders beforehand, so that the
+onnxruntime's quantiser rewrites the convolutions after the first (and their ReLUs) to 8-bit integer
+arithmetic: ``static`` (QDQ) with activation ranges calibrated on synthetic renders beforehand, so that the
 CPU runs them as QLinearConv; ``dynamic`` with ranges measured per batch at run time (ConvInteger).
 The first convolution stays float32: it reads the standardised frame, whose sparse highlights lie
 far out in the tails, and the trunk's last linear layer and the regression heads are too small to
 gain. Both graphs are then run on renders no model saw (seeded apart from training, the database
 and calibration), and the largest difference from the float graph and each one's error against the
-renders' truth go into the manifest; ``meniscope bench tradeoff --models DIR`` measures the speed.
+renders' truth go into the manifest; ``meniscope bench inference --models DIR`` and ``meniscope bench
+tradeoff --more-models DIR`` measure the speed. On the development CPU (AVX2 without VNNI) neither mode
+was faster than float (docs/benchmarks.md): the choice is there for CPUs where int8 pays.
 """
 from __future__ import annotations
 
