@@ -1,5 +1,6 @@
 """`meniscope bench tradeoff --mode quick`: every inverse method on the same held-out recordings, with the
-renderer, the window fit and the replay pipeline beside them, in one run and one table."""
+renderer, the window fit and the replay pipeline beside them, in one run and one table; further model
+folders (here an int8 copy of the shipped one) as rows of their own."""
 from __future__ import annotations
 
 import json
@@ -8,6 +9,8 @@ import sys
 from pathlib import Path
 
 import pytest
+
+from service import DEFAULT_MODELS
 
 
 def meniscope(*args: str | Path) -> subprocess.CompletedProcess:
@@ -21,8 +24,11 @@ def tradeoff(tmp_path_factory: pytest.TempPathFactory) -> Path:
     db = root / "db600"
     done = meniscope("database", "--samples", "600", "--chunk-size", "300", "--workers", "1", "--out", db)
     assert done.returncode == 0, done.stderr
+    int8 = root / "int8"
+    done = meniscope("quantize", "--models", DEFAULT_MODELS, "--out", int8, "--calibration", "64", "--parity", "16")
+    assert done.returncode == 0, done.stderr
     out = root / "out"
-    done = meniscope("bench", "tradeoff", "--mode", "quick", "--database", db, "--out", out)
+    done = meniscope("bench", "tradeoff", "--mode", "quick", "--database", db, "--more-models", int8, "--out", out)
     assert done.returncode == 0, done.stderr
     return out
 
@@ -30,7 +36,8 @@ def tradeoff(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def test_every_method_is_measured_at_both_noise_levels_with_the_targets_it_misses(tradeoff: Path):
     results = json.loads((tradeoff / "tradeoff.json").read_text())
     labels = {(r["label"], r["noise"]) for r in results["methods"]}
-    expected = {"network", "direct", "nearest db600", "nearest-approx db600", "regularised db600"}
+    expected = {"network 32px", "direct 32px", "network 32px int8 static", "direct 32px int8 static", "nearest db600",
+                "nearest-approx db600", "regularised db600"}
     assert labels == {(m, n) for m in expected for n in ("low", "high")}
     for row in results["methods"]:
         assert row["frames_per_s"] > 0 and row["ms_per_window"] > 0 and row["peak_memory_mb"] > 50

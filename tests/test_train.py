@@ -109,9 +109,24 @@ def test_frames_of_the_wrong_size_or_type_are_a_clear_error(trained: tuple[Path,
         method.infer(np.zeros((2, scene.camera.height_px, scene.camera.width_px), np.float32))
 
 
+def test_the_model_input_size_is_a_choice(trained: tuple[Path, Path, Path], scene: Scene, tmp_path: Path) -> None:
+    """--input-px sets the pooled image the networks see; the graphs still take the ROI as stored."""
+    lab, holdout, _ = trained
+    done = meniscope("train", "--lab-video", str(lab), "--out", str(tmp_path / "m16"), "--quick", "--input-px", "16")
+    assert done.returncode == 0, done.stderr
+    manifest = load_manifest(tmp_path / "m16", scene)
+    assert (manifest.input.downsample, manifest.input.model_height, manifest.input.model_width) == (6, 16, 16)
+    assert manifest.training.config["net"]["input_px"] == 16
+    with open_recording(holdout) as rec:
+        assert NetworkMethod(tmp_path / "m16", scene).infer(np.asarray(rec.read(0, 3))).centre.shape == (3,)
+
+
 def test_training_refuses_bad_input_in_one_line(trained: tuple[Path, Path, Path], tmp_path: Path) -> None:
     lab, _, _ = trained
     done = meniscope("train", "--lab-video", str(tmp_path / "none.cine"), "--out", str(tmp_path / "m"), "--quick")
     assert done.returncode == 2 and done.stderr.count("\n") == 1 and "none.cine" in done.stderr
     done = meniscope("train", "--lab-video", str(lab), "--holdout", str(lab), "--out", str(tmp_path / "m"), "--quick")
     assert done.returncode == 2 and "hold-out recording must differ" in done.stderr
+    done = meniscope("train", "--lab-video", str(lab), "--out", str(tmp_path / "m40"), "--quick", "--input-px", "40")
+    assert done.returncode == 2 and done.stderr.count("\n") == 1 and "--input-px" in done.stderr
+    assert not (tmp_path / "m40").exists()

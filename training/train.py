@@ -267,7 +267,7 @@ def _open_or_render(scene: Scene, folder: Path | None, scratch: Path, config: Tr
     return open_dataset(target, scene)
 
 
-def _prepare_out(out: Path) -> None:
+def prepare_out(out: Path) -> None:
     """Make ``out`` ready to receive models: new, empty, or a model folder whose listed files are replaced."""
     old = out / MANIFEST
     if out.exists() and not out.is_dir():
@@ -299,7 +299,7 @@ def train_models(
     started = time.perf_counter()
     if holdout_video is not None and holdout_video.resolve() == lab_video.resolve():
         raise MeniscopeError(holdout_video, "the hold-out recording must differ from the lab video the VAE learns")
-    _prepare_out(out)
+    prepare_out(out)
     generator = seed_everything(config.seed, config.threads)
     height, width = scene.camera.height_px, scene.camera.width_px
     normalise = Normalise(downsample_factor(scene, config.net.input_px))

@@ -1,5 +1,5 @@
 """The offline verbs, added to ``meniscope`` through the ``meniscope.verbs`` entry point: ``dataset``, ``database``,
-``train``.
+``train``, ``quantize``.
 
 The nearest-neighbour database (Price et al. 2022, Sec. 3.2 (a)) is a dataset folder: renders with the
 coefficients they were made from. ``meniscope database`` renders one apart from the training renders
@@ -68,15 +68,37 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    "nearest-neighbour database too)")
     p.add_argument("--holdout", type=Path, help="a simulated recording (with .truth.json) no model sees, scored")
     p.add_argument("--seed", type=int, default=0, help="seed (default 0)")
+    p.add_argument("--input-px", type=int, help="model input height after in-graph pooling (default 32: the ROI "
+                   "pooled 3x3; 48 pools 2x2, slower and sees finer highlights); must divide the ROI")
     p.add_argument("--quick", action="store_true", help="a run of seconds for tests; its models are not useful")
     p.set_defaults(func=run_train)
+
+    p = subparsers.add_parser(
+        "quantize",
+        help="write an int8 copy of a model folder, with its parity against the float one",
+        description="Quantise the inverse graphs of MODELS (the convolutions after the first) to int8 with "
+        "onnxruntime into OUT, and record in OUT's manifest how, and how far the int8 outputs lie from the float "
+        "ones on renders no model saw. Serve or bench it like any model folder (--models OUT).",
+    )
+    add_scene_option(p)
+    p.add_argument("--models", type=Path, required=True, help="the float model folder (`meniscope train`)")
+    p.add_argument("--out", type=Path, required=True, help="model folder to write (new or empty)")
+    p.add_argument("--mode", choices=["static", "dynamic"], default="static",
+                   help="static: activation ranges calibrated on renders, fast on the CPU (default); dynamic: "
+                   "ranges measured per batch at run time")
+    p.add_argument("--calibration", type=int, default=512, help="renders the static ranges come from (default 512)")
+    p.add_argument("--parity", type=int, default=512, help="renders the int8 and float outputs are compared on "
+                   "(default 512)")
+    p.set_defaults(func=run_quantize)
 
 
 def run_train(args: argparse.Namespace) -> int:
     from dataclasses import replace
 
-    from training.train import TrainConfig, train_models  # torch loads only when the verb runs
+    from training.normalise import downsample_factor  # torch loads only when the verb runs
+    from training.train import TrainConfig, train_models
 
+    scene = Scene.load(args.scene)
     config = TrainConfig.quick() if args.quick else TrainConfig()
     if args.samples is not None:
         if args.samples < 64:
@@ -85,7 +107,13 @@ def run_train(args: argparse.Namespace) -> int:
     if args.seed < 0:
         raise MeniscopeError("--seed", f"must be zero or positive, got {args.seed}")
     config = replace(config, seed=args.seed)
-    manifest = train_models(Scene.load(args.scene), args.lab_video, args.out, config, dataset=args.dataset,
+    if args.input_px is not None:
+        try:
+            downsample_factor(scene, args.input_px)
+        except MeniscopeError as exc:
+            raise MeniscopeError("--input-px", exc.problem) from None
+        config = replace(config, net=replace(config.net, input_px=args.input_px))
+    manifest = train_models(scene, args.lab_video, args.out, config, dataset=args.dataset,
                             holdout_video=args.holdout)
     print(f"{args.out}: {', '.join(sorted(manifest.methods))} exported in {manifest.training.seconds:.0f} s")
     for name, by_data in manifest.validation.items():
@@ -93,6 +121,20 @@ def run_train(args: argparse.Namespace) -> int:
             rmse = ", ".join(f"{k} {v:.3g}" for k, v in s.rmse.items())
             r = "n/a" if s.centre_correlation is None else f"{s.centre_correlation:.3f}"
             print(f"  {name} on {data} ({s.frames} frames): RMSE {rmse}; D(0, t) correlation {r}")
+    return 0
+
+
+def run_quantize(args: argparse.Namespace) -> int:
+    from training.quantize import quantize_models  # onnx loads only when the verb runs
+
+    for option, value in (("--calibration", args.calibration), ("--parity", args.parity)):
+        if value < 2:
+            raise MeniscopeError(option, f"must be at least 2 renders, got {value}")
+    manifest = quantize_models(args.models, args.out, Scene.load(args.scene), args.mode, args.calibration, args.parity)
+    for name, p in manifest.quantisation.parity.items():
+        diffs = ", ".join(f"{k} {v:.3g}" for k, v in p.max_abs.items())
+        print(f"{args.out}: {name} int8 ({args.mode}); largest |int8 - float| on {p.frames} renders: {diffs}; "
+              f"D(0) RMSE {p.float32.rmse['centre']:.4g} -> {p.int8.rmse['centre']:.4g} mm")
     return 0
 
 

@@ -22,6 +22,7 @@ from service import DEFAULT_MODELS
 from service.bench import analysis, fit
 from service.cli import add_scene_option
 from service.errors import MeniscopeError
+from service.inverse.manifest import load_manifest
 from service.plotting import pyplot
 from service.scene import Scene
 
@@ -39,6 +40,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     add_scene_option(p)
     p.add_argument("--mode", choices=list(MODES), default="full", help="quick: a smoke run of minutes (default full)")
     p.add_argument("--models", type=Path, default=DEFAULT_MODELS, help="model folder (default: the shipped one)")
+    p.add_argument("--more-models", type=Path, action="append", default=[],
+                   help="another model folder (another input size, an int8 copy from `meniscope quantize`) whose "
+                   "learned methods are measured as rows of their own; repeat for more")
     p.add_argument("--database", type=Path, action="append", default=[],
                    help="render database(s) for the nearest-neighbour methods (`meniscope database`); repeat for "
                    "20k and 100k; none: those methods are left out, and the table says so")
@@ -69,13 +73,17 @@ def recordings(out: Path, scene: Path, windows: int, seeds: tuple[int, ...]) -> 
     return folders
 
 
-def methods(databases: list[Path]) -> list[tuple[str, str, Path | None]]:
-    """(label, method, database) of every method measured: the networks, then per database the nearest ones."""
-    rows = [("network", "network", None), ("direct", "direct", None)]
+def methods(models: list[Path], databases: list[Path], scene: Scene) -> list[tuple[str, str, Path, Path | None]]:
+    """(label, method, model folder, database) of every method measured: the learned ones of each model folder,
+    then per database the nearest ones."""
+    rows = []
+    for folder in models:
+        manifest = load_manifest(folder, scene)
+        rows += [(manifest.label(m), m, folder, None) for m in manifest.methods]
     for db in databases:
-        rows += [(f"nearest {db.name}", "nearest", db), (f"nearest-approx {db.name}", "nearest-approx", db)]
+        rows += [(f"{m} {db.name}", m, models[0], db) for m in ("nearest", "nearest-approx")]
     if databases:
-        rows.append((f"regularised {databases[0].name}", "regularised", databases[0]))
+        rows.append((f"regularised {databases[0].name}", "regularised", models[0], databases[0]))
     return rows
 
 
@@ -128,24 +136,31 @@ def markdown(results: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
+#: The accuracy axes of the Pareto plot: (row key, scale to the plotted unit, axis label, target line or None).
+PARETO_AXES = (("frequency_median", 100, "dominant frequency error, median (%)", 100 * TARGETS["frequency_median"]),
+               ("centre_rmse_mm", 1e3, "per-frame D(0, t) RMSE (um)", None))
+
+
 def pareto(rows: list[dict], path: Path) -> None:
-    """Frames/s (log) against the dominant frequency's median error, one labelled point per method and noise."""
+    """Frames/s (log) against the window-level accuracy (dominant frequency's median error) and the per-frame
+    one (D(0, t) RMSE), one labelled point per method and noise level in each panel."""
     plt = pyplot()
 
-    fig, ax = plt.subplots(figsize=(8, 5), layout="constrained")
-    for r in rows:
-        if r["frequency_median"] is None:
-            continue
-        marker = "o" if r["noise"] == NOISES[0] else "s"
-        ax.scatter(r["frames_per_s"], 100 * r["frequency_median"], marker=marker)
-        ax.annotate(f"{r['label']} ({r['noise']})", (r["frames_per_s"], 100 * r["frequency_median"]), fontsize=7,
-                    xytext=(4, 2), textcoords="offset points")
-    ax.axvline(CAMERA_FPS, ls="--", color="0.5", lw=0.8)
-    ax.axhline(100 * TARGETS["frequency_median"], ls="--", color="0.5", lw=0.8)
-    ax.set(xscale="log", yscale="log", xlabel="frames/s, end to end from the file",
-           ylabel="dominant frequency error, median (%)",
-           title="Speed against accuracy (dashed: camera rate and the 0.5 % target); o low, s high noise")
-    fig.savefig(path, dpi=110)
+    fig, axes = plt.subplots(1, len(PARETO_AXES), figsize=(15, 6), layout="constrained")
+    for ax, (key, scale, label, target) in zip(axes, PARETO_AXES):
+        for r in rows:
+            if r[key] is None:
+                continue
+            marker = "o" if r["noise"] == NOISES[0] else "s"
+            ax.scatter(r["frames_per_s"], scale * r[key], marker=marker)
+            ax.annotate(f"{r['label']} ({r['noise']})", (r["frames_per_s"], scale * r[key]), fontsize=6,
+                        xytext=(4, 2), textcoords="offset points")
+        ax.axvline(CAMERA_FPS, ls="--", color="0.5", lw=0.8)
+        if target is not None:
+            ax.axhline(target, ls="--", color="0.5", lw=0.8)
+        ax.set(xscale="log", yscale="log", xlabel="frames/s, end to end from the file", ylabel=label)
+    fig.suptitle("Speed against accuracy (dashed: camera rate and the 0.5 % frequency target); o low, s high noise")
+    fig.savefig(path, dpi=100)
     plt.close(fig)
 
 
@@ -157,8 +172,8 @@ def run(args: argparse.Namespace) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     scene = Scene.load(args.scene)
     folders = recordings(args.out, args.scene, windows, seeds)
-    rows = [row for label, method, db in methods(args.database)
-            for row in method_rows(label, method, db, folders, scene, args.models)]
+    rows = [row for label, method, models, db in methods([args.models, *args.more_models], args.database, scene)
+            for row in method_rows(label, method, db, folders, scene, models)]
     _meniscope("bench", "render", "--scene", args.scene, *render_flags, "--out", args.out / "render")
     rec = sorted(folders[NOISES[0]].glob("*.cine"))[0]
     _meniscope("bench", "serve", "--source", rec, "--seconds", serve_s, "--configs", "512x1", "--speeds", "1",

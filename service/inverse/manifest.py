@@ -55,7 +55,8 @@ class MethodEntry(_Record):
 
     file: str  # relative to the model folder
     description: str
-    parity_max_abs: Finite | None = None  # largest |torch - onnxruntime| over the outputs at export
+    parity_max_abs: Finite | None = None  # largest |reference - this graph| over the outputs: torch at export,
+    # the float graph for an int8 one (``meniscope quantize``)
 
 
 class Scores(_Record):
@@ -68,6 +69,28 @@ class Scores(_Record):
     frames: int
     rmse: dict[str, Finite]
     centre_correlation: Finite | None
+
+
+class Parity(_Record):
+    """An int8 graph against the float one it was made from, on the same renders (coefficients known)."""
+
+    frames: int
+    seed: int  # of the renders (``training.dataset``)
+    max_abs: dict[str, Finite]  # largest |float - int8| per target: d (mm), p (-), a (mm), b (mm), centre (mm)
+    float32: Scores  # each graph's accuracy against the renders' truth
+    int8: Scores
+
+
+class Quantisation(_Record):
+    """How an int8 folder was made from a float one (``meniscope quantize``) and what it costs."""
+
+    mode: Literal["static", "dynamic"]  # activation ranges calibrated beforehand, or measured per batch at run time
+    weights: str
+    activations: str
+    nodes: list[str]  # the quantised nodes of each graph; the rest stays float32
+    source: dict[str, Any]  # the float folder: path and its manifest's sha256
+    calibration: dict[str, int]  # renders and seed the static ranges came from (empty for dynamic)
+    parity: dict[str, Parity]  # method -> against its float graph
 
 
 class TrainingSummary(_Record):
@@ -94,12 +117,18 @@ class Manifest(_Record):
     autoencoder: MethodEntry | None = None  # the VAE's reconstruction graph, for figures: not an inverse method
     training: TrainingSummary
     validation: dict[str, dict[str, Scores]] = {}  # method -> data set ("synthetic", "recording", ...) -> scores
+    quantisation: Quantisation | None = None  # an int8 copy of a float folder: how, and its parity
     files: dict[str, str]  # every other file of the folder (relative path) -> sha256
 
     model_config = ConfigDict(extra="forbid", frozen=True, populate_by_name=True)
 
     def to_json(self) -> str:
         return json.dumps(self.model_dump(mode="json", by_alias=True), indent=1, allow_nan=False) + "\n"
+
+    def label(self, method: str) -> str:
+        """How benchmarks name one of its methods: the name, the model input size and any quantisation."""
+        q = self.quantisation
+        return f"{method} {self.input.model_height}px" + (f" int8 {q.mode}" if q else "")
 
 
 def sha256_file(path: Path) -> str:
