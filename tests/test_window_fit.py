@@ -13,6 +13,7 @@ from hypothesis.extra.numpy import arrays
 from service.analysis.fit import fit_window, model_curve
 from service.analysis.peer import available, harminv_modes
 from service.analysis.results import FitSettings, Report, Source
+from service.analysis.settling import envelope, settling_time
 from service.physics import damped_mode
 
 FPS = 19000.0
@@ -234,3 +235,27 @@ def test_harminv_itself_finds_a_moderately_damped_pair_as_we_do():
     assert [m.frequency_hz for m in peer] == pytest.approx([1500, 3450], rel=1e-6)
     assert [m.decay_rate_per_s for m in peer] == pytest.approx([400, 700], rel=1e-4)
     assert peer[0].amplitude == pytest.approx(0.02, rel=1e-4) and peer[0].phase_rad == pytest.approx(0.3, abs=1e-4)
+
+
+@settings(max_examples=300, deadline=None)
+@given(amplitudes=st.lists(st.floats(1e-9, 1e3), min_size=2, max_size=3),
+       decays=st.lists(st.one_of(st.just(0.0), st.floats(5e-324, 1e7)), min_size=3, max_size=3),
+       fraction=st.floats(0.01, 0.99))
+def test_settling_time_meets_the_tolerance_at_any_scale_of_decay(amplitudes, decays, fraction):
+    """The envelope E(t) crosses the tolerance at the settling time, whatever the decay rates span (1e-176 /s
+    beside 1e3 /s made Brent's method give up over a linear bracket); never, for what would take past 1e17 s."""
+    a, g = np.array(amplitudes), np.array(decays[: len(amplitudes)])
+    tol = fraction * a.sum()
+    t = settling_time(a, g, tol)
+    assert t >= 0
+    if np.isinf(t):
+        assert envelope(1e17, a, g)[0] > tol * (1 - 1e-9)
+    else:
+        assert envelope(t, a, g)[0] <= tol * (1 + 1e-9)
+        assert t == 0 or envelope(t * (1 - 1e-6), a, g)[0] >= tol * (1 - 1e-9)
+
+
+def test_the_settling_time_that_stopped_bench_tradeoff():
+    a, g = [3.86e-4, 1.38e-4], [3.09e-176, 3.28e-7]
+    t = settling_time(a, g, 5e-4)
+    assert envelope(t, a, g)[0] == pytest.approx(5e-4, rel=1e-9)

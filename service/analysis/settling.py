@@ -12,6 +12,9 @@ import numpy as np
 from numpy.typing import ArrayLike
 from scipy.optimize import brentq
 
+#: Settling later than this (s, ~3e9 years) is reported as never.
+_LONGEST_S = 1e17
+
 
 def envelope(t: ArrayLike, amplitudes: ArrayLike, decays: ArrayLike) -> np.ndarray:
     """E(t) = sum_k |A_k| exp(-g_k t) in mm.
@@ -42,8 +45,10 @@ def settling_time(amplitudes: ArrayLike, decays: ArrayLike, tol_mm: float) -> fl
     """First time (s) after which E(t) <= tol_mm for good; 0 if it starts there, inf if it never gets there.
 
     E is a sum of decaying exponentials, so it is monotone and the crossing is unique: closed form
-    for one damped mode, Brent's method otherwise, bracketed by the time each term alone needs to
-    fall under its share of the tolerance. Undamped modes (g = 0) stay for ever.
+    for one damped mode, Brent's method otherwise, bracketed by the times each term alone needs to
+    fall under its share of the tolerance and by the slowest-decaying bound. Those can span hundreds of
+    decades (a decay rate of 1e-176 /s next to 1e3 /s), so the root is sought in log t. Undamped
+    modes (g = 0) stay for ever, and so does anything needing longer than ``_LONGEST_S``.
     """
     amplitudes = np.abs(np.asarray(amplitudes, dtype=np.float64)).reshape(-1)
     decays = np.asarray(decays, dtype=np.float64).reshape(-1)
@@ -54,11 +59,24 @@ def settling_time(amplitudes: ArrayLike, decays: ArrayLike, tol_mm: float) -> fl
     if budget <= 0:
         return float("inf")
     a, g = amplitudes[damped], decays[damped]
-    reach = np.log(np.maximum(a * a.size / budget, 1.0)) / g  # each term under budget / M
+    with np.errstate(over="ignore", divide="ignore"):
+        reach = np.log(np.maximum(a * a.size / budget, 1.0)) / g  # each term under budget / M
     if a.size == 1:
-        return float(reach[0])
-    with np.errstate(under="ignore"):  # E(s) as a dot product: Brent calls it ~10 times per window
-        return float(brentq(lambda s: float(a @ np.exp(-g * s)) - budget, 0.0, reach.max(), xtol=1e-12, rtol=1e-12))
+        return float(reach[0]) if reach[0] <= _LONGEST_S else float("inf")
+
+    def excess(t: float) -> float:
+        """E(t) over the budget, the budget's last 1e-12 counted as rounding (Brent calls this ~10-40 times)."""
+        with np.errstate(under="ignore"):
+            return float(a @ np.exp(-g * t)) - budget * (1 + 1e-12)
+
+    # E(t) >= sum(a) exp(-max(g) t), so E stays above the budget until ``low``; every term is under its
+    # share by ``high``: the crossing is between, found in log t (no loss of precision at any scale)
+    low, high = np.log(a.sum() / budget) / g.max(), min(reach.max(), _LONGEST_S)
+    if excess(high) > 0:
+        return float("inf")
+    if low <= 0 or high <= low or excess(low) <= 0:  # the bound is the root (equal decay rates, or rounding)
+        return float(max(low, 0.0))
+    return float(np.exp(brentq(lambda u: excess(np.exp(u)), np.log(low), np.log(high), xtol=1e-12, rtol=1e-12)))
 
 
 def damping_ratio(frequency_hz: ArrayLike, decay_per_s: ArrayLike) -> np.ndarray:
