@@ -11,6 +11,7 @@ from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
 from service.analysis.fit import fit_window, model_curve
+from service.analysis.pencil import Exponentials
 from service.analysis.peer import available, harminv_modes
 from service.analysis.results import FitSettings, Report, Source
 from service.analysis.settling import envelope, settling_time
@@ -259,3 +260,9 @@ def test_the_settling_time_that_stopped_bench_tradeoff():
     a, g = [3.86e-4, 1.38e-4], [3.09e-176, 3.28e-7]
     t = settling_time(a, g, 5e-4)
     assert envelope(t, a, g)[0] == pytest.approx(5e-4, rel=1e-9)
+
+
+def test_a_pencil_pole_without_amplitude_explains_nothing_even_when_it_would_overflow():
+    with np.errstate(all="raise"):
+        e = Exponentials(np.array([1e200 + 0j, 0.5 + 0.5j]), np.array([0j, 1 + 0j]), N)
+        assert e.energy()[0] == 0.0 and e.energy()[1] > 0

@@ -29,10 +29,11 @@ class Exponentials:
 
     def energy(self) -> np.ndarray:
         """sum_n |h_k z_k^n|^2 over the N samples, shape (K,): how much of the series each pole explains."""
-        r2 = np.abs(self.poles) ** 2
         with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+            r2 = np.abs(self.poles) ** 2
             geometric = np.where(np.isclose(r2, 1.0), self.length, (1 - r2**self.length) / (1 - r2))
-        return np.abs(self.amplitudes) ** 2 * geometric
+        weight = np.abs(self.amplitudes) ** 2
+        return np.where(weight > 0, weight * geometric, 0.0)  # a pole with no amplitude explains nothing (not 0 * inf)
 
     def damped_sinusoids(self, min_cycles: float = 0.25) -> tuple[np.ndarray, np.ndarray]:
         """Angular frequency w (rad/sample, in (0, pi]) and decay g (1/sample) of each pole pair, most energetic first.
