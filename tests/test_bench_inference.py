@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from service import DEFAULT_MODELS
-from service.bench.inference import DEMO
+from service.pipeline.demo import DEMO_AVI
 from service.inverse.network import NetworkMethod
 from service.recordings.roi import read_roi_frames
 from service.scene import Scene
@@ -42,7 +42,7 @@ def test_settings_that_are_not_settings_are_refused_in_one_line(tmp_path: Path):
 
 
 def test_the_settings_compared_change_the_speed_not_the_answer(scene: Scene):
-    frames, _ = read_roi_frames(DEMO, scene, 32)
+    frames, _ = read_roi_frames(DEMO_AVI, scene, 32)
     reference = NetworkMethod(DEFAULT_MODELS, scene).infer(frames).coefficients
     for threads, batch, level in ((1, 5, "none"), (2, 16, "basic"), (1, 64, "extended")):
         method = NetworkMethod(DEFAULT_MODELS, scene, threads=threads, batch=batch, optimisation=level)

@@ -89,7 +89,7 @@ def offline(demo_cine: Path) -> dict[int, float]:
     out = {}
     for w in TRUTH["windows"]:
         s, e = w["start_frame"], w["end_frame"]
-        steady = window_steady_centre(coeffs[s:e], scene.nozzle.radius_mm, FitSettings().transient_frames(fps))
+        steady = window_steady_centre(coeffs[s:e], scene.nozzle.radius_mm, FitSettings().transient_frames(fps), True)
         result = fit_window(steady, fps, starts_at_ejection=True, ends_at_ejection=True)
         out[s] = result.modes[0].frequency_hz if result.modes else float("nan")
     return out

@@ -4,8 +4,8 @@ One :class:`concurrent.futures.Executor` stands for all three, so the code that 
 (``training.dataset``) is the same whatever runs them; it only needs the chunk function to be pure and
 importable on the workers (``meniscope`` installed there, the same version).
 
-Dask distributed, not Ray: dask and distributed are pure-Python wheels (2.5 MB together, against
-Ray's one 80 MB binary wheel), nothing runs but ``dask scheduler`` and ``dask worker`` on each host, and
+Dask distributed, not Ray: dask and distributed are pure-Python wheels (2.5 MB together for 2026.8.0,
+against Ray's platform-specific binary wheel), nothing runs but ``dask scheduler`` and ``dask worker`` on each host, and
 its client already offers the standard Executor interface (``Client.get_executor``) that a local
 ``ProcessPoolExecutor`` has.
 """
@@ -40,7 +40,6 @@ class Engine:
 
     executor: Executor
     slots: int
-    where: str  # "this process", "2 local processes", "tcp://host:8786 (8 threads)"
 
 
 @contextmanager
@@ -54,10 +53,10 @@ def open_engine(workers: int = 1, scheduler: str | None = None) -> Iterator[Engi
     if workers < 1:
         raise MeniscopeError("--workers", f"must be at least 1, got {workers}")
     if workers == 1:
-        yield Engine(InlineExecutor(), 1, "this process")
+        yield Engine(InlineExecutor(), 1)
         return
     with ProcessPoolExecutor(max_workers=workers) as pool:
-        yield Engine(pool, workers, f"{workers} local processes")
+        yield Engine(pool, workers)
 
 
 @contextmanager
@@ -75,4 +74,4 @@ def _dask_engine(scheduler: str) -> Iterator[Engine]:
         if threads == 0:
             raise MeniscopeError(scheduler, "the Dask scheduler has no workers: start some with `dask worker`")
         # pure=False: every submission runs, even one equal to an earlier (a retry after a failure)
-        yield Engine(client.get_executor(pure=False), threads, f"{scheduler} ({threads} threads)")
+        yield Engine(client.get_executor(pure=False), threads)

@@ -9,7 +9,7 @@ gain. Both graphs are then run on renders no model saw (seeded apart from traini
 and calibration), and the largest difference from the float graph and each one's error against the
 renders' truth go into the manifest; ``meniscope bench inference --models DIR`` and ``meniscope bench
 tradeoff --more-models DIR`` measure the speed. On the development CPU (AVX2 without VNNI) neither mode
-was faster than float (docs/benchmarks.md): the choice is there for CPUs where int8 pays.
+was faster than float beyond the noise (static 0.87-1.02x, dynamic 0.2x: docs/benchmarks.md): the choice is there for CPUs where int8 pays.
 """
 from __future__ import annotations
 

@@ -13,14 +13,17 @@ from service.analysis.segment import Window
 from service.physics import centre_displacement
 
 
-def window_steady_centre(coefficients: np.ndarray, radius_mm: float, skip: int = 0) -> np.ndarray:
-    """D(0, t) of one window's frames as Eq. 1 has it: the window's d + p R (medians over its frames after
-    the first ``skip``, the ejection's transient) plus each frame's a + b. (m, 4) -> (m,), mm; NaN rows stay NaN.
+def window_steady_centre(coefficients: np.ndarray, radius_mm: float, transient: int,
+                         starts_at_ejection: bool) -> np.ndarray:
+    """D(0, t) of one window's frames as Eq. 1 has it: the window's d + p R (medians over its frames, after
+    the ``transient`` frames of the ejection when it starts at one) plus each frame's a + b.
+    (m, 4) -> (m,), mm; NaN rows stay NaN.
 
     Eq. 1 holds d and p constant between ejections; taking them per frame would add their per-frame
     estimation noise to the oscillation (on the shipped models it is most of the D(0, t) error).
     """
     d, p, a, b = np.asarray(coefficients, np.float64).T
+    skip = transient if starts_at_ejection else 0
     lo = skip if len(d) > skip else 0
     with warnings.catch_warnings():  # a window whose frames are all missing: NaN, which the fit reports
         warnings.simplefilter("ignore", RuntimeWarning)
@@ -31,6 +34,6 @@ def steady_centre(coefficients: np.ndarray, windows: list[Window], radius_mm: fl
     """:func:`window_steady_centre` of every window of a recording, shape (N,), mm."""
     steady = np.empty(len(coefficients))
     for w in windows:
-        skip = transient if w.starts_at_ejection else 0
-        steady[w.start : w.end] = window_steady_centre(coefficients[w.start : w.end], radius_mm, skip)
+        steady[w.start : w.end] = window_steady_centre(coefficients[w.start : w.end], radius_mm, transient,
+                                                       w.starts_at_ejection)
     return steady

@@ -22,10 +22,10 @@ from service.cli import add_scene_option
 from service.errors import MeniscopeError, require_folder_of
 from service.inverse.manifest import load_manifest
 from service.inverse.network import OPTIMISATION, NetworkMethod
+from service.pipeline.demo import DEMO_AVI
 from service.recordings.roi import read_roi_frames
 from service.scene import Scene
 
-DEMO = Path(__file__).resolve().parents[1] / "demo" / "demo.avi"
 
 
 def _choices(option: str, text: str, allowed: set[str] | None = None) -> list:
@@ -45,7 +45,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                               description=__doc__)
     add_scene_option(p)
     p.add_argument("--models", type=Path, action="append", help="model folder; repeat for more (default: the shipped one)")
-    p.add_argument("--recording", type=Path, default=DEMO, help="whose ROI frames are inferred (default: the demo)")
+    p.add_argument("--recording", type=Path, default=DEMO_AVI, help="whose ROI frames are inferred (default: the demo)")
     p.add_argument("--frames", type=int, default=2048, help="frames per pass, at most the recording's (default 2048)")
     p.add_argument("--repeats", type=int, default=7, help="timed passes per setting; the median counts (default 7)")
     p.add_argument("--threads", default="1,2", help="intra-op thread counts (default 1,2)")

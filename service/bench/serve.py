@@ -121,7 +121,7 @@ def stage_costs(recording: Path, configs: list[tuple[int, int]], frames: int = 3
     from service.analysis.steady import window_steady_centre
     from service.inverse.network import NetworkMethod
     from service.pipeline.activity import ActivityTracker
-    from service.pipeline.segmenter import StreamingSegmenter
+    from service.pipeline.runtime import segmenter_for
     from service.scene import Scene
     from service.sources import FrameBatch, open_source
 
@@ -140,16 +140,16 @@ def stage_costs(recording: Path, configs: list[tuple[int, int]], frames: int = 3
     for size, threads in configs:
         method = NetworkMethod(DEFAULT_MODELS, scene, threads=threads, batch=size)
         method.infer(batch.pixels[:size])
-        costs[f"infer_{size}x{threads}"], _ = cpu_us_per_frame(lambda: method.infer(batch.pixels), len(batch))
-    coefficients = method.infer(batch.pixels).coefficients
-    tracker, segmenter = ActivityTracker(), StreamingSegmenter(int(0.5 * fps / 100), int(0.05 * fps), 8.0)
+        costs[f"infer_{size}x{threads}"], out = cpu_us_per_frame(lambda: method.infer(batch.pixels), len(batch))
+    coefficients = out.coefficients
+    tracker, segmenter = ActivityTracker(), segmenter_for(ServiceSettings(), fps)
     costs["activity_segmentation"], closed = cpu_us_per_frame(lambda: [
         w for lo in range(0, len(batch), 512) for w in segmenter.push(
             batch.indices[lo:lo + 512], coefficients[lo:lo + 512],
             tracker.update(batch.pixels[lo:lo + 512], batch.indices[lo:lo + 512]), np.zeros(len(batch.indices[lo:lo + 512])))
     ], len(batch))
-    skip = FitSettings().transient_frames(fps)  # the series and the skipped transient the pipeline's fit gets
-    series = [(window_steady_centre(c.values, scene.nozzle.radius_mm, skip if c.window.starts_at_ejection else 0),
+    transient = FitSettings().transient_frames(fps)  # the series and the skipped transient the pipeline's fit gets
+    series = [(window_steady_centre(c.values, scene.nozzle.radius_mm, transient, c.window.starts_at_ejection),
                c.window.starts_at_ejection) for c in closed]
     fit_us, _ = cpu_us_per_frame(lambda: [fit_window(v, fps, starts_at_ejection=e) for v, e in series], len(series))
     costs["fit_ms_per_window"] = fit_us / 1e3

@@ -66,7 +66,6 @@ class LatestFrame:
 
     index: int
     pixels: np.ndarray
-    bit_depth: int
     coefficients: tuple[float, float, float, float]
     centre_mm: float
 
@@ -113,6 +112,13 @@ class RateMeter:
         return self.rate
 
 
+def segmenter_for(settings: ServiceSettings, fps: float) -> StreamingSegmenter:
+    """The live segmenter ``settings`` ask for at ``fps``: no two ejections within half the expected period
+    (:data:`MIN_EJECTION_PERIOD_S` when no rate is given), windows cut at ``max_window_s``."""
+    period = fps / settings.ejection_hz if settings.ejection_hz else MIN_EJECTION_PERIOD_S * fps
+    return StreamingSegmenter(int(0.5 * period), int(settings.max_window_s * fps), settings.activity_threshold)
+
+
 class Pipeline:
     """One run of the pipeline over an open ``source`` with an inverse ``method``; :meth:`run` until it ends.
 
@@ -127,9 +133,7 @@ class Pipeline:
         x, y = scene.camera.roi
         self._roi = (slice(None), slice(y, y + scene.camera.height_px), slice(x, x + scene.camera.width_px))
         fps = source.fps
-        period = fps / settings.ejection_hz if settings.ejection_hz else MIN_EJECTION_PERIOD_S * fps
-        self.segmenter = StreamingSegmenter(int(0.5 * period), int(settings.max_window_s * fps),
-                                            settings.activity_threshold)
+        self.segmenter = segmenter_for(settings, fps)
         self.activity = ActivityTracker()
         self._queue: queue.Queue[tuple[FrameBatch, float]] = queue.Queue(settings.queue_batches)
         self._trace, self._trace_first = np.empty(0), 0
@@ -231,15 +235,15 @@ class Pipeline:
         self.stats.frames_inferred += len(batch)
         z = self.activity.update(pixels, batch.indices)
         self._dispatch(self.segmenter.push(batch.indices, out.coefficients, z, arrival))
-        self.stats.latest = LatestFrame(int(batch.indices[-1]), pixels[-1].copy(), self.source.bit_depth,
+        self.stats.latest = LatestFrame(int(batch.indices[-1]), pixels[-1].copy(),
                                         tuple(float(c) for c in out.coefficients[-1]), float(out.centre[-1]))
         self._update_trace(batch.indices, out.centre)
 
     def _dispatch(self, closed: list[ClosedWindow]) -> None:
         """Each closed window's steady D(0, t) (as ``meniscope analyze`` fits it) to the fit workers."""
         for window in closed:
-            skip = self._transient if window.window.starts_at_ejection else 0
-            window = replace(window, values=window_steady_centre(window.values, self._radius, skip))
+            window = replace(window, values=window_steady_centre(window.values, self._radius, self._transient,
+                                                                 window.window.starts_at_ejection))
             self.stats.windows_closed += 1
             dispatched_at = time.monotonic()
             if not self.fits.submit(window, self._fps, partial(self._fitted, dispatched_at)):

@@ -119,11 +119,11 @@ class Supervisor:
         scene = Scene.load(settings.scene)
         method, _ = open_method(settings.method, scene, settings.models, settings.nearest_database,
                                 threads=settings.threads, batch=settings.batch)
-        self._fit_pool(settings)  # before the source opens: a replay's clock starts when it does
+        fits = self._fit_pool(settings)  # before the source opens: a replay's clock starts when it does
         uri = demo_uri(settings.data_dir) if settings.source is None else resolve_source(
             settings.source, settings.recordings_folder)
         with open_source(uri) as source:
-            pipeline = Pipeline(settings, scene, source, method, self._fit_pool(settings), self.sink, self.stats)
+            pipeline = Pipeline(settings, scene, source, method, fits, self.sink, self.stats)
             self._source, self._attempts = source, 0  # it ran: a later failure starts the backoff afresh
             self._set("running", None)
             try:

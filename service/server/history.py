@@ -105,10 +105,6 @@ class History:
             row = conn.execute("SELECT * FROM windows WHERE id = ?", (window_id,)).fetchone()
         return None if row is None else _stored(row)
 
-    def count(self) -> int:
-        with self._reader() as conn:
-            return int(conn.execute("SELECT COUNT(*) FROM windows").fetchone()[0])
-
     def _reader(self) -> "closing[sqlite3.Connection]":
         """A connection of its own for one read, closed after it."""
         return closing(self._connect())

@@ -8,17 +8,17 @@ no per-window labels. Each app has a registry of its own, so tests need no globa
 from __future__ import annotations
 
 import time
-from typing import Callable, Iterator
+from typing import Callable, Iterator, get_args
 
 from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, disable_created_metrics
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric
 from prometheus_client.registry import Collector
 
-from service.analysis.results import WindowResult
+from service.analysis.results import Status, WindowResult
 from service.pipeline.runtime import PipelineStats
 from service.pipeline.supervisor import Health
 
-STATUSES = ("ok", "settled", "unresolved", "failed")
+STATUSES = get_args(Status)
 #: A running source that has sent nothing for this long (s) counts as down.
 SOURCE_SILENT_S = 2.0
 

@@ -73,9 +73,9 @@ class Publishers:
 
     def _window(self, fitted: FittedWindow) -> None:
         result = fitted.result
-        stored_at = time.time()
-        window_id = self.history.add(result, self.source(), fitted.fps, stored_at)
-        stored = StoredWindow(window_id, stored_at, self.source(), fitted.fps, result)
+        stored_at, source = time.time(), self.source()
+        window_id = self.history.add(result, source, fitted.fps, stored_at)
+        stored = StoredWindow(window_id, stored_at, source, fitted.fps, result)
         if self.zmq is not None:
             self.zmq.send(window_message(stored))
         self.hub.broadcast(window_message(stored, fitted.values))

@@ -17,6 +17,7 @@ import numpy as np
 from tqdm import tqdm
 
 from service.errors import MeniscopeError
+from service.analysis.offline import CANDIDATES
 from service.inverse.base import InverseMethod
 from service.inverse.manifest import Scores
 from service.inverse.nearest import NearestDatabase, Neighbours, recall_at_k
@@ -24,10 +25,6 @@ from service.inverse.regularised import fit_window
 from service.recordings.roi import read_roi_frames
 from service.scene import Scene
 from service.validation.truth import TruthWindow, read_truth, score, truth_windows
-
-#: Candidates per frame for the regularised fit and for recall@k (the paper's 10).
-K = 10
-
 
 @dataclass(frozen=True)
 class MethodResult:
@@ -124,25 +121,25 @@ class Evaluation:
         result.methods[name] = MethodResult(pred, score(pred, result.truth), oscillation, seconds / len(pred))
 
     def _nearest(self, result: RecordingResult, label: str, database: NearestDatabase, x: np.ndarray) -> None:
-        """Exact, approximate and regularised nearest neighbours of one database, their costs and recall@K."""
+        """Exact, approximate and regularised nearest neighbours of one database, their costs and recall@10 (:data:`CANDIDATES`)."""
         found: dict[bool, Neighbours] = {}
         seconds: dict[bool, float] = {}
         for exact in (True, False):
             started = time.perf_counter()
-            found[exact] = database.search(x, k=K, exact=exact)
+            found[exact] = database.search(x, k=CANDIDATES, exact=exact)
             seconds[exact] = time.perf_counter() - started
         for exact, name in ((True, "nearest"), (False, "nearest-approx")):
             first = found[exact].index[:, 0]
             pred = np.column_stack([database.coeffs[first], database.centre[first]])
             self._add(result, f"{name}[{label}]", pred, seconds[exact])
-        result.search[label] = {"k": K, "exact_ms_per_frame": 1e3 * seconds[True] / len(x),
+        result.search[label] = {"k": CANDIDATES, "exact_ms_per_frame": 1e3 * seconds[True] / len(x),
                                 "approximate_ms_per_frame": 1e3 * seconds[False] / len(x),
                                 "recall_at_k": recall_at_k(found[False], found[True])}
         self._regularised(result, label, database, found[True], seconds[True])
 
     def _regularised(self, result: RecordingResult, label: str, database: NearestDatabase, exact: Neighbours,
                      search_seconds: float) -> None:
-        """The regularised fit per window through its frames' K exact candidates: per frame the fitted curve's
+        """The regularised fit per window through its frames' exact candidates: per frame the fitted curve's
         D(0, t) and the coefficients of the candidate it chose; per window its frequency and decay errors."""
         pred, fps = np.empty((len(result.frames), 5)), result.fps
         fits, fit_seconds, start = [], [], 0

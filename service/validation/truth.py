@@ -18,11 +18,10 @@ TARGETS = ("d", "p", "a", "b", "centre")
 
 @dataclass(frozen=True)
 class TruthWindow:
-    """The oscillating part of one window: recording frame indices (m,), their times (m,) in s from the
-    window's ejection, true targets (m, 5) in :data:`TARGETS` order, and the window's true motion."""
+    """The oscillating part of one window: recording frame indices (m,), true targets (m, 5) in
+    :data:`TARGETS` order, and the window's true motion."""
 
     frames: np.ndarray
-    t: np.ndarray
     targets: np.ndarray
     motion: WindowTruth
 
@@ -36,12 +35,12 @@ def truth_coefficients(truth: dict) -> np.ndarray:
     """True d, p, a, b (Eq. 1) of every frame of the recording, shape (frames, 4), transients included."""
     fps = truth["recording"]["fps"]
     coeffs = np.full((truth["recording"]["frames"], 4), np.nan)
-    transient = truth["transient"]["frames"]
+    bulge_profile = Transient().profile(truth["transient"]["frames"])
     for w in truth["windows"]:
         frames = np.arange(w["start_frame"], w["end_frame"])
         coeffs[frames] = WindowTruth(**w["truth"]).coefficients((frames - w["start_frame"]) / fps).to_array()
         bulge = frames < w["oscillation_start_frame"]
-        coeffs[frames[bulge], 2] += w["bulge_mm"] * Transient().profile(transient)[frames[bulge] - w["start_frame"]]
+        coeffs[frames[bulge], 2] += w["bulge_mm"] * bulge_profile[frames[bulge] - w["start_frame"]]
     return coeffs
 
 
@@ -56,14 +55,14 @@ def truth_windows(truth: dict, scene: Scene) -> list[TruthWindow]:
     Only frames after the transient: the ejection's bulge lies outside the coefficient ranges the
     models are trained on and the databases hold.
     """
-    fps, radius = float(truth["recording"]["fps"]), scene.nozzle.radius_mm
+    radius = scene.nozzle.radius_mm
     coeffs = truth_coefficients(truth)
     windows = []
     for window in truth["windows"]:
         idx = np.arange(window["oscillation_start_frame"], window["end_frame"])  # (m,)
         c = coeffs[idx]
         targets = np.column_stack([c, centre_displacement(*c.T, radius)])
-        windows.append(TruthWindow(idx, (idx - window["start_frame"]) / fps, targets, WindowTruth(**window["truth"])))
+        windows.append(TruthWindow(idx, targets, WindowTruth(**window["truth"])))
     return windows
 
 
