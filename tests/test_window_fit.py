@@ -266,3 +266,9 @@ def test_a_pencil_pole_without_amplitude_explains_nothing_even_when_it_would_ove
     with np.errstate(all="raise"):
         e = Exponentials(np.array([1e200 + 0j, 0.5 + 0.5j]), np.array([0j, 1 + 0j]), N)
         assert e.energy()[0] == 0.0 and e.energy()[1] > 0
+
+
+def test_an_empty_window_is_failed_not_a_crash():
+    r = fit_window(np.array([]), FPS)
+    assert r.status == "failed" and r.samples == 0 and r.end_frame == r.start_frame
+    json_clean(r)

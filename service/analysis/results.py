@@ -129,8 +129,9 @@ class WindowResult(_Frozen):
 
     @model_validator(mode="after")
     def _consistent(self) -> "WindowResult":
-        if self.end_frame <= self.start_frame:
-            raise ValueError(f"end_frame {self.end_frame} must exceed start_frame {self.start_frame}")
+        if self.end_frame < self.start_frame or (self.end_frame == self.start_frame and self.status != "failed"):
+            raise ValueError(f"end_frame {self.end_frame} must exceed start_frame {self.start_frame} "
+                             "(only a failed window may be empty)")
         if self.status != "ok" and not self.reason:
             raise ValueError(f"status {self.status!r} needs a reason")
         if self.status in ("settled", "failed") and self.modes:
