@@ -10,7 +10,7 @@ import pytest
 from service.pipeline.demo import demo_recording
 from tests.servicekit import running_service, service_settings, wait_for
 
-webdriver = pytest.importorskip("selenium.webdriver")
+webdriver = pytest.importorskip("selenium.webdriver", reason="needs selenium, a dev extra (deploy/install.sh --dev)")
 
 CHROMEDRIVER = shutil.which("chromedriver")
 pytestmark = pytest.mark.skipif(CHROMEDRIVER is None or shutil.which("chromium") is None,
