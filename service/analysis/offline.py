@@ -3,8 +3,9 @@
 A recording is streamed in chunks (any length fits in memory): each chunk's ROI feeds the video
 activity (ejection detection) and the per-frame inverse method. The window-level ``regularised``
 method then replaces each window's per-frame values by the neighbour candidates its damped
-sinusoid passes through. Every window's steady D(0, t) (:mod:`service.analysis.steady`) is fitted by
-:func:`service.analysis.fit.fit_windows`.
+sinusoid passes through. With ``refine``, each window's motion is then refined on its frames through the
+renderer (:mod:`service.analysis.synthesis`), starting from the per-frame values, and replaces them. Every
+window's steady D(0, t) (:mod:`service.analysis.steady`) is fitted by :func:`service.analysis.fit.fit_windows`.
 """
 from __future__ import annotations
 
@@ -14,6 +15,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from service.analysis import synthesis
 from service.analysis.fit import fit_windows
 from service.analysis.results import FitSettings, Report, Source
 from service.analysis.segment import Window, find_ejections, frame_activity, frame_steps, series_activity, windows_between
@@ -26,7 +28,9 @@ from service.inverse.manifest import sha256_file
 from service.inverse.methods import open_method
 from service.inverse.nearest import NearestDatabase
 from service.recordings import open_recording
-from service.recordings.roi import roi_chunks
+from service.physics import centre_displacement
+from service.recordings.roi import roi_chunks, roi_frames
+from service.render.renderer import Renderer
 from service.scene import Scene
 
 #: Neighbours per frame among which the regularised fit chooses (the paper's 10).
@@ -54,9 +58,10 @@ class Analysis:
 def analyse_recording(
     path: Path, scene: Scene, method: str, models: Path, database: Path | None = None,
     ejections: Ejections = Ejections(), settings: FitSettings = FitSettings(), progress: bool = True,
-    opened: tuple[InverseMethod, NearestDatabase | None] | None = None,
+    opened: tuple[InverseMethod, NearestDatabase | None] | None = None, refine: bool = False,
 ) -> Analysis:
-    """Per-frame inversion of a recording, its windows and one fit per window.
+    """Per-frame inversion of a recording, its windows, (``refine``) each window's motion refined on its
+    frames, and one fit per window.
 
     ``opened``: the method and database :func:`open_method` returned, when analysing several
     recordings with one (they are opened here otherwise).
@@ -87,9 +92,11 @@ def analyse_recording(
     windows = windows_between(cuts, n)
     if candidates is not None:
         coefficients, centre = _regularise(db, candidates, windows, fps, settings, progress)
+    if refine:
+        coefficients, centre = _refine(path, scene, coefficients, windows, fps, settings, progress)
     steady = steady_centre(coefficients, windows, scene.nozzle.radius_mm, settings.transient_frames(fps))
     results = fit_windows(steady, fps, windows, settings, progress=progress)
-    report = Report(source=source, method=method, ejections=cuts.tolist(), windows=results, fit=settings)
+    report = Report(source=source, method=f"{method}+synthesis" if refine else method, ejections=cuts.tolist(), windows=results, fit=settings)
     return Analysis(report, InverseOutput(coefficients=coefficients, centre=centre), steady)
 
 
@@ -105,6 +112,26 @@ def _regularise(db: NearestDatabase, candidates: np.ndarray, windows: list[Windo
         fit = regularised.fit_window(db.centre[candidates[lo:w.end]], fps)
         chosen[lo:w.end] = candidates[np.arange(lo, w.end), fit.chosen]
     return db.coeffs[chosen], db.centre[chosen]
+
+
+def _refine(path: Path, scene: Scene, coefficients: np.ndarray, windows: list[Window], fps: float,
+            settings: FitSettings, progress: bool) -> tuple[np.ndarray, np.ndarray]:
+    """Per frame, the coefficients of its window's motion refined on the window's frames (after the ejection's
+    transient; windows too short for the search keep their per-frame values)."""
+    coefficients = coefficients.copy()
+    renderer = Renderer(scene)
+    skip = settings.transient_frames(fps)
+    with open_recording(path) as rec:
+        for w in tqdm(windows, desc="refine by synthesis", unit="window", disable=not progress):
+            lo = w.start + (skip if w.starts_at_ejection else 0)
+            if w.end - lo < synthesis.MIN_FRAMES:
+                continue
+            t = (np.arange(lo, w.end) - w.start) / fps
+            start = synthesis.start_motion(coefficients[lo : w.end], t, fps)
+            refined = synthesis.refine_window(renderer, roi_frames(rec, scene, lo, w.end - lo), t, start)
+            c = refined.motion.coefficients(t)
+            coefficients[lo : w.end] = np.stack([c.d, c.p, c.a, c.b], axis=1)
+    return coefficients, centre_displacement(*coefficients.T, scene.nozzle.radius_mm)
 
 
 def analyse_series(

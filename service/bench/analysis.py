@@ -50,6 +50,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--methods", default="network,direct", help=f"comma-separated, of {', '.join(METHODS)}")
     p.add_argument("--models", type=Path, default=DEFAULT_MODELS, help="model folder (default: the shipped one)")
     p.add_argument("--database", type=Path, help="render database of the nearest-neighbour methods")
+    p.add_argument("--refine", action="store_true",
+                   help="each window's motion refined on its frames through the renderer (analyze --refine)")
     p.add_argument("--out", type=Path, default=Path("bench-analysis.json"), help="JSON of the results (+ .md)")
     p.set_defaults(func=run)
 
@@ -62,9 +64,11 @@ def recordings_in(folder: Path) -> list[Path]:
     return found
 
 
-def run_method(method: str, recordings: list[Path], scene: Scene, models: Path, database: Path | None) -> dict:
+def run_method(method: str, recordings: list[Path], scene: Scene, models: Path, database: Path | None,
+               refine: bool = False) -> dict:
     """Open ``method`` once (timed), then one row per recording: noise preset, wall time, frames and
-    :func:`summary` figures; with this process's peak resident memory. Run in a fresh process per method."""
+    :func:`summary` figures; with this process's peak resident memory. Run in a fresh process per method.
+    ``refine``: each window's motion refined on its frames (:mod:`service.analysis.synthesis`)."""
     start = time.perf_counter()
     opened = open_method(method, scene, models, database)
     setup_s = time.perf_counter() - start
@@ -72,7 +76,8 @@ def run_method(method: str, recordings: list[Path], scene: Scene, models: Path, 
     for path in recordings:
         truth = read_truth(path)
         start = time.perf_counter()
-        analysis = analyse_recording(path, scene, method, models, database, progress=False, opened=opened)
+        analysis = analyse_recording(path, scene, method, models, database, progress=False, opened=opened,
+                                     refine=refine)
         seconds = time.perf_counter() - start
         rows.append({"recording": path.name, "noise": truth.get("noise"), "seconds": seconds,
                      "frames": analysis.report.source.frames, "windows_fitted": len(analysis.report.windows),
@@ -81,10 +86,11 @@ def run_method(method: str, recordings: list[Path], scene: Scene, models: Path, 
     return {"setup_s": setup_s, "peak_memory_mb": peak_mb, "rows": rows}
 
 
-def run_method_apart(method: str, recordings: list[Path], scene: Scene, models: Path, database: Path | None) -> dict:
+def run_method_apart(method: str, recordings: list[Path], scene: Scene, models: Path, database: Path | None,
+                     refine: bool = False) -> dict:
     """:func:`run_method` in a fresh process, so that its peak memory is the method's own."""
     with ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn")) as pool:
-        return pool.submit(run_method, method, recordings, scene, models, database).result()
+        return pool.submit(run_method, method, recordings, scene, models, database, refine).result()
 
 
 def aggregate(rows: list[dict]) -> dict:
@@ -123,7 +129,8 @@ def run(args: argparse.Namespace) -> int:
     scene = Scene.load(args.scene)
     results: dict = {"recordings": [p.name for p in recordings], "methods": {}, "per_recording": {}}
     for method in methods:
-        measured = run_method_apart(method, recordings, scene, args.models, args.database)
+        measured = run_method_apart(method, recordings, scene, args.models, args.database, args.refine)
+        method = f"{method}+synthesis" if args.refine else method
         rows = measured["rows"]
         by_noise = defaultdict(list)
         for r in rows:

@@ -49,9 +49,14 @@ def roi_chunks(recording: Recording, scene: Scene, chunk: int = 1024) -> Iterato
     The ROI (``camera.roi``, ``width_px`` x ``height_px``) is checked against the frame size first,
     so a recording of another camera is one clear error, not a silently wrong crop.
     """
-    cam = scene.camera
-    x, y = cam.roi
     scene.check_roi(recording.width, recording.height, recording.path)
     for start in range(0, len(recording), chunk):
-        frames = recording.read(start, min(chunk, len(recording) - start))
-        yield start, np.ascontiguousarray(frames[:, y : y + cam.height_px, x : x + cam.width_px])
+        yield start, roi_frames(recording, scene, start, min(chunk, len(recording) - start))
+
+
+def roi_frames(recording: Recording, scene: Scene, start: int, count: int) -> np.ndarray:
+    """The ROI of ``count`` frames from ``start``, (count, H, W) as stored (the ROI checked by the caller)."""
+    cam = scene.camera
+    x, y = cam.roi
+    frames = recording.read(start, count)
+    return np.ascontiguousarray(frames[:, y : y + cam.height_px, x : x + cam.width_px])

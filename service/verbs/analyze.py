@@ -41,6 +41,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--method", choices=METHODS, default="network", help="inverse method (default network, the fast one)")
     p.add_argument("--database", type=Path,
                    help="render database of the nearest-neighbour methods (default MODELS/database)")
+    p.add_argument("--refine", action="store_true",
+                   help="refine each window's motion on its frames through the renderer, starting from the method's "
+                   "per-frame values: seconds per window instead of milliseconds, far more accurate decay and amplitude")
     _common(p)
     p.set_defaults(func=run_analyze)
 
@@ -98,7 +101,8 @@ def run_analyze(args: argparse.Namespace) -> int:
     report_path, csv_path, png_path = _outputs(args.out)
     scene = Scene.load(args.scene)
     analysis = analyse_recording(args.recording, scene, args.method, args.models or DEFAULT_MODELS, args.database,
-                                 Ejections(args.ejections, args.ejection_hz), settings, progress=not args.quiet)
+                                 Ejections(args.ejections, args.ejection_hz), settings, progress=not args.quiet,
+                                 refine=args.refine)
     report = analysis.report
     report.write(report_path)
     write_per_frame(csv_path, analysis.per_frame, report.source.fps)

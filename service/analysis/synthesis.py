@@ -1,0 +1,195 @@
+"""Window inversion by synthesis: the window's Eq. 1 motion refined on its frames through the renderer.
+
+A per-frame inverse sees one frame at a time, and a frame of sparse highlights pins down only a few
+combinations of (d, p, a, b); its estimates of a and b stay noisy and shrunk towards zero, which
+biases the decay and amplitude of every window. Eq. 1 holds d and p still within a window and makes
+a and b one damped mode each: ten numbers for the window's ~185 frames. This module finds them by
+least squares on the pixels themselves,
+
+    frame_t  ~  gain * blur_sigma(render(d, p, a(t), b(t))) + offset,
+
+gain and offset solved exactly at each step (the exposure is not part of the contract) and the
+camera's blur sigma fitted with the motion. Levenberg-Marquardt (``scipy.optimize.least_squares``)
+starts from the per-frame method's estimate (d and p medians, one damped mode fitted to each of a(t)
+and b(t)). Its Jacobian costs four renders of the window, not ten: the frames depend on the motion
+only through each frame's (d, p, a, b), so d(frame)/d(coefficient) by finite differences, times
+the exact d(coefficient)/d(parameter) of Eq. 1.
+
+This is the accurate end of the speed/accuracy trade: seconds per window, where the fast path
+needs milliseconds.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+from scipy.ndimage import gaussian_filter
+from scipy.optimize import least_squares
+
+from service.analysis.fit import fit_window
+from service.analysis.results import FitSettings
+from service.physics import WindowTruth
+from service.render.renderer import Renderer
+
+#: Parameter order of the search: Eq. 1's window motion, then the camera's blur sigma (px).
+_NAMES = ("d", "p", "A1", "g1", "f1", "phi1", "A2", "g2", "f2", "phi2")
+#: Typical size of each parameter's change (mm, -, mm, 1/s, Hz, rad, ..., px): LM works in units of these.
+_SCALE = np.array([1e-3, 1e-2, 1e-3, 30.0, 5.0, 0.05, 1e-3, 60.0, 10.0, 0.1, 0.1])
+_DECAYS = np.isin(np.arange(10), (3, 7))
+#: Finite-difference steps of the per-frame coefficients (d mm, p, a mm, b mm) and of the blur (px):
+#: large enough to move a highlight across the supersampled pixel grid, small against the motion.
+_COEFFICIENT_STEP = np.array([1e-3, 1e-2, 1e-3, 1e-3])
+_BLUR_STEP = 0.05
+#: Start of the camera's blur (px): the "lab" camera preset's focus.
+_START_BLUR = 0.7
+#: Amplitude factors of the starts tried (the one whose frames fit best is refined): the shipped models'
+#: a(t) has a slope of 0.2-0.6 against the truth on unseen recordings.
+_AMPLIFY = (1.0, 2.0, 4.0)
+#: Shifts of the sag p of the starts tried (the shipped models' per-frame p is off by ~0.03-0.08 RMS).
+_SHIFT_P = (-0.03, 0.0, 0.03)
+#: l2 / l1 of scene.md: mode 2's frequency over mode 1's for an ideal membrane.
+_BESSEL_RATIO = 5.520078110286311 / 2.404825557695773
+#: Mode 1 (amplitude mm, decay 1/s, frequency Hz, phase) where neither a(t) nor b(t) shows a resolved mode.
+_TYPICAL_MODE_1 = (0.015, 500.0, 1500.0, 0.0)
+#: Frames a window needs for the search (ten parameters and the blur, with room to spare).
+MIN_FRAMES = 24
+#: Evaluations LM may spend per window (each one render of the window, each Jacobian four more).
+_EVALUATIONS = 100
+
+
+@dataclass(frozen=True)
+class Refined:
+    """A window's motion refined on its frames, and how the search went."""
+
+    motion: WindowTruth
+    blur_sigma_px: float
+    rms_start: float  # pixel residual RMS at the start, in stored pixel units
+    rms: float  # and at the end
+    evaluations: int
+    converged: bool
+
+
+def start_motion(coefficients: np.ndarray, t: np.ndarray, fps: float) -> WindowTruth:
+    """The search's start from a window's per-frame estimates (m, 4) at consecutive times ``t`` (s since the
+    window start): d and p medians, one damped mode fitted to a(t) and one to b(t) (Eq. 1 puts mode 1 in a
+    and mode 2 in b). A coefficient without a resolved mode (``ok``) starts from the other's: mode 2 at the
+    membrane's frequency ratio l2 / l1 above mode 1 (and below it for mode 1), decaying twice as fast."""
+    d, p = np.nanmedian(coefficients[:, 0]), np.nanmedian(coefficients[:, 1])
+    t0 = float(t[0])  # the fits count time from t0: back to the window start
+    found = []
+    for column in (2, 3):
+        result = fit_window(coefficients[:, column], fps, FitSettings(max_modes=1))
+        m = result.modes[0] if result.status == "ok" else None
+        found.append(None if m is None else (m.amplitude_mm * np.exp(m.decay_rate_per_s * t0), m.decay_rate_per_s,
+                                             m.frequency_hz, m.phase_rad - 2 * np.pi * m.frequency_hz * t0))
+    one, two = found
+    if one is None and two is None:
+        one = _TYPICAL_MODE_1
+    if two is None:
+        two = (0.4 * one[0], 2.0 * one[1], one[2] * _BESSEL_RATIO, 0.0)
+    if one is None:
+        one = (2.5 * two[0], 0.5 * two[1], two[2] / _BESSEL_RATIO, 0.0)
+    return _canonical(np.array([d, p, *one, *two], np.float64))
+
+
+class _Problem:
+    """Residuals and Jacobian of one window's frames, in search units x = parameters / _SCALE."""
+
+    def __init__(self, renderer: Renderer, frames: np.ndarray, t: np.ndarray) -> None:
+        self.renderer, self.t = renderer, t
+        self.y = frames.reshape(len(t), -1).astype(np.float64)
+        self.renders, self._key = 0, b""
+
+    def _render(self, coefficients: np.ndarray) -> np.ndarray:
+        """Linear renders (k m, H, W) of stacked per-frame coefficients (k m, 4)."""
+        self.renders += len(coefficients) // len(self.t)
+        return self.renderer.render(coefficients)
+
+    def residuals(self, x: np.ndarray) -> np.ndarray:
+        """Frames minus gain * blurred render + offset, gain and offset the least-squares ones; (m H W,)."""
+        params = x * _SCALE
+        coefficients = _coefficients(params, self.t)
+        if not np.all(np.isfinite(coefficients)):  # a step to absurd amplitudes: as bad as a black window, not a crash
+            return np.abs(self.y).ravel() + np.abs(self.y).max()
+        self._sharp = self._render(coefficients)
+        model = gaussian_filter(self._sharp, (0, abs(params[10]), abs(params[10]))).reshape(len(self.t), -1)
+        design = np.stack([model.ravel(), np.ones(model.size)], axis=1)
+        self._gain, offset = np.linalg.lstsq(design, self.y.ravel(), rcond=None)[0]
+        self._model, self._key = model, x.tobytes()
+        return (self._gain * model + offset - self.y).ravel()
+
+    def jacobian(self, x: np.ndarray) -> np.ndarray:
+        """d residuals / d x, shape (m H W, 11): four renders with one coefficient stepped, chained with Eq. 1."""
+        if x.tobytes() != self._key:
+            self.residuals(x)
+        params, m = x * _SCALE, len(self.t)
+        sigma = abs(params[10])
+        base = _coefficients(params, self.t)
+        stepped = np.concatenate([base + np.eye(4)[j] * _COEFFICIENT_STEP[j] for j in range(4)])
+        models = gaussian_filter(self._render(stepped).reshape(4, m, *self.renderer.shape), (0, 0, sigma, sigma))
+        per_coefficient = (models.reshape(4, m, -1) - self._model) * (self._gain / _COEFFICIENT_STEP[:, None, None])
+        chain = _coefficient_derivatives(params, self.t)  # (m, 10, 4)
+        motion = np.einsum("jmp,mkj->mpk", per_coefficient, chain).reshape(-1, 10)
+        blurred = gaussian_filter(self._sharp, (0, sigma + _BLUR_STEP, sigma + _BLUR_STEP)).reshape(m, -1)
+        blur = (self._gain * (blurred - self._model) / _BLUR_STEP).reshape(-1, 1)
+        return np.hstack([motion, blur]) * _SCALE
+
+
+def _coefficients(params: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Per-frame (d, p, a, b), shape (m, 4), of the motion in ``params[:10]`` at ``t`` (s); the search's decay
+    parameters stand for their absolute values (a decay rate is >= 0 without bounds on the search)."""
+    c = WindowTruth(*np.where(_DECAYS, np.abs(params[:10]), params[:10])).coefficients(t)
+    return np.stack([c.d, c.p, c.a, c.b], axis=1)
+
+
+def _coefficient_derivatives(params: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """d(d, p, a, b)(t) / d(motion parameters): shape (m, 10, 4), exact."""
+    out = np.zeros((t.size, 10, 4))
+    out[:, 0, 0] = out[:, 1, 1] = 1.0
+    for first, column in ((2, 2), (6, 3)):
+        amplitude, decay, frequency, phase = params[first : first + 4]
+        envelope = np.exp(-abs(decay) * t)
+        angle = 2 * np.pi * frequency * t + phase
+        cos, sin = envelope * np.cos(angle), envelope * np.sin(angle)
+        out[:, first, column] = cos
+        out[:, first + 1, column] = -t * amplitude * cos * np.sign(decay)
+        out[:, first + 2, column] = -2 * np.pi * t * amplitude * sin
+        out[:, first + 3, column] = -amplitude * sin
+    return out
+
+
+def _canonical(params: np.ndarray) -> WindowTruth:
+    """Positive amplitudes and frequencies (a sign moves into the phase), phases in [0, 2 pi)."""
+    p = params[:10].copy()
+    for first in (2, 6):
+        amplitude, decay, frequency, phase = p[first : first + 4]
+        decay = abs(decay)
+        if frequency < 0:
+            frequency, phase = -frequency, -phase
+        if amplitude < 0:
+            amplitude, phase = -amplitude, phase + np.pi
+        p[first : first + 4] = amplitude, decay, frequency, np.mod(phase, 2 * np.pi)
+    return WindowTruth(*map(float, p))
+
+
+def _variants(start: WindowTruth) -> list[WindowTruth]:
+    """``start`` with both mode amplitudes times each of :data:`_AMPLIFY`, mode 1 as it is and turned over (phase
+    + pi), p moved by each of :data:`_SHIFT_P`: per-frame estimates of a and b shrink towards 0 (a regressor given an ambiguous image returns the
+    mean of its possible shapes), a bulge and a dip of the same size can look alike from below, and the
+    sag p trades against mode 1 near the centre (both curve it)."""
+    return [replace(start, p=start.p + sag, A1=start.A1 * k, A2=start.A2 * k, phi1=start.phi1 + turn)
+            for k in _AMPLIFY for turn in (0.0, np.pi) for sag in _SHIFT_P]
+
+
+def refine_window(renderer: Renderer, frames: np.ndarray, t: np.ndarray, start: WindowTruth) -> Refined:
+    """Refine ``start`` on a window's ROI frames (m, H, W) at times ``t`` (m,) s since the window start: LM from
+    whichever of :func:`_variants` of ``start`` fits the frames best (one render each)."""
+    problem = _Problem(renderer, frames, np.asarray(t, np.float64))
+    starts = [np.array([*start.as_dict().values(), _START_BLUR]) / _SCALE for start in _variants(start)]
+    costs = [float(np.mean(problem.residuals(x) ** 2)) for x in starts]
+    x0, rms_start = starts[int(np.argmin(costs))], float(np.sqrt(min(costs)))
+    found = least_squares(problem.residuals, x0, jac=problem.jacobian, method="lm", xtol=1e-6, ftol=1e-8,
+                          max_nfev=_EVALUATIONS)
+    params = found.x * _SCALE
+    return Refined(_canonical(params), abs(float(params[10])), rms_start, float(np.sqrt(np.mean(found.fun**2))),
+                   problem.renders, bool(found.status > 0))
