@@ -92,6 +92,11 @@ class ServiceSettings(BaseSettings):
         return self
 
     @property
+    def source_name(self) -> str:
+        """What published windows name their source by: ``source`` as set, or "demo"."""
+        return self.source or "demo"
+
+    @property
     def recordings_folder(self) -> Path:
         return (self.recordings_dir or self.data_dir / "recordings").expanduser().resolve()
 

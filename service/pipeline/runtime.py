@@ -38,10 +38,13 @@ DROP_REPORT_S = 10.0
 
 @dataclass(frozen=True)
 class FittedWindow:
-    """A window's result with its samples (mm, NaN where missing) and when (monotonic s) the frame that
-    closed it was read, the window went to the fit workers and its fit came back: where latency goes."""
+    """A window's result with its samples (mm, NaN where missing), the name of the source its frames came
+    from (:attr:`ServiceSettings.source_name`: a fit may come back after the settings changed), and when
+    (monotonic s) the frame that closed it was read, the window went to the fit workers and its fit came
+    back: where latency goes."""
 
     result: WindowResult
+    source: str
     values: np.ndarray
     fps: float
     closed_at: float
@@ -250,8 +253,8 @@ class Pipeline:
                 self.stats.windows_skipped += 1
 
     def _fitted(self, dispatched_at: float, closed: ClosedWindow, result: WindowResult) -> None:
-        self.sink.on_window(FittedWindow(result, closed.values, self._fps, closed.closed_at, dispatched_at,
-                                         time.monotonic()))
+        self.sink.on_window(FittedWindow(result, self.settings.source_name, closed.values, self._fps,
+                                         closed.closed_at, dispatched_at, time.monotonic()))
 
     def _update_trace(self, indices: np.ndarray, centre: np.ndarray) -> None:
         """Keep the last ``trace_frames`` samples; send them ``trace_hz`` times a second."""
