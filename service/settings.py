@@ -11,6 +11,7 @@ import ipaddress
 import json
 import os
 import tomllib
+from collections.abc import Mapping
 from contextvars import ContextVar
 from pathlib import Path
 from typing import Annotated, Any, Literal
@@ -26,8 +27,9 @@ from service.errors import MeniscopeError
 Method = Literal["network", "direct", "nearest", "nearest-approx"]
 Positive = Annotated[float, Field(gt=0, allow_inf_nan=False)]
 
-#: The config file being read by :func:`load_settings` (pydantic-settings builds sources per class).
-_CONFIG_FILE: ContextVar[Path | None] = ContextVar("meniscope_config_file", default=None)
+#: The layers :func:`load_settings` puts below the environment, strongest first: the config file's table,
+#: then fallbacks (pydantic-settings builds its sources per class, so they are handed over here).
+_LAYERS: ContextVar[tuple[dict[str, Any], ...]] = ContextVar("meniscope_settings_layers", default=())
 
 
 def default_data_dir() -> Path:
@@ -81,15 +83,23 @@ class ServiceSettings(BaseSettings):
         env_settings: PydanticBaseSettingsSource, dotenv_settings: PydanticBaseSettingsSource,
         file_secret_settings: PydanticBaseSettingsSource,
     ) -> tuple[PydanticBaseSettingsSource, ...]:
-        return init_settings, env_settings, _FileSource(settings_cls)
+        return init_settings, env_settings, *(_Table(settings_cls, data) for data in _LAYERS.get())
 
     @model_validator(mode="after")
     def _checked(self) -> "ServiceSettings":
         if self.method.startswith("nearest") and self.nearest_database is None:
             raise ValueError(f"method {self.method!r} needs nearest_database (a `meniscope dataset` folder)")
         if self.source is not None:
-            resolve_source(self.source, self.recordings_folder)
+            try:
+                resolve_source(self.source, self.recordings_folder)
+            except MeniscopeError as exc:  # a validation error like any other: one line naming the setting
+                raise ValueError(f"source: {exc}") from None
         return self
+
+    @property
+    def source_name(self) -> str:
+        """What published windows name their source by: ``source`` as set, or "demo"."""
+        return self.source or "demo"
 
     @property
     def recordings_folder(self) -> Path:
@@ -112,13 +122,12 @@ class ServiceSettings(BaseSettings):
         return data
 
 
-class _FileSource(PydanticBaseSettingsSource):
-    """The keys of the config file :func:`load_settings` was given (TOML, or JSON by extension)."""
+class _Table(PydanticBaseSettingsSource):
+    """One layer of settings given as a table (a config file's, or fallbacks)."""
 
-    def __init__(self, settings_cls: type[BaseSettings]) -> None:
+    def __init__(self, settings_cls: type[BaseSettings], data: dict[str, Any]) -> None:
         super().__init__(settings_cls)
-        path = _CONFIG_FILE.get()
-        self._data = read_config(path) if path is not None else {}
+        self._data = data
 
     def get_field_value(self, field: Any, field_name: str) -> tuple[Any, str, bool]:
         return self._data.get(field_name), field_name, False
@@ -141,15 +150,23 @@ def read_config(path: Path) -> dict[str, Any]:
     return data
 
 
-def load_settings(config: Path | None = None, **overrides: Any) -> ServiceSettings:
-    """Settings from defaults, ``config``, the environment and ``overrides`` (None values ignored)."""
-    token = _CONFIG_FILE.set(config)
+def load_settings(config: Path | None = None, fallbacks: Mapping[str, Any] | None = None,
+                  **overrides: Any) -> ServiceSettings:
+    """Settings from defaults, ``fallbacks``, ``config``, the environment and ``overrides`` (later ones
+    winning; None values ignored), validated once, so that an override mends a bad value beneath it.
+
+    ``fallbacks`` hold only where no config file, environment variable or override sets the key
+    (``meniscope serve --source REC`` makes REC's folder the recordings folder unless one is set).
+    """
+    layers = (read_config(config) if config is not None else {},
+              {k: v for k, v in (fallbacks or {}).items() if v is not None})
+    token = _LAYERS.set(layers)
     try:
         return ServiceSettings(**{k: v for k, v in overrides.items() if v is not None})
     except ValidationError as exc:
         raise settings_error(exc, config) from None
     finally:
-        _CONFIG_FILE.reset(token)
+        _LAYERS.reset(token)
 
 
 def settings_error(exc: ValidationError, where: Path | str | None = None) -> MeniscopeError:

@@ -87,3 +87,11 @@ def test_what_cannot_be_quantised_is_refused_in_one_line(int8: Path, scene: Scen
     assert done.returncode == 2 and done.stderr.count("\n") == 1 and "none" in done.stderr
     done = meniscope("quantize", "--models", DEFAULT_MODELS, "--out", tmp_path / "q", "--calibration", "1")
     assert done.returncode == 2 and "--calibration" in done.stderr
+
+
+def test_quantising_needs_no_torch() -> None:
+    """`meniscope quantize` works on ONNX graphs (onnxruntime.quantization): loading it imports no torch."""
+    check = "import sys, training.quantize; assert 'torch' not in sys.modules, 'training.quantize imported torch'"
+    done = subprocess.run([sys.executable, "-c", check], cwd=Path(__file__).resolve().parents[1], capture_output=True,
+                          text=True, timeout=120)
+    assert done.returncode == 0, done.stderr

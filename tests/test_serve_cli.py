@@ -9,6 +9,11 @@ import sys
 import time
 from pathlib import Path
 
+import pytest
+
+from service.cli import build_parser
+from service.pipeline.demo import DEMO_AVI
+from service.verbs.serve import serve_settings
 from tests.servicekit import request, wait_for
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -53,10 +58,27 @@ def _answers(url: str) -> bool:
         return False  # not listening yet
 
 
-def test_bad_settings_are_one_error_line_and_exit_status_2(tmp_path: Path) -> None:
-    (tmp_path / "serve.toml").write_text("batch = 0\n")
+@pytest.mark.parametrize("setting, problem", [
+    ("batch = 0", "batch: Input should be greater than or equal to 1"),
+    ('source = "../outside.cine"', "source: ../outside.cine: file sources must lie in the recordings folder "
+                                   "{recordings} (setting recordings_dir, MENISCOPE_RECORDINGS_DIR)"),
+])
+def test_bad_settings_are_one_error_line_naming_the_file_and_exit_status_2(tmp_path: Path, setting: str,
+                                                                           problem: str) -> None:
+    (tmp_path / "serve.toml").write_text(setting + "\n")
     proc = serve(tmp_path, "--config", "serve.toml")
     _, err = proc.communicate(timeout=60)
     assert proc.returncode == 2
-    assert err.strip().splitlines()[-1] == ("meniscope serve: error: serve.toml: batch: Input should be greater "
-                                            "than or equal to 1")
+    recordings = tmp_path / "cache" / "meniscope" / "recordings"
+    assert err.strip().splitlines()[-1] == f"meniscope serve: error: serve.toml: {problem.format(recordings=recordings)}"
+
+
+def test_a_source_option_overrides_a_bad_source_in_the_config(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    for name in [n for n in os.environ if n.startswith("MENISCOPE_")]:
+        monkeypatch.delenv(name)
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    (tmp_path / "serve.toml").write_text('source = "../outside.cine"\n')
+    args = build_parser().parse_args(["serve", "--config", str(tmp_path / "serve.toml"), "--source", str(DEMO_AVI)])
+    settings = serve_settings(args)
+    assert settings.source == str(DEMO_AVI)
+    assert settings.recordings_folder == DEMO_AVI.parent.resolve()  # a recording named at the console: its folder

@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 
 from service.errors import MeniscopeError
-from service.settings import ServiceSettings, load_settings, resolve_source
+from service.settings import load_settings, resolve_source
 
 
 @pytest.fixture(autouse=True)
@@ -67,4 +67,26 @@ def test_no_file_source_can_leave_the_recordings_folder(tmp_path: Path, source: 
     with pytest.raises(MeniscopeError, match="recordings folder"):
         resolve_source(source, folder)
     with pytest.raises(MeniscopeError, match="recordings folder"):
-        ServiceSettings(source=source, recordings_dir=folder)
+        load_settings(source=source, recordings_dir=folder)
+
+
+def test_settings_are_validated_once_so_an_option_mends_a_bad_value_of_the_config(tmp_path: Path) -> None:
+    config = tmp_path / "serve.toml"
+    config.write_text('source = "../outside.cine"\nport = 9000\n')
+    (tmp_path / "recordings").mkdir()
+    s = load_settings(config, recordings_dir=tmp_path / "recordings", source="rec.cine")
+    assert (s.source, s.port) == ("rec.cine", 9000)
+    with pytest.raises(MeniscopeError) as err:
+        load_settings(config, recordings_dir=tmp_path / "recordings")
+    assert str(err.value) == (f"{config}: source: ../outside.cine: file sources must lie in the recordings folder "
+                              f"{tmp_path / 'recordings'} (setting recordings_dir, MENISCOPE_RECORDINGS_DIR)")
+
+
+def test_fallbacks_hold_only_where_no_file_environment_or_option_sets_the_key(tmp_path: Path,
+                                                                             monkeypatch: pytest.MonkeyPatch) -> None:
+    config = tmp_path / "serve.toml"
+    config.write_text("port = 9000\n")
+    fallbacks = {"port": 1234, "threads": 3, "batch": 7, "host": "0.0.0.0"}
+    monkeypatch.setenv("MENISCOPE_BATCH", "64")
+    s = load_settings(config, fallbacks, host="127.0.0.2")
+    assert (s.port, s.threads, s.batch, s.host) == (9000, 3, 64, "127.0.0.2")

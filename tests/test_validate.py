@@ -11,7 +11,9 @@ import pytest
 
 from service.camera_effects import noise_preset
 from service.cli import main
+from service.errors import MeniscopeError
 from service.inverse.manifest import load_manifest
+from service.inverse.methods import open_method
 from service.inverse.nearest import NearestDatabase, NearestMethod
 from service.inverse.network import NetworkMethod
 from service.recordings.roi import read_roi_frames
@@ -132,6 +134,24 @@ def test_bad_input_is_one_line_naming_the_file(inputs: tuple[Path, list[Path]], 
         assert main(["validate", "--models", str(MODELS), "--out", str(tmp_path / "out"), *argv]) == 2
         err = capsys.readouterr().err
         assert message in err and err.count("\n") == 1
+
+
+def test_a_database_of_another_roi_size_is_refused_as_the_service_refuses_it(
+        inputs: tuple[Path, list[Path]], scene: Scene, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    rec, _ = inputs
+    other = tmp_path / "48px"
+    other.mkdir()
+    rng = np.random.default_rng(0)
+    np.save(other / "frames.npy", rng.integers(0, 256, (16, 48, 48), dtype=np.uint8))  # renders of a 48 x 48 ROI
+    np.save(other / "coeffs.npy", rng.normal(size=(16, 4)))
+    np.save(other / "centre.npy", rng.normal(size=16))
+    with pytest.raises(MeniscopeError) as refused:
+        open_method("nearest", scene, MODELS, other)
+    assert "renders of 48x48 px do not match the scene's ROI 96x96" in str(refused.value)
+    argv = ["validate", "--models", str(MODELS), "--out", str(tmp_path / "out"), "--recording", str(rec),
+            "--database", str(other)]
+    assert main(argv) == 2
+    assert capsys.readouterr().err == f"meniscope validate: error: {refused.value}\n"
 
 
 def test_the_database_verb_writes_a_searchable_database(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:

@@ -20,12 +20,12 @@ from pathlib import Path
 
 import numpy as np
 import onnx
-import onnxruntime as ort
 import torch
 from onnx import TensorProto, helper
 from torch import nn
 
 from service.inverse.manifest import INPUT, OUTPUTS
+from service.inverse.network import onnx_outputs
 
 OPSET = 17
 #: Stored pixel types a graph can take, as numpy names.
@@ -73,13 +73,6 @@ def _cast_input(proto: onnx.ModelProto, elem_type: int) -> None:
     inp.name = INPUT
     inp.type.tensor_type.elem_type = elem_type
     graph.node.insert(0, helper.make_node("Cast", [INPUT], [_FLOAT_INPUT], to=TensorProto.FLOAT, name="cast_frames"))
-
-
-def onnx_outputs(path: Path, frames: np.ndarray, outputs: tuple[str, ...] = tuple(OUTPUTS)) -> list[np.ndarray]:
-    """The named outputs of an exported graph (by default coefficients (N, 4) and centre (N,)), run by
-    onnxruntime's CPU provider."""
-    session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
-    return session.run(list(outputs), {INPUT: frames})
 
 
 def parity(model: nn.Module, path: Path, frames: np.ndarray, outputs: tuple[str, ...] = tuple(OUTPUTS)) -> float:

@@ -26,13 +26,13 @@ from onnxruntime.quantization import (
 
 from service.errors import MeniscopeError
 from service.inverse.manifest import (
-    INPUT, MANIFEST, Manifest, MethodEntry, Parity, Quantisation, load_manifest, sha256_file, write_manifest,
+    INPUT, MANIFEST, Manifest, MethodEntry, Parity, Quantisation, load_manifest, prepare_model_folder, sha256_file,
+    write_manifest,
 )
+from service.inverse.network import onnx_outputs
 from service.scene import Scene
 from service.validation.truth import TARGETS, score
 from training.dataset import DatasetConfig, generate_chunk
-from training.export import onnx_outputs
-from training.train import prepare_out
 
 MODES = ("static", "dynamic")
 #: Seeds of the calibration and parity renders: apart from the training renders (0) and the database (1).
@@ -114,7 +114,7 @@ def quantize_models(models: Path, out: Path, scene: Scene, mode: str = "static",
         raise MeniscopeError(models, "is already int8 (`meniscope quantize` made it): quantise its float source")
     if Path(out).resolve() == Path(models).resolve():
         raise MeniscopeError(out, "must differ from --models: the float folder is kept")
-    prepare_out(out)
+    prepare_model_folder(out)
     input_dtype = np.dtype(source.input.dtype)
     bit_depth = source.training.dataset.get("bit_depth", 8)
     calibration = renders(scene, calibration_frames, CALIBRATION_SEED, bit_depth)[0].astype(input_dtype)

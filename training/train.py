@@ -9,7 +9,6 @@ Inputs are normalised once by the same ``Normalise`` module the exported graphs 
 """
 from __future__ import annotations
 
-import json
 import math
 import tempfile
 import time
@@ -26,7 +25,7 @@ from tqdm import tqdm
 
 from service.errors import MeniscopeError
 from service.inverse.manifest import (
-    AUTOENCODER_OUTPUTS, MANIFEST, InputSpec, Manifest, MethodEntry, TrainingSummary, load_manifest,
+    AUTOENCODER_OUTPUTS, InputSpec, Manifest, MethodEntry, TrainingSummary, load_manifest, prepare_model_folder,
     write_manifest,
 )
 from service.plotting import pyplot
@@ -267,20 +266,6 @@ def _open_or_render(scene: Scene, folder: Path | None, scratch: Path, config: Tr
     return open_dataset(target, scene)
 
 
-def prepare_out(out: Path) -> None:
-    """Make ``out`` ready to receive models: new, empty, or a model folder whose listed files are replaced."""
-    old = out / MANIFEST
-    if out.exists() and not out.is_dir():
-        raise MeniscopeError(out, "exists and is a file, not a model folder")
-    if out.is_dir() and any(out.iterdir()):
-        if not old.is_file():
-            raise MeniscopeError(out, "exists and is neither empty nor a model folder: choose a new one")
-        for name in json.loads(old.read_text()).get("files", {}):
-            (out / name).unlink(missing_ok=True)
-        old.unlink()
-    out.mkdir(parents=True, exist_ok=True)
-
-
 def _predict(model: nn.Module, frames: np.ndarray) -> np.ndarray:
     """Targets (N, 5) of stored frames (N, H, W), through a whole inverse network in torch."""
     return in_chunks(lambda f: torch.column_stack(model(f)), frames).numpy()
@@ -299,7 +284,7 @@ def train_models(
     started = time.perf_counter()
     if holdout_video is not None and holdout_video.resolve() == lab_video.resolve():
         raise MeniscopeError(holdout_video, "the hold-out recording must differ from the lab video the VAE learns")
-    prepare_out(out)
+    prepare_model_folder(out)
     generator = seed_everything(config.seed, config.threads)
     height, width = scene.camera.height_px, scene.camera.width_px
     normalise = Normalise(downsample_factor(scene, config.net.input_px))

@@ -77,7 +77,7 @@ def measure(settings: ServiceSettings, seconds: float) -> dict:
         history = History(Path(tmp) / "history.sqlite", 1.0, 1_000_000)
         zmq = ZmqPublisher("tcp://127.0.0.1:*")
         metrics = Metrics(stats, lambda: supervisor.health(), lambda: (0, 0))  # type: ignore[union-attr]
-        publishers = Timed(history, metrics, zmq, lambda: "bench", Hub(loop, 1)).start()
+        publishers = Timed(history, metrics, zmq, Hub(loop, 1)).start()
         supervisor = Supervisor(settings, publishers, stats).start()
         try:
             deadline = time.monotonic() + 120

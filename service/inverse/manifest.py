@@ -157,6 +157,21 @@ def write_manifest(model_dir: Path, manifest: Manifest) -> Path:
     return path
 
 
+def prepare_model_folder(out: Path) -> None:
+    """Make ``out`` ready to receive models (``meniscope train``, ``meniscope quantize``): new, empty, or a model
+    folder whose listed files are replaced; anything else is refused, so no other folder is overwritten."""
+    old = out / MANIFEST
+    if out.exists() and not out.is_dir():
+        raise MeniscopeError(out, "exists and is a file, not a model folder")
+    if out.is_dir() and any(out.iterdir()):
+        if not old.is_file():
+            raise MeniscopeError(out, "exists and is neither empty nor a model folder: choose a new one")
+        for name in json.loads(old.read_text()).get("files", {}):
+            (out / name).unlink(missing_ok=True)
+        old.unlink()
+    out.mkdir(parents=True, exist_ok=True)
+
+
 def load_manifest(model_dir: str | Path, scene: Scene) -> Manifest:
     """Read and check a model folder's manifest; every problem is one :class:`MeniscopeError` line.
 

@@ -43,8 +43,14 @@ def open_method(name: str, scene: Scene, models: Path, database: Path | None = N
         raise MeniscopeError("--method", f"unknown method {name!r}; choose one of {', '.join(METHODS)}")
     if name not in DATABASE_METHODS:
         return NetworkMethod(models, scene, name, threads=threads, batch=batch), None
-    db = NearestDatabase.load(database_folder(models, database))
-    if db.shape != (scene.camera.height_px, scene.camera.width_px):
-        raise MeniscopeError(database_folder(models, database), f"renders of {db.shape[1]}x{db.shape[0]} px do "
-                             f"not match the scene's ROI {scene.camera.width_px}x{scene.camera.height_px}")
+    db = open_database(database_folder(models, database), scene)
     return NearestMethod(db, exact=name != "nearest-approx"), db
+
+
+def open_database(folder: Path, scene: Scene) -> NearestDatabase:
+    """The render database in ``folder``, refused unless its renders are the scene's ROI (the frames searched)."""
+    db = NearestDatabase.load(folder)
+    if db.shape != (scene.camera.height_px, scene.camera.width_px):
+        raise MeniscopeError(folder, f"renders of {db.shape[1]}x{db.shape[0]} px do not match the scene's ROI "
+                                     f"{scene.camera.width_px}x{scene.camera.height_px}")
+    return db

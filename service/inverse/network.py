@@ -41,6 +41,13 @@ def session_options(threads: int, optimisation: str = "all") -> ort.SessionOptio
     return options
 
 
+def onnx_outputs(path: Path, frames: np.ndarray, outputs: tuple[str, ...] = tuple(OUTPUTS)) -> list[np.ndarray]:
+    """The named outputs of an exported graph (by default coefficients (N, 4) and centre (N,)), run by
+    onnxruntime's CPU provider: what training and quantising compare their graphs by."""
+    session = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    return session.run(list(outputs), {INPUT: frames})
+
+
 class NetworkMethod(InverseMethod):
     """An ONNX inverse method of a model folder made by ``meniscope train`` for this scene.
 

@@ -1,10 +1,12 @@
 """The live pipeline: source -> bounded queue -> batched inference -> activity and segmentation -> fits.
 
-Two threads and a process pool. The acquisition thread only reads the source and offers each batch to
-a queue of ``queue_batches`` reads; when the queue is full the batch is dropped and counted, so a
-camera is never made to wait and memory never grows. The inference thread takes everything queued
-(up to ``batch`` frames) in one ONNX call, scores frame activity, cuts windows at ejections and hands
-closed windows to the :class:`FitPool`. Results, the live trace and timings go to a :class:`PipelineSink`.
+Two threads and a process pool. The acquisition thread only reads the source, cuts each batch down to
+the scene's region of interest at once (a sensor larger than the ROI costs no queue memory or copies
+beyond it) and offers it to a queue of ``queue_batches`` reads; when the queue is full the batch is
+dropped and counted, so a camera is never made to wait and memory never grows. The inference thread
+takes everything queued (up to ``batch`` frames) in one ONNX call, scores frame activity, cuts windows
+at ejections and hands closed windows to the :class:`FitPool`. Results, the live trace and timings go
+to a :class:`PipelineSink`.
 """
 from __future__ import annotations
 
@@ -38,10 +40,13 @@ DROP_REPORT_S = 10.0
 
 @dataclass(frozen=True)
 class FittedWindow:
-    """A window's result with its samples (mm, NaN where missing) and when (monotonic s) the frame that
-    closed it was read, the window went to the fit workers and its fit came back: where latency goes."""
+    """A window's result with its samples (mm, NaN where missing), the name of the source its frames came
+    from (:attr:`ServiceSettings.source_name`: a fit may come back after the settings changed), and when
+    (monotonic s) the frame that closed it was read, the window went to the fit workers and its fit came
+    back: where latency goes."""
 
     result: WindowResult
+    source: str
     values: np.ndarray
     fps: float
     closed_at: float
@@ -130,8 +135,9 @@ class Pipeline:
         scene.check_roi(source.width, source.height, source.uri)
         self.settings, self.source, self.method, self.fits = settings, source, method, fits
         self.sink, self.stats = sink, stats
-        x, y = scene.camera.roi
-        self._roi = (slice(None), slice(y, y + scene.camera.height_px), slice(x, x + scene.camera.width_px))
+        (x, y), h, w = scene.camera.roi, scene.camera.height_px, scene.camera.width_px
+        self._roi = (slice(None), slice(y, y + h), slice(x, x + w))
+        self._roi_is_frame = (source.height, source.width) == (h, w)
         fps = source.fps
         self.segmenter = segmenter_for(settings, fps)
         self.activity = ActivityTracker()
@@ -162,7 +168,7 @@ class Pipeline:
         return ended
 
     def _acquire(self, stop: threading.Event, done: threading.Event) -> None:
-        """Read the source and offer every batch to the queue; a full queue drops the batch."""
+        """Read the source and offer every batch's ROI to the queue; a full queue drops the batch."""
         meter, stats = RateMeter(), self.stats
         lost = self.source.stats
         try:
@@ -174,6 +180,7 @@ class Pipeline:
                 stats.fps_in = meter.add(len(batch), now)
                 if not len(batch):
                     continue
+                batch = self._roi_of(batch)
                 stats.frames_acquired += len(batch)
                 stats.last_frame_at = now
                 seen = self.source.stats
@@ -190,6 +197,13 @@ class Pipeline:
             self._error = MeniscopeError(self.source.uri, f"the source failed: {type(exc).__name__}: {exc}")
         finally:
             self._acquired.set()
+
+    def _roi_of(self, batch: FrameBatch) -> FrameBatch:
+        """The batch's ROI, copied out so that the whole sensor frames are freed at once; a batch whose frames
+        are the ROI passes as it is."""
+        if self._roi_is_frame:
+            return batch
+        return FrameBatch(batch.pixels[self._roi].copy(), batch.indices, batch.timestamps)
 
     def _infer(self, stop: threading.Event) -> bool:
         """The inference loop; True when the stream ended (everything read was processed)."""
@@ -227,8 +241,9 @@ class Pipeline:
         self._reported = (now, s.frames_dropped, s.windows_skipped)
 
     def _process(self, batch: FrameBatch, arrival: np.ndarray) -> None:
-        """Infer one batch, cut windows and hand them to the fits; update the trace and the latest frame."""
-        pixels = batch.pixels[self._roi]
+        """Infer one batch of ROI frames, cut windows and hand them to the fits; update the trace and the latest
+        frame."""
+        pixels = batch.pixels
         t0 = time.perf_counter()
         out = self.method.infer(pixels)
         self.sink.on_inference(time.perf_counter() - t0, len(batch))
@@ -250,8 +265,8 @@ class Pipeline:
                 self.stats.windows_skipped += 1
 
     def _fitted(self, dispatched_at: float, closed: ClosedWindow, result: WindowResult) -> None:
-        self.sink.on_window(FittedWindow(result, closed.values, self._fps, closed.closed_at, dispatched_at,
-                                         time.monotonic()))
+        self.sink.on_window(FittedWindow(result, self.settings.source_name, closed.values, self._fps,
+                                         closed.closed_at, dispatched_at, time.monotonic()))
 
     def _update_trace(self, indices: np.ndarray, centre: np.ndarray) -> None:
         """Keep the last ``trace_frames`` samples; send them ``trace_hz`` times a second."""

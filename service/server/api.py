@@ -113,8 +113,6 @@ def put_config(change: ConfigChange, service: Svc) -> dict[str, Any]:
         settings = ServiceSettings(**{**dict(current), **updates})
     except ValidationError as exc:
         raise HTTPException(422, str(settings_error(exc, "config"))) from None
-    except MeniscopeError as exc:
-        raise HTTPException(422, str(exc)) from None
     service.reconfigure(settings)
     return settings.public()
 

@@ -39,9 +39,6 @@ class Service:
     zmq: ZmqPublisher | None = None
     views: FrameViews | None = None
 
-    def source_name(self) -> str:
-        return self.settings.source or "demo"
-
     def websocket_counts(self) -> tuple[int, int]:
         return (self.hub.clients, self.hub.skipped) if self.hub is not None else (0, 0)
 
@@ -62,7 +59,7 @@ class Service:
         self.zmq = ZmqPublisher(s.zmq_publish) if s.zmq_publish else None
         self.hub = Hub(loop, s.client_queue)
         self.metrics = Metrics(self.stats, self.health, self.websocket_counts)
-        self.publishers = Publishers(self.history, self.metrics, self.zmq, self.source_name, self.hub).start()
+        self.publishers = Publishers(self.history, self.metrics, self.zmq, self.hub).start()
         self.supervisor = Supervisor(s, self.publishers, self.stats).start()
 
     def stop(self) -> None:

@@ -10,8 +10,6 @@ import logging
 import queue
 import threading
 import time
-from typing import Callable
-
 from service.pipeline.runtime import FittedWindow, TraceSnippet
 from service.server.history import History, StoredWindow
 from service.server.hub import Hub
@@ -26,11 +24,10 @@ QUEUE_ITEMS = 1024
 
 
 class Publishers:
-    """Publishes what the pipeline makes; ``source`` names the stream now running (stored with each window)."""
+    """Publishes what the pipeline makes; each window under the name of the source its frames came from."""
 
-    def __init__(self, history: History, metrics: Metrics, zmq: ZmqPublisher | None, source: Callable[[], str],
-                 hub: Hub) -> None:
-        self.history, self.metrics, self.zmq, self.source, self.hub = history, metrics, zmq, source, hub
+    def __init__(self, history: History, metrics: Metrics, zmq: ZmqPublisher | None, hub: Hub) -> None:
+        self.history, self.metrics, self.zmq, self.hub = history, metrics, zmq, hub
         self.dropped = 0
         self._queue: queue.Queue[FittedWindow | TraceSnippet | None] = queue.Queue(QUEUE_ITEMS)
         self._thread = threading.Thread(target=self._run, name="meniscope-publish", daemon=True)
@@ -72,10 +69,9 @@ class Publishers:
                 log.exception("publishing failed")
 
     def _window(self, fitted: FittedWindow) -> None:
-        result = fitted.result
-        stored_at, source = time.time(), self.source()
-        window_id = self.history.add(result, source, fitted.fps, stored_at)
-        stored = StoredWindow(window_id, stored_at, source, fitted.fps, result)
+        result, stored_at = fitted.result, time.time()
+        window_id = self.history.add(result, fitted.source, fitted.fps, stored_at)
+        stored = StoredWindow(window_id, stored_at, fitted.source, fitted.fps, result)
         if self.zmq is not None:
             self.zmq.send(window_message(stored))
         self.hub.broadcast(window_message(stored, fitted.values))

@@ -19,9 +19,9 @@ from tqdm import tqdm
 
 from service.errors import MeniscopeError
 from service.inverse.manifest import AUTOENCODER_OUTPUTS, INPUT, Manifest, load_manifest, write_manifest
-from service.inverse.nearest import NearestDatabase
+from service.inverse.methods import open_database
 from service.inverse.network import NetworkMethod, session_options
-from service.recordings import open_recording
+from service.recordings.roi import read_roi_frames
 from service.render import Renderer
 from service.scene import Scene
 from service.validation.evaluate import Evaluation, RecordingResult
@@ -34,12 +34,7 @@ SHOWN_FRAMES = 8
 
 def lab_frames(path: Path, scene: Scene, count: int = SHOWN_FRAMES) -> np.ndarray:
     """``count`` ROI frames (count, H, W) as stored, evenly spaced over a recording."""
-    cam = scene.camera
-    x, y = cam.roi
-    with open_recording(path) as rec:
-        scene.check_roi(rec.width, rec.height, path)
-        picks = np.linspace(0, len(rec) - 1, count).round().astype(int)
-        return np.stack([rec.read(int(i), 1)[0, y: y + cam.height_px, x: x + cam.width_px] for i in picks])
+    return read_roi_frames(path, scene, count, run=1)[0]
 
 
 def reconstructions(model_dir: Path, manifest: Manifest, frames: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -78,7 +73,7 @@ def validate(scene: Scene, model_dir: Path, databases: list[Path], recordings: l
     loaded, index_seconds = {}, {}
     for folder in tqdm(databases, desc="index databases", unit="database", disable=None):
         started = time.perf_counter()
-        loaded[folder.name] = NearestDatabase.load(folder)
+        loaded[folder.name] = open_database(folder, scene)
         index_seconds[folder.name] = time.perf_counter() - started
     out.mkdir(parents=True, exist_ok=True)
     evaluation = Evaluation(scene, networks, loaded)

@@ -5,6 +5,10 @@ import argparse
 import logging
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from service.settings import ServiceSettings
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -25,20 +29,26 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
+def serve_settings(args: argparse.Namespace) -> ServiceSettings:
+    """The settings ``args`` ask for, loaded and validated once with the options on top (an option mends a
+    bad value of the config file); a recording named by ``--source`` makes its folder the recordings
+    folder unless ``recordings_dir`` is set (the person at the console may name any recording)."""
+    from service.settings import load_settings
+
+    folder = None
+    if args.source is not None and "://" not in args.source:
+        folder = Path(args.source).expanduser().resolve().parent
+    return load_settings(args.config, {"recordings_dir": folder}, source=args.source, host=args.host,
+                         port=args.port)
+
+
 def run(args: argparse.Namespace) -> int:
     import uvicorn  # the web stack loads only when the verb runs
 
     from service.server.app import create_app
-    from service.settings import load_settings
 
     logging.basicConfig(level=logging.WARNING, format="meniscope serve: %(levelname)s: %(message)s")
-    settings = load_settings(args.config, host=args.host, port=args.port)
-    if args.source is not None:
-        folder = settings.recordings_dir
-        if folder is None and "://" not in args.source:  # the person at the console may name any recording
-            folder = Path(args.source).expanduser().resolve().parent
-        settings = load_settings(args.config, source=args.source, host=args.host, port=args.port,
-                                 recordings_dir=folder)
+    settings = serve_settings(args)
     if not settings.loopback and settings.token is None:
         print(f"meniscope serve: bound to {settings.host} without a token: settings cannot be changed over HTTP "
               "(set MENISCOPE_TOKEN)", file=sys.stderr)

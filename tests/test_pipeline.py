@@ -1,0 +1,166 @@
+"""The live pipeline (service.pipeline.runtime) between a source and the publishers: what each published
+window says about where it came from, and a camera larger than the scene's region of interest."""
+from __future__ import annotations
+
+import asyncio
+import gc
+import shutil
+import threading
+import weakref
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from service import DEFAULT_MODELS
+from service.analysis.results import FitSettings
+from service.errors import MeniscopeError
+from service.inverse.base import InverseMethod, InverseOutput
+from service.inverse.network import NetworkMethod
+from service.pipeline.demo import DEMO_AVI
+from service.pipeline.fitting import OnFitted, fit_one
+from service.pipeline.runtime import FittedWindow, Pipeline, PipelineStats, TraceSnippet
+from service.pipeline.segmenter import ClosedWindow
+from service.pipeline.supervisor import Health
+from service.recordings import open_recording, open_writer
+from service.scene import Scene
+from service.server.history import History
+from service.server.hub import Hub
+from service.server.metrics import Metrics
+from service.server.publishers import Publishers
+from service.settings import ServiceSettings
+from service.sources import FrameBatch, ReplaySource, open_source
+
+
+class HeldFits:
+    """Fit workers that keep every window until :meth:`release`, as slow ones do: its fit comes back later."""
+
+    def __init__(self, settings: FitSettings) -> None:
+        self.settings = settings
+        self.held: list[tuple[ClosedWindow, float, OnFitted]] = []
+
+    def submit(self, closed: ClosedWindow, fps: float, on_fitted: OnFitted) -> bool:
+        self.held.append((closed, fps, on_fitted))
+        return True
+
+    def release(self) -> None:
+        for closed, fps, on_fitted in self.held:
+            on_fitted(closed, fit_one(closed.window, closed.values, fps, self.settings))
+        self.held.clear()
+
+
+@pytest.fixture()
+def publishers(tmp_path: Path) -> Publishers:
+    """The service's publishers on a history database of their own (no ZeroMQ, no WebSocket client)."""
+    history = History(tmp_path / "history.sqlite", 1.0, 1000)
+    metrics = Metrics(PipelineStats(), lambda: Health("running", None, 0.0, 0), lambda: (0, 0))
+    loop = asyncio.new_event_loop()
+    publishers = Publishers(history, metrics, None, Hub(loop, 1)).start()
+    yield publishers
+    publishers.stop()
+    history.close()
+    loop.close()
+
+
+def test_windows_fitted_after_the_source_changed_name_the_source_their_frames_came_from(
+        tmp_path: Path, scene: Scene, publishers: Publishers) -> None:
+    method, fits = NetworkMethod(DEFAULT_MODELS, scene), HeldFits(FitSettings())
+    uris, counts = [], []
+    for name in ("first.avi", "second.avi"):  # the source changed between two runs, as PUT /api/v1/config does
+        shutil.copy(DEMO_AVI, tmp_path / name)
+        settings = ServiceSettings(source=f"file://{tmp_path / name}?speed=max", recordings_dir=tmp_path,
+                                   data_dir=tmp_path)
+        with open_source(settings.source) as source:
+            assert Pipeline(settings, scene, source, method, fits, publishers, PipelineStats()).run(threading.Event())
+        uris.append(settings.source)
+        counts.append(len(fits.held) - sum(counts))
+    assert counts[0] > 0 and counts[1] > 0
+    fits.release()  # the first source's windows come back only now, after the second one ran
+    publishers.stop()
+    stored = publishers.history.latest()
+    assert [w.source for w in stored] == [uris[0]] * counts[0] + [uris[1]] * counts[1]
+
+
+class Collected:
+    """A pipeline sink that keeps the windows and trace snippets it is handed."""
+
+    def __init__(self) -> None:
+        self.windows: list[FittedWindow] = []
+        self.traces: list[TraceSnippet] = []
+
+    def on_window(self, fitted: FittedWindow) -> None:
+        self.windows.append(fitted)
+
+    def on_trace(self, trace: TraceSnippet) -> None:
+        self.traces.append(trace)
+
+    def on_inference(self, seconds: float, frames: int) -> None:
+        pass
+
+
+class Watched(ReplaySource):
+    """A replay that keeps a weak reference to each batch of whole frames it hands out and says when it has
+    handed out ``enough``: which of them the pipeline still holds shows through the references."""
+
+    def __init__(self, path: Path, enough: int) -> None:
+        super().__init__(path, speed=0.0)
+        self.handed_out: list[weakref.ref] = []
+        self.enough, self.reached = enough, threading.Event()
+
+    def _read(self, max_frames: int) -> FrameBatch | None:
+        batch = super()._read(max_frames)
+        if batch is not None and len(batch):
+            self.handed_out.append(weakref.ref(batch.pixels))
+            if len(self.handed_out) >= self.enough:
+                self.reached.set()
+        return batch
+
+
+class Gate(InverseMethod):
+    """An inverse method that records the frames it is given (D(0, t): their mean brightness, um). Its first
+    call waits until the source has handed out enough batches, then counts how many of them, all but the
+    last two (the acquisition thread may still be on those), are still in memory."""
+
+    name = "gate"
+
+    def __init__(self, source: Watched) -> None:
+        self.source, self.frames, self.whole_frames_held = source, [], None
+
+    def infer(self, frames: np.ndarray) -> InverseOutput:
+        if self.whole_frames_held is None:
+            assert self.source.reached.wait(30), "the source was not read while inference waited"
+            gc.collect()
+            self.whole_frames_held = sum(ref() is not None for ref in self.source.handed_out[:-2])
+        self.frames.append(frames.copy())
+        return InverseOutput(np.zeros((len(frames), 4)), frames.mean(axis=(1, 2)) * 1e-3)
+
+
+def test_a_camera_larger_than_the_roi_has_only_its_roi_queued_inferred_and_shown(tmp_path: Path, scene: Scene) -> None:
+    roi = scene.model_copy(update={"camera": scene.camera.model_copy(update={"roi": (24, 8)})})  # 96 x 96 at (24, 8)
+    with open_recording(DEMO_AVI) as demo:
+        inside = demo.read(0, len(demo))  # (N, 96, 96)
+    sensor = np.random.default_rng(0).integers(0, 256, (len(inside), 112, 128), dtype=np.uint8)  # 128 x 112
+    sensor[:, 8:104, 24:120] = inside
+    with open_writer(tmp_path / "sensor.cine", 128, 112, demo.fps) as writer:
+        writer.write(sensor)
+    settings = ServiceSettings(read_frames=16, queue_batches=64)  # room for every read: nothing dropped
+    stats = PipelineStats()
+    with Watched(tmp_path / "sensor.cine", enough=8) as source:
+        method = Gate(source)
+        pipeline = Pipeline(settings, roi, source, method, HeldFits(settings.fit), Collected(), stats)
+        assert pipeline.run(threading.Event())
+    assert method.whole_frames_held == 0  # read 8 batches while the first was inferred: only their ROIs waited
+    assert stats.frames_dropped == 0
+    np.testing.assert_array_equal(np.concatenate(method.frames), inside)
+    assert stats.latest.index == len(inside) - 1
+    np.testing.assert_array_equal(stats.latest.pixels, inside[-1])  # the dashboard's latest frame: the ROI
+
+
+def test_a_camera_smaller_than_the_roi_is_one_error_naming_the_source(tmp_path: Path, scene: Scene) -> None:
+    with open_writer(tmp_path / "small.cine", 64, 64, 19000.0) as writer:
+        writer.write(np.zeros((4, 64, 64), np.uint8))
+    with Watched(tmp_path / "small.cine", enough=1) as source:
+        with pytest.raises(MeniscopeError) as err:
+            Pipeline(ServiceSettings(), scene, source, Gate(source), HeldFits(FitSettings()), Collected(),
+                     PipelineStats())
+    assert str(err.value) == f"{tmp_path / 'small.cine'}: scene ROI 96x96 at (0, 0) lies outside the 64x64 frame"
