@@ -4,19 +4,13 @@ folders (here an int8 copy of the shipped one) as rows of their own."""
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
 
 from service import DEFAULT_MODELS
 from service.bench.tradeoff import misses
-
-
-def meniscope(*args: str | Path) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-P", "-m", "service.cli", *map(str, args)], capture_output=True,
-                          text=True, timeout=900)
+from tests.servicekit import meniscope
 
 
 #: A learned method's row exactly at every target: issue 4's accuracy targets and the camera's 19,000 frames/s.

@@ -10,18 +10,11 @@ import threading
 from contextlib import closing
 from pathlib import Path
 
-import pytest
 from websockets.sync.client import ClientConnection, connect
 
 from service import DEFAULT_MODELS
-from service.pipeline.demo import demo_recording
 from service.sources import FrameSender, open_source
 from tests.servicekit import request, running_service, service_settings, wait_for
-
-
-@pytest.fixture(scope="module")
-def demo_cine(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    return demo_recording(tmp_path_factory.mktemp("data"))
 
 
 def demo(demo_cine: Path, speed: float = 0.25) -> str:

@@ -3,27 +3,18 @@ from __future__ import annotations
 
 import os
 import signal
-import socket
 import subprocess
-import sys
 from pathlib import Path
 
-from tests.servicekit import request, wait_for
-
-ROOT = Path(__file__).resolve().parents[1]
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+from tests.servicekit import MENISCOPE, checkout_env, free_port, request, wait_for
 
 
 def serve(tmp_path: Path, *args: str) -> subprocess.Popen:
+    """`meniscope serve ARGS` started in ``tmp_path`` on an empty cache folder, with no MENISCOPE_ setting but
+    a ZeroMQ port the system picks (so that runs side by side do not collide)."""
     env = {k: v for k, v in os.environ.items() if not k.startswith("MENISCOPE_")}
-    env.update(XDG_CACHE_HOME=str(tmp_path / "cache"), MENISCOPE_ZMQ_PUBLISH="tcp://127.0.0.1:*",
-               PYTHONPATH=str(ROOT))
-    return subprocess.Popen([sys.executable, "-m", "service.cli", "serve", *args], cwd=tmp_path, env=env,
+    env.update(XDG_CACHE_HOME=str(tmp_path / "cache"), MENISCOPE_ZMQ_PUBLISH="tcp://127.0.0.1:*")
+    return subprocess.Popen([*MENISCOPE, "serve", *args], cwd=tmp_path, env=checkout_env(env),
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 
