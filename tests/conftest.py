@@ -1,4 +1,4 @@
-"""Fixtures shared by every test module: the example scene and the ../shared folder."""
+"""Fixtures shared by every test module: the example scene, the demo recording and the ../shared folder."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -8,6 +8,7 @@ from hypothesis import settings
 
 
 from service import DEFAULT_SCENE
+from service.pipeline.demo import demo_recording
 from service.scene import Scene
 
 # The same examples on every run (CI must not fail by chance); `--hypothesis-profile explore` draws new ones.
@@ -23,6 +24,12 @@ SHARED = Path(__file__).resolve().parents[1].parent / "shared"
 def scene() -> Scene:
     """The embedded default scene (shared/spec/scene.example.json)."""
     return Scene.load(DEFAULT_SCENE)
+
+
+@pytest.fixture(scope="module")
+def demo_cine(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The demo recording as an 8-bit .cine (its ground truth beside it), made afresh for each module."""
+    return demo_recording(tmp_path_factory.mktemp("data"))
 
 
 @pytest.fixture(scope="session")

@@ -1,7 +1,11 @@
-"""Running the real service in tests: uvicorn on a free port in a thread, and the demo recording."""
+"""Running the real service and CLI in tests: uvicorn on a free port in a thread, `meniscope` as a process."""
 from __future__ import annotations
 
 import json
+import os
+import socket
+import subprocess
+import sys
 import threading
 import time
 import urllib.error
@@ -15,6 +19,34 @@ import uvicorn
 
 from service.server.app import create_app
 from service.settings import ServiceSettings
+
+#: The checkout these tests belong to, whose code every `meniscope` process they start must run.
+ROOT = Path(__file__).resolve().parents[1]
+#: `meniscope` as a command; -P keeps the working folder (where a stray `service` folder may lie) off the path.
+MENISCOPE = [sys.executable, "-P", "-m", "service.cli"]
+#: Seconds a `meniscope` command may take before it counts as hung (pytest's own limit is 600 per test).
+CLI_TIMEOUT_S = 600
+
+
+def checkout_env(env: dict[str, str] | None = None) -> dict[str, str]:
+    """``env`` (default: this process's) with :data:`ROOT` first on PYTHONPATH, so that a `meniscope`
+    process runs the code under test, not an installed copy or another checkout's."""
+    env = dict(os.environ if env is None else env)
+    env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(ROOT), env.get("PYTHONPATH")]))
+    return env
+
+
+def meniscope(*args: str | Path) -> subprocess.CompletedProcess:
+    """Run ``meniscope ARGS`` as its own process on this checkout's code; its output is captured as text."""
+    return subprocess.run([*MENISCOPE, *map(str, args)], capture_output=True, text=True, timeout=CLI_TIMEOUT_S,
+                          env=checkout_env())
+
+
+def free_port() -> int:
+    """A TCP port on 127.0.0.1 that nothing listens on at the moment (the system's pick)."""
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
 
 
 @contextmanager

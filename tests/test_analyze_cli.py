@@ -3,8 +3,6 @@ shipped models, REPORT.json in the layout of shared/spec/cli.md, one-line errors
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -14,16 +12,12 @@ from service.analysis.results import Report
 from service.analysis.score import ejection_matches
 from service.csvtable import read_columns
 from service.validation.truth import read_truth, truth_centre
+from tests.servicekit import meniscope
 
 REPORT_KEYS = {"schema", "source", "method", "ejections", "windows"}
 WINDOW_KEYS = {"index", "start_frame", "end_frame", "status", "reason", "modes", "offset_mm", "settling_time_s",
                "settled", "r2"}
 MODE_KEYS = {"frequency_hz", "decay_rate_per_s", "amplitude_mm", "phase_rad", "frequency_ci_hz", "decay_rate_ci_per_s"}
-
-
-def meniscope(*args: str | Path) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "service.cli", *map(str, args)], capture_output=True, text=True,
-                          timeout=600)
 
 
 @pytest.fixture(scope="module")

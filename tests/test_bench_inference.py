@@ -3,8 +3,6 @@ them, one row per model folder, method and setting, with each method's fastest m
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -14,11 +12,7 @@ from service.pipeline.demo import DEMO_AVI
 from service.inverse.network import NetworkMethod
 from service.recordings.roi import read_roi_frames
 from service.scene import Scene
-
-
-def meniscope(*args: str | Path) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-P", "-m", "service.cli", *map(str, args)], capture_output=True,
-                          text=True, timeout=300)
+from tests.servicekit import meniscope
 
 
 def test_every_setting_of_every_method_is_measured_once(tmp_path: Path):

@@ -16,6 +16,7 @@ from service.errors import MeniscopeError
 from service.inverse.manifest import load_manifest
 from service.inverse.methods import open_method
 from service.scene import Scene
+from tests.servicekit import meniscope
 
 pytest.importorskip("onnx", reason="quantising needs the train extra (onnx)")
 from training.quantize import quantize_models, renders  # noqa: E402
@@ -26,11 +27,6 @@ from training.quantize import quantize_models, renders  # noqa: E402
 #: Measured on 200 renders: 8.4, 43, 4.4, 3.2 (1e-3) at most, 2.2 um RMS, under 1 % more error.
 INT8_MAX_DIFF = np.array([0.02, 0.1, 0.01, 0.01])
 INT8_RMS_DIFF_MM, INT8_EXTRA_ERROR = 0.004, 0.10
-
-
-def meniscope(*args: str | Path) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-P", "-m", "service.cli", *map(str, args)], capture_output=True,
-                          text=True, timeout=600)
 
 
 @pytest.fixture(scope="module")

@@ -2,8 +2,6 @@
 from __future__ import annotations
 
 import json
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -12,6 +10,7 @@ import pytest
 from service.cli import main
 from service.recordings import open_writer
 from service.verbs import recordings as verbs
+from tests.servicekit import meniscope
 
 FRAMES = np.random.default_rng(3).integers(0, 4096, (12, 6, 10)).astype(np.uint16)
 
@@ -85,6 +84,6 @@ def test_bad_input_is_one_line_and_exit_2(
 
 
 def test_the_installed_command_runs(cine: Path) -> None:
-    done = subprocess.run([sys.executable, "-m", "service.cli", "info", str(cine)], capture_output=True, text=True,
-                          check=True)
+    done = meniscope("info", cine)
+    assert done.returncode == 0, done.stderr
     assert json.loads(done.stdout)["frames"] == 12

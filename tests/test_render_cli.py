@@ -1,8 +1,6 @@
 """``meniscope render`` and ``meniscope sheet`` as a user runs them: real files, the installed command."""
 from __future__ import annotations
 
-import subprocess
-import sys
 from pathlib import Path
 
 import cv2
@@ -11,10 +9,7 @@ import pytest
 
 from service.render import Renderer
 from service.scene import Scene
-
-
-def meniscope(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "service.cli", *args], capture_output=True, text=True, timeout=300)
+from tests.servicekit import meniscope
 
 
 def test_render_writes_the_renderers_frames_for_each_csv_row(tmp_path: Path, scene: Scene) -> None:

@@ -19,7 +19,7 @@ from service.analysis.fit import fit_window
 from service.analysis.results import FitSettings
 from service.analysis.steady import window_steady_centre
 from service.inverse.network import NetworkMethod
-from service.pipeline.demo import DEMO_TRUTH, demo_recording
+from service.pipeline.demo import DEMO_TRUTH
 from service.recordings import open_recording
 from service.scene import Scene
 from service.server.messages import WINDOW_TOPIC
@@ -37,11 +37,6 @@ def complete(window: dict) -> bool:
     start = window["start_frame"] % PERIOD
     return (window["starts_at_ejection"] and window["ends_at_ejection"] and window["missing"] == 0
             and start in WINDOWS and window["end_frame"] - window["start_frame"] == WINDOWS[start]["end_frame"] - start)
-
-
-@pytest.fixture(scope="module")
-def demo_cine(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    return demo_recording(tmp_path_factory.mktemp("data"))
 
 
 @pytest.fixture(scope="module")

@@ -11,6 +11,7 @@ from __future__ import annotations
 import glob
 import json
 import shutil
+import socket
 import subprocess
 import threading
 import time
@@ -267,6 +268,29 @@ class TestZmqWithLostFrames(GapContract):
 # --- Aravis's fake GigE Vision camera, over loopback ----------------------------------------------------
 
 FAKE_CAMERA = "arv-fake-gv-camera-0.8"
+#: GigE Vision's control port (UDP), which the fake camera must own on 127.0.0.1.
+GVCP_PORT = 3956
+
+
+def fake_camera_unavailable() -> str | None:
+    """Why Aravis's fake camera cannot run here (what is missing, or who holds its port), or None when it can.
+
+    Checked apart from the adapter, so that an adapter that fails where everything is in place is a failure.
+    """
+    if shutil.which(FAKE_CAMERA) is None:
+        return f"{FAKE_CAMERA} not found: install the Debian package aravis-tools"
+    try:
+        import gi
+    except ImportError:
+        return "PyGObject is not installed: pip install 'meniscope[aravis]'"
+    if "0.8" not in gi.Repository.get_default().enumerate_versions("Aravis"):
+        return "the Aravis 0.8 typelib is not installed: install the Debian package gir1.2-aravis-0.8"
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+        try:
+            probe.bind(("127.0.0.1", GVCP_PORT))
+        except OSError as exc:  # a second fake camera would not stop: it would run beside the first
+            return f"UDP port {GVCP_PORT} on 127.0.0.1 is taken ({exc.strerror}): another GigE Vision camera runs"
+    return None
 
 
 @contextmanager
@@ -274,14 +298,10 @@ def fake_gige_camera(lost_per_thousand: int = 0) -> Iterator[str]:
     """Aravis's fake camera as its own process on 127.0.0.1 (GigE Vision over loopback); yields its URI.
 
     It must own UDP port 3956 on 127.0.0.1, so one runs at a time on a machine; the test skips,
-    saying so, when another holds the port.
+    saying so, when another holds the port or Aravis is not installed, and fails on anything else.
     """
-    try:
-        sources.aravis.load_aravis("aravis://")
-    except MeniscopeError as exc:
-        pytest.skip(str(exc))
-    if shutil.which(FAKE_CAMERA) is None:
-        pytest.skip(f"{FAKE_CAMERA} not found: install the Debian package aravis-tools")
+    if (missing := fake_camera_unavailable()) is not None:
+        pytest.skip(missing)
     process = subprocess.Popen(
         [FAKE_CAMERA, "-i", "127.0.0.1", "-s", "MENISCOPE", "-r", str(lost_per_thousand)],
         stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
@@ -290,13 +310,12 @@ def fake_gige_camera(lost_per_thousand: int = 0) -> Iterator[str]:
         uri = "aravis://127.0.0.1"
         deadline = time.monotonic() + 10
         while True:
-            if process.poll() is not None:
-                pytest.skip(f"{FAKE_CAMERA} on 127.0.0.1 stopped: {process.stdout.read().strip()} (port 3956 in use?)")  # type: ignore[union-attr]
+            assert process.poll() is None, f"{FAKE_CAMERA} stopped: {process.stdout.read().strip()}"  # type: ignore[union-attr]
             try:
                 open_source(uri).close()
                 break
-            except MeniscopeError:
-                assert time.monotonic() < deadline, f"{FAKE_CAMERA} did not answer on 127.0.0.1 within 10 s"
+            except MeniscopeError as exc:
+                assert time.monotonic() < deadline, f"{FAKE_CAMERA} did not answer on 127.0.0.1 within 10 s: {exc}"
                 time.sleep(0.1)
         yield uri
     finally:

@@ -4,8 +4,6 @@ from __future__ import annotations
 
 import json
 import shutil
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -17,15 +15,12 @@ from service.inverse.network import NetworkMethod
 from service.recordings import open_recording
 from service.scene import Scene
 from service.validation.report import lab_frames, reconstructions, validate
+from tests.servicekit import meniscope
 
 pytest.importorskip("torch", reason="training needs the train extra (torch)")
 
 #: The export's promise: onnxruntime and torch agree on every output within this (mm).
 PARITY_MM = 1e-4
-
-
-def meniscope(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "service.cli", *args], capture_output=True, text=True, timeout=600)
 
 
 @pytest.fixture(scope="module")

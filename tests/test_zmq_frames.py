@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import json
-import socket
 import threading
 from collections.abc import Iterator
 from pathlib import Path
@@ -16,6 +15,7 @@ from service.errors import MeniscopeError
 from service.recordings import open_writer
 from service.sources import FrameBatch, FrameSender, StreamFormat, open_source
 from service.sources import zmq_format
+from tests.servicekit import free_port
 
 FMT16 = StreamFormat(width=5, height=3, dtype=np.dtype(np.uint16), bit_depth=12, fps=19000.0)
 BIG = StreamFormat(width=512, height=512, dtype=np.dtype(np.uint16), bit_depth=12, fps=19000.0)  # 512 KiB a frame
@@ -157,12 +157,6 @@ class TestOverLoopback:
         with open_source(uri(sender), timeout=5.0) as source:
             with pytest.raises(MeniscopeError, match="changed the frame format"):
                 source.read(2)
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 class TestPublishFramesVerb:
