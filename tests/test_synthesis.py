@@ -48,7 +48,7 @@ def test_refinement_recovers_the_motion_from_a_poor_start_through_gain_offset_bl
 
 
 def test_refinement_lowers_the_pixel_residual_and_reports_its_search(renderer):
-    frames = frames_of(renderer, TRUE, CameraEffects(bit_depth=12, blur_sigma_px=0.7))
+    frames = frames_of(renderer, TRUE, CameraEffects(bit_depth=12, blur_sigma_px=0.7, full_well_e=16000.0))
     start = WindowTruth(**{**TRUE.as_dict(), "A1": 0.012, "g1": 600.0})
     refined = refine_window(renderer, frames, T, start)
     assert refined.rms < 0.2 * refined.rms_start
