@@ -13,6 +13,7 @@ import threading
 import time
 from dataclasses import dataclass, field
 from typing import Any, Literal
+from urllib.parse import urlsplit
 
 from service.errors import MeniscopeError
 from service.inverse.methods import open_method
@@ -122,7 +123,8 @@ class Supervisor:
         fits = self._fit_pool(settings)  # before the source opens: a replay's clock starts when it does
         uri = demo_uri(settings.data_dir) if settings.source is None else resolve_source(
             settings.source, settings.recordings_folder)
-        with open_source(uri) as source:
+        scene_of_sim = {"scene": settings.scene} if urlsplit(uri).scheme.lower() == "sim" else {}
+        with open_source(uri, **scene_of_sim) as source:  # a simulated camera renders the scene of the models
             pipeline = Pipeline(settings, scene, source, method, fits, self.sink, self.stats)
             self._source, self._attempts = source, 0  # it ran: a later failure starts the backoff afresh
             self._set("running", None)
