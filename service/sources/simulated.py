@@ -12,10 +12,11 @@ seed gives the same frames however they are read. :meth:`SimulatedSource.describ
 the window of the last frame delivered, as the truth sidecar lists it.
 
 Speed: the renderer cannot keep the camera's 19,000 frames/s on two cores. At the default quality (one
-ray per pixel, four sun directions: on the network's inputs as accurate as the training renders' two by
-two rays, at a quarter of the cost) one render thread made about 2,000 frames/s of the default scene on
-a loaded two-core machine, and 1,000 through the "lab" camera (its blur and noise cost as much as the
-render). So ``speed`` defaults to "max": frames come as fast as they render, at whatever rate the
+ray per pixel, four sun directions: the shipped network's errors on such renders matched those on the
+training renders' two by two rays, at a quarter of the cost) this source made 2,000-2,400 frames/s of
+the default scene with one render thread on a two-core machine under a load of 3 to 5, and 1,200-1,600
+through the "lab" camera (its blur and noise cost as much as the render); two threads were no faster
+there. So ``speed`` defaults to "max": frames come as fast as they render, at whatever rate the
 machine allows, their timestamps still on the camera's clock. A speed above 0 paces them like a replay
 (:class:`~service.sources.pacing.Pacer`; 0.05 is 950 frames/s); one faster than the renderer delivers
 every frame, later and later. ``threads`` (default 1) leaves the other cores to inference and the fits.
