@@ -15,7 +15,7 @@ from collections.abc import Mapping
 from contextvars import ContextVar
 from pathlib import Path
 from typing import Annotated, Any, Literal
-from urllib.parse import quote, unquote, urlsplit, urlunsplit
+from urllib.parse import parse_qsl, quote, unquote, urlsplit, urlunsplit
 
 from pydantic import Field, SecretStr, ValidationError, model_validator
 from pydantic_settings import BaseSettings, PydanticBaseSettingsSource, SettingsConfigDict
@@ -183,9 +183,13 @@ def resolve_source(uri: str, recordings: Path) -> str:
     """``uri`` with a file source made absolute inside ``recordings``; refuses one that would leave it.
 
     Relative paths are taken from ``recordings``; symbolic links and ``..`` are resolved before the
-    check, so nothing outside the folder can be named. Other schemes (cameras, sockets) pass as given.
+    check, so nothing outside the folder can be named. A ``sim://`` source renders the service's own
+    scene (the supervisor passes it), so its URI may not name a file either. Other schemes (cameras,
+    sockets) pass as given.
     """
     parts = urlsplit(uri) if "://" in uri else None
+    if parts is not None and parts.scheme.lower() == "sim" and "scene" in dict(parse_qsl(parts.query)):
+        raise MeniscopeError(uri, "sim:// renders the service's scene (setting scene): leave scene out of the URI")
     if parts is not None and parts.scheme.lower() != "file":
         return uri
     raw = unquote(parts.path) if parts is not None else uri

@@ -17,7 +17,7 @@ import math
 import os
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from tqdm import tqdm
@@ -26,8 +26,10 @@ from service.camera_effects import CameraEffects
 from service.errors import MeniscopeError, require_folder_of
 from service.physics import WindowTruth
 from service.recordings import open_writer
-from service.render import Renderer
 from service.scene import Scene
+
+if TYPE_CHECKING:  # the renderer (numba) loads only when frames are rendered
+    from service.render import Renderer
 
 SCHEMA = "meniscope.truth/1"
 #: Recording formats by extension and the bit depths each stores.
@@ -98,26 +100,44 @@ class Transient:
         return np.sin(np.pi * (np.arange(n) + 0.5) / n)
 
 
-def ejection_frames(windows: int, fps: float, ejection_hz: float) -> np.ndarray:
-    """Shape (windows + 1,): frame of each ejection, then the frame count; ``floor(k fps / hz + 0.5)``."""
-    return np.floor(np.arange(windows + 1) * (fps / ejection_hz) + 0.5).astype(np.int64)
+def ejection_frames(windows: int, fps: float, ejection_hz: float, first: int = 0) -> np.ndarray:
+    """Shape (windows + 1,): frame of ejections ``first .. first + windows``, ``floor(k fps / hz + 0.5)``
+    (from ejection 0, the last one is the frame count)."""
+    return np.floor((first + np.arange(windows + 1)) * (fps / ejection_hz) + 0.5).astype(np.int64)
 
 
 @dataclass(frozen=True)
 class Plan:
-    """Everything random about a recording, drawn before any frame is rendered."""
+    """Everything random about a recording's windows ``first_window .. first_window + W - 1``, drawn before any
+    frame is rendered (a recording plans them all from window 0; a live stream a window at a time)."""
 
     fps: float
-    ejections: np.ndarray  # (W + 1,) int64: ejection frames, then the frame count
+    ejections: np.ndarray  # (W + 1,) int64: ejection frames, then the frame after the last window
     truths: tuple[WindowTruth, ...]  # (W,)
     bulges_mm: np.ndarray  # (W,) peak bulge of each ejection, mm
     transient_frames: int
     ranges: WindowRanges
     transient: Transient
+    first_window: int = 0
 
     @property
     def frame_count(self) -> int:
+        """The frame after the last window: the recording's frame count when the plan starts at window 0."""
         return int(self.ejections[-1])
+
+    def window_truth(self, window: int, radius_mm: float) -> dict[str, Any]:
+        """Window ``window`` of this plan as the truth sidecar lists it (scene.md, "Recordings and ground
+        truth"), frames counted from the recording's first; ``radius_mm``: the nozzle's bore radius."""
+        start, end, truth = int(self.ejections[window]), int(self.ejections[window + 1]), self.truths[window]
+        return {
+            "index": self.first_window + window,
+            "start_frame": start,
+            "end_frame": end,
+            "oscillation_start_frame": start + self.transient_frames,
+            "bulge_mm": float(self.bulges_mm[window]),
+            "offset_mm": truth.d + truth.p * radius_mm,
+            "truth": truth.as_dict(),
+        }
 
     def coefficients(self, window: int, start: int, stop: int) -> np.ndarray:
         """Shape (stop - start, 4), columns d, p, a, b (Eq. 1) of frames ``start..stop-1`` of a window."""
@@ -135,18 +155,21 @@ def plan_recording(
     rng: np.random.Generator,
     ranges: WindowRanges = WindowRanges(),
     transient: Transient = Transient(),
+    first_window: int = 0,
 ) -> Plan:
-    """Draw the ejection schedule's motion: one :class:`WindowTruth` and one bulge per window.
+    """Draw the motion of windows ``first_window ..`` of the ejection schedule: one :class:`WindowTruth` and
+    one bulge per window.
 
-    Raises ValueError when a window would be too short to hold its transient and ten frames of
-    oscillation, or when ``fps`` cannot sample the modes (:meth:`WindowRanges.for_fps`).
+    Raises ValueError when the schedule's windows (``floor(fps / hz)`` frames or one more, however many
+    are drawn) would be too short to hold the transient and ten frames of oscillation, or when ``fps``
+    cannot sample the modes (:meth:`WindowRanges.for_fps`).
     """
     if windows < 1:
         raise ValueError(f"need at least one window, got {windows}")
     ranges = ranges.for_fps(fps)
     n_transient = transient.frames(fps)
-    ejections = ejection_frames(windows, fps, ejection_hz)
-    shortest = int(np.diff(ejections).min())
+    ejections = ejection_frames(windows, fps, ejection_hz, first_window)
+    shortest = math.floor(fps / ejection_hz)  # every window has this many frames or one more
     if shortest < n_transient + 10:
         raise ValueError(
             f"an ejection every {fps / ejection_hz:.3g} frames leaves no room for the {n_transient}-frame "
@@ -154,7 +177,32 @@ def plan_recording(
         )
     truths = tuple(ranges.sample(rng) for _ in range(windows))
     bulges = rng.uniform(*transient.bulge_mm, size=windows)
-    return Plan(fps, ejections, truths, bulges, n_transient, ranges, transient)
+    return Plan(fps, ejections, truths, bulges, n_transient, ranges, transient, first_window)
+
+
+class CameraFrames:
+    """What the camera stores for Eq. 1 coefficients: the scene rendered into its ROI (``camera.roi``) of a
+    sensor that ends with it, black around it, then through the camera's ``effects``.
+
+    ``renderer``: anything with ``render(coeffs (N, 4)) -> (N, H, W)`` linear frames of the scene.
+    """
+
+    def __init__(self, scene: Scene, renderer: Renderer, effects: CameraEffects) -> None:
+        cam = scene.camera
+        x, y = cam.roi
+        self.renderer, self.effects = renderer, effects
+        self.height, self.width = y + cam.height_px, x + cam.width_px
+        self._roi = (slice(None), slice(y, None), slice(x, None))
+        self._linear = np.zeros((0, self.height, self.width), np.float32)  # linear, black outside the ROI
+
+    def take(self, coeffs: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+        """Stored pixels (N, height, width), uint8 or uint16, of coefficients (N, 4); ``rng`` draws the noise."""
+        n = len(coeffs)
+        if n > len(self._linear):
+            self._linear = np.zeros((n, self.height, self.width), np.float32)
+        linear = self._linear[:n]
+        linear[self._roi] = self.renderer.render(coeffs)
+        return self.effects.apply(linear, rng)
 
 
 def truth_path(recording: str | Path) -> Path:
@@ -167,8 +215,6 @@ def truth_document(plan: Plan, scene: Scene, recording: Path, effects: CameraEff
                    ejection_hz: float, noise: str | None, renderer: str) -> dict[str, Any]:
     """The sidecar's content (scene.md, "Recordings and ground truth"): JSON-safe, finite numbers."""
     x, y = scene.camera.roi
-    R = scene.nozzle.radius_mm
-    starts, ends = plan.ejections[:-1], plan.ejections[1:]
     return {
         "schema": SCHEMA,
         "recording": {
@@ -184,7 +230,7 @@ def truth_document(plan: Plan, scene: Scene, recording: Path, effects: CameraEff
         "seed": seed,
         "renderer": renderer,
         "ejection_hz": ejection_hz,
-        "ejections": [int(e) for e in starts],
+        "ejections": [int(e) for e in plan.ejections[:-1]],
         "time_origin": "t = (frame - start_frame) / fps, start_frame being the window's ejection",
         "transient": {
             "frames": plan.transient_frames,
@@ -195,18 +241,7 @@ def truth_document(plan: Plan, scene: Scene, recording: Path, effects: CameraEff
         "ranges": {name: list(lohi) for name, lohi in asdict(plan.ranges).items()},
         "camera_effects": effects.model_dump(mode="json"),
         "noise": noise,
-        "windows": [
-            {
-                "index": k,
-                "start_frame": int(start),
-                "end_frame": int(end),
-                "oscillation_start_frame": int(start) + plan.transient_frames,
-                "bulge_mm": float(plan.bulges_mm[k]),
-                "offset_mm": truth.d + truth.p * R,
-                "truth": truth.as_dict(),
-            }
-            for k, (start, end, truth) in enumerate(zip(starts, ends, plan.truths))
-        ],
+        "windows": [plan.window_truth(k, scene.nozzle.radius_mm) for k in range(len(plan.truths))],
     }
 
 
@@ -252,13 +287,14 @@ def simulate(
         plan = plan_recording(windows, cam.fps, ejection_hz, np.random.default_rng(motion_seed), ranges, transient)
     except ValueError as exc:
         raise MeniscopeError(out, str(exc)) from None
-    renderer = renderer or Renderer(scene)
-    x, y = cam.roi
-    width, height = x + cam.width_px, y + cam.height_px
-    frame = np.zeros((BATCH_FRAMES, height, width), np.float32)  # linear, black outside the ROI
+    if renderer is None:
+        from service.render import Renderer
+
+        renderer = Renderer(scene)
+    camera = CameraFrames(scene, renderer, effects)
     sidecar = truth_path(out)
     try:
-        with open_writer(out, width, height, cam.fps, bit_depth=effects.bit_depth) as writer, tqdm(
+        with open_writer(out, camera.width, camera.height, cam.fps, bit_depth=effects.bit_depth) as writer, tqdm(
             total=plan.frame_count, unit="frame", desc=f"simulate {out.name}", disable=None
         ) as bar:
             for k, window_seed in enumerate(noise_seed.spawn(windows)):
@@ -266,9 +302,7 @@ def simulate(
                 length = int(plan.ejections[k + 1] - plan.ejections[k])
                 for start in range(0, length, BATCH_FRAMES):
                     stop = min(length, start + BATCH_FRAMES)
-                    linear = frame[: stop - start]
-                    linear[:, y:, x:] = renderer.render(plan.coefficients(k, start, stop))
-                    writer.write(effects.apply(linear, rng), None)
+                    writer.write(camera.take(plan.coefficients(k, start, stop), rng), None)
                     bar.update(stop - start)
         truth = truth_document(plan, scene, out, effects, seed, ejection_hz, noise, type(renderer).__name__)
         try:

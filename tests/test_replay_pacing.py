@@ -14,6 +14,7 @@ import pytest
 from service.recordings import open_writer
 from service.sources import FrameBatch, open_source
 from service.sources.pacing import Pacer
+from tests.clocks import SimulatedClock
 
 FPS, FRAMES = 19000.0, 2000
 
@@ -25,20 +26,6 @@ def recording(tmp_path_factory: pytest.TempPathFactory) -> Path:
     with open_writer(path, 16, 16, FPS, bit_depth=8) as writer:
         writer.write(np.zeros((FRAMES, 16, 16), np.uint8))
     return path
-
-
-class SimulatedClock:
-    """A monotonic clock whose sleeps advance it, each overshooting by ``oversleep_s`` like a busy OS."""
-
-    def __init__(self, oversleep_s: float = 0.0) -> None:
-        self.now, self.oversleep_s, self.sleeps = 100.0, oversleep_s, []
-
-    def __call__(self) -> float:
-        return self.now
-
-    def sleep(self, seconds: float) -> None:
-        self.sleeps.append(seconds)
-        self.now += seconds + self.oversleep_s
 
 
 class TestPacer:

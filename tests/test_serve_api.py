@@ -12,7 +12,7 @@ from pathlib import Path
 
 from websockets.sync.client import ClientConnection, connect
 
-from service import DEFAULT_MODELS
+from service import DEFAULT_MODELS, DEFAULT_SCENE
 from service.sources import FrameSender, open_source
 from tests.servicekit import request, running_service, service_settings, wait_for
 
@@ -47,6 +47,18 @@ def test_an_unreadable_source_is_a_clear_reason_not_a_crash(tmp_path: Path, demo
                           10, "a retry")
         assert "broken.cine" in status["reason"] and not status["ready"]
         assert request("GET", base + "/api/v1/windows").json() == {"windows": [], "last_id": None}
+
+
+def test_a_simulated_camera_renders_the_service_scene_and_its_windows_are_published(tmp_path: Path) -> None:
+    scene = tmp_path / "nozzle.json"  # the embedded scene under another name: the shipped models fit it
+    shutil.copy(DEFAULT_SCENE, scene)
+    settings = service_settings(tmp_path / "data", tmp_path, "sim://?seed=4", scene=scene)
+    with running_service(settings) as base:
+        status = wait_for(lambda: (s := request("GET", base + "/api/v1/status").json())["state"] == "running" and s,
+                          60, "the simulated camera running")
+        assert status["source"]["kind"] == "simulated" and status["source"]["scene"] == str(scene)
+        stored = wait_for(lambda: request("GET", base + "/api/v1/windows").json()["windows"], 60, "a window")
+        assert stored[0]["source"] == "sim://?seed=4" and stored[0]["fps"] == 19000.0
 
 
 def test_configuration_changes_need_the_token_and_stay_in_the_recordings_folder(tmp_path: Path,

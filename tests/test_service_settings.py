@@ -70,6 +70,14 @@ def test_no_file_source_can_leave_the_recordings_folder(tmp_path: Path, source: 
         load_settings(source=source, recordings_dir=folder)
 
 
+def test_a_simulated_source_renders_the_service_scene_so_its_uri_names_no_file(tmp_path: Path) -> None:
+    assert resolve_source("sim://?seed=3&noise=lab", tmp_path) == "sim://?seed=3&noise=lab"
+    with pytest.raises(MeniscopeError) as err:
+        load_settings(source="sim://?seed=3&scene=/etc/passwd", recordings_dir=tmp_path)
+    assert "source: sim://?seed=3&scene=/etc/passwd: sim:// renders the service's scene (setting scene)" in str(err.value)
+    assert "\n" not in str(err.value)
+
+
 def test_settings_are_validated_once_so_an_option_mends_a_bad_value_of_the_config(tmp_path: Path) -> None:
     config = tmp_path / "serve.toml"
     config.write_text('source = "../outside.cine"\nport = 9000\n')

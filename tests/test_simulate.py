@@ -118,6 +118,26 @@ def test_windows_too_short_for_the_transient_are_refused() -> None:
         plan_recording(2, 19000, 1500, np.random.default_rng(0))
 
 
+def test_the_refusal_does_not_depend_on_how_many_windows_are_drawn() -> None:
+    """An ejection every 14.6 frames makes windows of 15 and 14: too short for 5 + 10, even when no 14 is drawn."""
+    hz = 19000 / 14.6
+    assert list(np.diff(ejection_frames(2, 19000, hz))) == [15, 14]
+    for windows in (1, 2):
+        with pytest.raises(ValueError, match="lower the ejection rate"):
+            plan_recording(windows, 19000, hz, np.random.default_rng(0))
+
+
+def test_a_plan_from_a_later_window_continues_the_schedule(scene: Scene) -> None:
+    whole = ejection_frames(6, 19000, 300)  # 63.33 frames apart: windows of 63 and 64
+    assert list(ejection_frames(2, 19000, 300, first=4)) == list(whole[4:])
+    plan = plan_recording(2, 19000, 300, np.random.default_rng(0), first_window=4)
+    window = plan.window_truth(1, scene.nozzle.radius_mm)
+    assert (window["index"], window["start_frame"], window["end_frame"]) == (5, whole[5], whole[6])
+    assert window["oscillation_start_frame"] == whole[5] + 5
+    t = np.arange(whole[6] - whole[5]) / 19000  # the window's own time: from its ejection
+    assert np.array_equal(plan.coefficients(1, 10, 20), plan.truths[1].coefficients(t).to_array()[10:20])
+
+
 def test_the_sidecar_describes_the_recording(scene: Scene, ideal: tuple[Path, dict]) -> None:
     out, truth = ideal
     assert truth_path(out) == out.with_name("rec.truth.json")

@@ -26,6 +26,7 @@ import pytest
 import service.sources as sources
 from service.errors import MeniscopeError
 from service.recordings import open_recording, open_writer
+from service.scene import Scene
 from service.sources import FrameBatch, FrameSender, FrameSource, SourceStats, open_source
 
 CINE_FRAMES, AVI_FRAMES = 120, 60
@@ -383,6 +384,23 @@ class TestV4l2(EndlessContract):
             yield source
 
 
+# --- rendered live from the physics model ---------------------------------------------------------------
+
+class TestSimulated(EndlessContract):
+    @pytest.fixture
+    def source(self) -> Iterator[FrameSource]:
+        with open_source("sim://?seed=1") as source:  # unpaced, as fast as it renders
+            yield source
+
+    def test_renders_the_scene_at_its_rate_through_a_12_bit_camera(self, source: FrameSource, scene: Scene) -> None:
+        assert (source.width, source.height, source.fps) == (scene.camera.width_px, scene.camera.height_px,
+                                                             scene.camera.fps)
+        assert (source.dtype, source.bit_depth) == (np.uint16, 12)
+        frames = FrameBatch.concatenate(collect(source, 40))
+        np.testing.assert_allclose(frames.timestamps, frames.indices / scene.camera.fps, rtol=0, atol=1e-12)
+        assert frames.pixels.std(axis=0).mean() > 0  # it moves
+
+
 # --- the factory and the public API --------------------------------------------------------------------
 
 class TestOpenSource:
@@ -400,6 +418,13 @@ class TestOpenSource:
             ("zmq+tcp://127.0.0.1", {}, "zmq+tcp://host:port"),
             ("zmq+tcp://127.0.0.1:1", {"open_timeout": 0.2}, "no frames within 0.2 s"),
             ("aravis://127.0.0.1", {"pixel_format": "RGB8"}, "bad option pixel_format"),
+            ("sim://?noize=lab", {}, "unknown option 'noize'"),
+            ("sim://?noise=loud", {}, "bad option noise='loud': choose one of none, low, lab, high"),
+            ("sim://?bit_depth=11", {}, "bad option bit_depth='11': choose one of 8, 10, 12, 16"),
+            ("sim://?speed=fast", {}, "bad option speed='fast'"),
+            ("sim://camera", {}, "a simulated source has no host or path"),
+            ("sim://?ejection_hz=1500", {}, "lower the ejection rate"),
+            ("sim://?scene={cine}.json", {}, "scene file not found"),
         ],
     )
     def test_bad_uris_and_options_are_one_line_errors(self, uri: str, options: dict, problem: str, cine: Path) -> None:

@@ -3,12 +3,14 @@ frequency at the extremes the analysis issue lists (a test each)."""
 from __future__ import annotations
 
 import json
+import warnings
 
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
+from scipy.special import logsumexp
 
 from service.analysis.fit import fit_window, model_curve
 from service.analysis.pencil import Exponentials
@@ -254,6 +256,43 @@ def test_settling_time_meets_the_tolerance_at_any_scale_of_decay(amplitudes, dec
     else:
         assert envelope(t, a, g)[0] <= tol * (1 + 1e-9)
         assert t == 0 or envelope(t * (1 - 1e-6), a, g)[0] >= tol * (1 - 1e-9)
+
+
+def log_envelope(t: float, a: np.ndarray, g: np.ndarray) -> float:
+    """log E(t), exact where E itself (amplitudes up to 1e300 and beyond) would leave the float range."""
+    return float(logsumexp(np.log(a) - g * t))
+
+
+@pytest.mark.parametrize(("amplitudes", "decays", "tol", "expected"), [
+    ([1e300, 1e300], [1e3, 2e3], 1e-10, 310 * np.log(10.0) / 1e3),  # huge amplitude: a / budget overflowed
+    ([1e308, 1e308], [1.0, 1.0], 1.0, np.log(2.0) + 308 * np.log(10.0)),  # their sum leaves the float range
+    ([1e300], [1e3], 1e-10, 310 * np.log(10.0) / 1e3),  # one mode, closed form
+    ([1.0, 1.0], [5e-324, 1e-323], 0.1, np.inf),  # tiny decay: log(20) / 1e-323 overflowed
+    ([1e300, 1.0], [5e-324, 1e3], 1e-5, np.inf),
+    ([2.0], [5e-324], 1.0, np.inf),
+])
+def test_settling_time_is_right_and_quiet_at_extreme_amplitudes_and_decays(amplitudes, decays, tol, expected):
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # an overflow warning fails the test
+        t = settling_time(amplitudes, decays, tol)
+    assert t == pytest.approx(expected, rel=1e-9)
+
+
+@settings(max_examples=300, deadline=None)
+@given(amplitudes=st.lists(st.floats(1e-300, 1e300), min_size=1, max_size=3),
+       decays=st.lists(st.floats(5e-324, 1e7), min_size=3, max_size=3),
+       tol=st.floats(1e-300, 1e300))
+def test_settling_time_meets_the_tolerance_without_a_warning_over_the_whole_float_range(amplitudes, decays, tol):
+    a, g = np.array(amplitudes), np.array(decays[: len(amplitudes)])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        t = settling_time(a, g, tol)
+    assert t >= 0
+    if np.isinf(t):
+        assert log_envelope(1e17, a, g) > np.log(tol) - 1e-9
+    else:
+        assert log_envelope(t * (1 + 1e-6), a, g) <= np.log(tol) + 1e-9
+        assert t == 0 or log_envelope(t * (1 - 1e-6), a, g) >= np.log(tol) - 1e-9
 
 
 def test_the_settling_time_that_stopped_bench_tradeoff():

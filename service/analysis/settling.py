@@ -41,37 +41,50 @@ def tolerance(amplitudes: ArrayLike, fraction: float, floor_mm: float) -> float:
     return max(fraction * float(np.abs(np.asarray(amplitudes, dtype=np.float64)).sum()), floor_mm)
 
 
+def _log_sum_exp(x: np.ndarray) -> float:
+    """log(sum(exp(x))) of x (M,) with a finite largest entry, without leaving the float range."""
+    top = x.max()
+    with np.errstate(under="ignore"):
+        return float(top + np.log(np.exp(x - top).sum()))
+
+
 def settling_time(amplitudes: ArrayLike, decays: ArrayLike, tol_mm: float) -> float:
     """First time (s) after which E(t) <= tol_mm for good; 0 if it starts there, inf if it never gets there.
 
     E is a sum of decaying exponentials, so it is monotone and the crossing is unique: closed form
     for one damped mode, Brent's method otherwise, bracketed by the times each term alone needs to
     fall under its share of the tolerance and by the slowest-decaying bound. Those can span hundreds of
-    decades (a decay rate of 1e-176 /s next to 1e3 /s), so the root is sought in log t. Undamped
-    modes (g = 0) stay for ever, and so does anything needing longer than ``_LONGEST_S``.
+    decades (a decay rate of 1e-176 /s next to 1e3 /s), so the root is sought in log t; E is compared
+    with the tolerance in logs, so amplitudes over the tolerance by more than the float range (1e300
+    against 1e-10) count exactly too. Undamped modes (g = 0) stay for ever, and so does anything
+    needing longer than ``_LONGEST_S`` (bounds that overflow to inf, such as log(20) / 1e-323 /s, are
+    beyond it).
     """
     amplitudes = np.abs(np.asarray(amplitudes, dtype=np.float64)).reshape(-1)
     decays = np.asarray(decays, dtype=np.float64).reshape(-1)
-    if amplitudes.sum() <= tol_mm:
-        return 0.0
     damped = decays > 0
-    budget = tol_mm - amplitudes[~damped].sum()  # what the damped terms may still contribute
+    with np.errstate(over="ignore"):  # a sum past the float range is inf: above any tolerance, as it should be
+        if amplitudes.sum() <= tol_mm:
+            return 0.0
+        budget = tol_mm - amplitudes[~damped].sum()  # what the damped terms may still contribute
     if budget <= 0:
         return float("inf")
     a, g = amplitudes[damped], decays[damped]
-    with np.errstate(over="ignore", divide="ignore"):
-        reach = np.log(np.maximum(a * a.size / budget, 1.0)) / g  # each term under budget / M
+    with np.errstate(divide="ignore", over="ignore"):  # log(0): a term without amplitude; x / 5e-324 s: inf
+        log_a, log_budget = np.log(a), np.log(budget)
+        reach = np.maximum(log_a + np.log(a.size) - log_budget, 0.0) / g  # each term under budget / M
+        # E(t) >= sum(a) exp(-max(g) t), so E stays above the budget until ``low``
+        low = float((_log_sum_exp(log_a) - log_budget) / g.max())
     if a.size == 1:
         return float(reach[0]) if reach[0] <= _LONGEST_S else float("inf")
 
     def excess(t: float) -> float:
-        """E(t) over the budget, the budget's last 1e-12 counted as rounding (Brent calls this ~10-40 times)."""
-        with np.errstate(under="ignore"):
-            return float(a @ np.exp(-g * t)) - budget * (1 + 1e-12)
+        """log E(t) over the budget's, the budget's last 1e-12 counted as rounding (Brent calls this ~10-40 times)."""
+        return _log_sum_exp(log_a - g * t) - log_budget - 1e-12
 
-    # E(t) >= sum(a) exp(-max(g) t), so E stays above the budget until ``low``; every term is under its
-    # share by ``high``: the crossing is between, found in log t (no loss of precision at any scale)
-    low, high = np.log(a.sum() / budget) / g.max(), min(reach.max(), _LONGEST_S)
+    # every term is under its share by ``high``: the crossing is between, found in log t (no loss of
+    # precision at any scale)
+    high = min(float(reach.max()), _LONGEST_S)
     if excess(high) > 0:
         return float("inf")
     if low <= 0 or high <= low or excess(low) <= 0:  # the bound is the root (equal decay rates, or rounding)

@@ -13,6 +13,7 @@ import threading
 import time
 from dataclasses import dataclass, field
 from typing import Any, Literal
+from urllib.parse import urlsplit
 
 from service.errors import MeniscopeError
 from service.inverse.methods import open_method
@@ -88,8 +89,9 @@ class Supervisor:
             pool = self._fits = FitPool(*wanted)
         return pool
 
-    def _set(self, state: State, reason: str | None) -> None:
-        self._health = Health(state, reason, time.time(), self._attempts, {"uri": self.settings.source})
+    def _set(self, state: State, reason: str | None, settings: ServiceSettings) -> None:
+        """Report ``state`` of the run with ``settings``: its source, not that of settings changed meanwhile."""
+        self._health = Health(state, reason, time.time(), self._attempts, {"uri": settings.source})
 
     def _loop(self) -> None:
         while not self._closing.is_set():
@@ -97,20 +99,20 @@ class Supervisor:
             self._run_stop.clear()
             settings = self.settings
             try:
-                self._set("starting", "opening the model and the source")
+                self._set("starting", "opening the model and the source", settings)
                 ended = self._run_once(settings)
             except Exception as exc:  # noqa: BLE001 - any failure is reported and retried, never fatal
                 if not isinstance(exc, MeniscopeError):
                     log.exception("pipeline failed")
                 self._attempts += 1
                 delay = min(2.0 ** (self._attempts - 1), settings.retry_max_s)
-                self._set("retrying", f"{exc} (attempt {self._attempts}; next in {delay:g} s)")
+                self._set("retrying", f"{exc} (attempt {self._attempts}; next in {delay:g} s)", settings)
                 self._wake.wait(delay)
                 continue
             if ended:
-                self._set("ended", "the source ended its stream: change the source to go on")
+                self._set("ended", "the source ended its stream: change the source to go on", settings)
                 self._wake.wait()
-        self._set("stopped", "the service is stopping")
+        self._set("stopped", "the service is stopping", self.settings)
         if self._fits is not None:
             self._fits.close()
 
@@ -122,10 +124,11 @@ class Supervisor:
         fits = self._fit_pool(settings)  # before the source opens: a replay's clock starts when it does
         uri = demo_uri(settings.data_dir) if settings.source is None else resolve_source(
             settings.source, settings.recordings_folder)
-        with open_source(uri) as source:
+        scene_of_sim = {"scene": settings.scene} if urlsplit(uri).scheme.lower() == "sim" else {}
+        with open_source(uri, **scene_of_sim) as source:  # a simulated camera renders the scene of the models
             pipeline = Pipeline(settings, scene, source, method, fits, self.sink, self.stats)
             self._source, self._attempts = source, 0  # it ran: a later failure starts the backoff afresh
-            self._set("running", None)
+            self._set("running", None, settings)
             try:
                 ended = pipeline.run(self._run_stop)
             finally:

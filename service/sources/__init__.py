@@ -6,6 +6,7 @@ delivers :class:`FrameBatch` es through :class:`FrameSource` and passes tests/te
 from service.sources.aravis import AravisSource
 from service.sources.base import Frame, FrameBatch, FrameSource, SourceOptions, SourceStats, StreamFormat, open_source
 from service.sources.replay import ReplaySource
+from service.sources.simulated import SimulatedSource
 from service.sources.v4l2 import V4l2Source
 from service.sources.zmq_source import FrameSender, ZmqSource
 
@@ -16,6 +17,7 @@ __all__ = [
     "FrameSender",
     "FrameSource",
     "ReplaySource",
+    "SimulatedSource",
     "SourceOptions",
     "SourceStats",
     "StreamFormat",

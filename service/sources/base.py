@@ -146,7 +146,7 @@ def parse_options(model: type[_O], uri: str, raw: Mapping[str, Any]) -> _O:
         name = ".".join(str(part) for part in err["loc"]) or "options"
         allowed = ", ".join(model.model_fields)
         problem = f"unknown option {name!r} (options: {allowed})" if err["type"] == "extra_forbidden" else (
-            f"bad option {name}={err.get('input')!r}: {err['msg']}")
+            f"bad option {name}={err.get('input')!r}: {str(err['msg']).removeprefix('Value error, ')}")
         raise MeniscopeError(uri, problem) from None
 
 

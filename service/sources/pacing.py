@@ -7,7 +7,18 @@ from __future__ import annotations
 
 import math
 import time
-from typing import Callable
+from typing import Annotated, Any, Callable
+
+from pydantic import BeforeValidator, Field
+
+
+def _max_is_unpaced(value: Any) -> Any:
+    return 0.0 if isinstance(value, str) and value.strip().lower() == "max" else value
+
+
+#: The ``speed`` option of paced sources: x the stream's own rate; 0 or "max": unpaced.
+Speed = Annotated[float, BeforeValidator(_max_is_unpaced),
+                  Field(ge=0, allow_inf_nan=False, description="x the stream's rate; 0 or 'max': unpaced")]
 
 
 class Pacer:

@@ -12,22 +12,16 @@ from typing import Any
 from urllib.parse import SplitResult, unquote
 
 import numpy as np
-from pydantic import Field, field_validator
 
 from service.errors import MeniscopeError
 from service.recordings import Recording, open_recording
 from service.sources.base import FrameBatch, FrameSource, SourceOptions, StreamFormat, parse_options
-from service.sources.pacing import Pacer
+from service.sources.pacing import Pacer, Speed
 
 
 class ReplayOptions(SourceOptions):
-    speed: float = Field(1.0, ge=0, allow_inf_nan=False, description="x recorded rate; 0 or 'max': unpaced")
+    speed: Speed = 1.0
     loop: bool = False
-
-    @field_validator("speed", mode="before")
-    @classmethod
-    def _max_is_unpaced(cls, value: Any) -> Any:
-        return 0.0 if isinstance(value, str) and value.strip().lower() == "max" else value
 
 
 class ReplaySource(FrameSource):
