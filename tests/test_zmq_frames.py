@@ -98,13 +98,14 @@ def sender() -> Iterator[FrameSender]:
         yield sender
 
 
-def publish(sender: FrameSender, batches: list[FrameBatch]) -> threading.Thread:
-    """A thread that waits for a subscriber, then sends ``batches`` and ends the stream."""
+def publish(sender: FrameSender, batches: list[FrameBatch], end: bool = True) -> threading.Thread:
+    """A thread that waits for a subscriber, then sends ``batches`` and (``end``) ends the stream."""
     def run() -> None:
         if sender.wait_for_subscriber(10.0):
             for b in batches:
                 sender.send(b)
-            sender.close()
+            if end:
+                sender.close()
 
     thread = threading.Thread(target=run, daemon=True)
     thread.start()
@@ -127,16 +128,23 @@ class TestOverLoopback:
 
     def test_a_receiver_that_does_not_read_never_blocks_the_sender(self, sender: FrameSender) -> None:
         sent = [batch(BIG, 2, first=2 * k) for k in range(300)]  # 300 messages of 1 MiB
-        thread = publish(sender, sent)
+        thread = publish(sender, sent, end=False)
         with open_source(uri(sender), timeout=0.2) as source:  # subscribed; now it stops reading
             thread.join(60)
             assert not thread.is_alive(), "the sender blocked on a subscriber that does not read"
             assert sender.sequence == 300
             while (got := source.read(64)) is not None and len(got):
                 pass  # take what was queued while it was not reading
+            sender.send(batch(BIG, 2, first=600))  # the stream goes on: its next frames reveal what was lost
+            for _ in range(300):  # ~60 s at the 0.2 s read timeout: a guard, not a time being measured
+                got = source.read(64)
+                if got is not None and len(got) and got.indices[-1] == 601:
+                    break
+            else:
+                pytest.fail("the frames sent after the flood never arrived")
             stats = source.stats
-            assert stats.frames < 600 and stats.gaps >= 1
-            assert stats.frames + stats.dropped <= 600
+            assert stats.frames < 602 and stats.gaps >= 1
+            assert stats.frames + stats.dropped <= 602
             assert source.describe()["lost_messages"] >= stats.gaps
 
     def test_a_sender_that_starts_again_ends_the_stream(self, sender: FrameSender) -> None:
