@@ -25,8 +25,7 @@ def renderer() -> Renderer:
 
 def frames_of(renderer: Renderer, motion: WindowTruth, camera: CameraEffects, seed: int = 0) -> np.ndarray:
     """A window's ROI frames as a camera stores them."""
-    c = motion.coefficients(T)
-    return camera.apply(renderer.render(np.stack([c.d, c.p, c.a, c.b], axis=1)), np.random.default_rng(seed))
+    return camera.apply(renderer.render(motion.coefficients(T).to_array()), np.random.default_rng(seed))
 
 
 def relative(found: float, true: float) -> float:
@@ -57,7 +56,6 @@ def test_refinement_lowers_the_pixel_residual_and_reports_its_search(renderer):
 
 
 def test_the_start_undoes_the_window_offset_of_the_per_frame_fits():
-    c = TRUE.coefficients(T)
-    start = start_motion(np.stack([c.d, c.p, c.a, c.b], axis=1), T, FPS)
+    start = start_motion(TRUE.coefficients(T).to_array(), T, FPS)
     for name, value in TRUE.as_dict().items():
         assert getattr(start, name) == pytest.approx(value, rel=1e-6, abs=1e-9), name

@@ -96,7 +96,8 @@ def analyse_recording(
         coefficients, centre = _refine(path, scene, coefficients, windows, fps, settings, progress)
     steady = steady_centre(coefficients, windows, scene.nozzle.radius_mm, settings.transient_frames(fps))
     results = fit_windows(steady, fps, windows, settings, progress=progress)
-    report = Report(source=source, method=f"{method}+synthesis" if refine else method, ejections=cuts.tolist(), windows=results, fit=settings)
+    report = Report(source=source, method=method_label(method, refine), ejections=cuts.tolist(), windows=results,
+                    fit=settings)
     return Analysis(report, InverseOutput(coefficients=coefficients, centre=centre), steady)
 
 
@@ -106,12 +107,17 @@ def _regularise(db: NearestDatabase, candidates: np.ndarray, windows: list[Windo
     chosen = candidates[:, 0].copy()
     skip = settings.transient_frames(fps)
     for w in tqdm(windows, desc="regularised fit", unit="window", disable=not progress):
-        lo = w.start + (skip if w.starts_at_ejection else 0)
+        lo = w.oscillation_start(skip)
         if w.end - lo < 4:  # too short to fit a sinusoid: keep the nearest
             continue
         fit = regularised.fit_window(db.centre[candidates[lo:w.end]], fps)
         chosen[lo:w.end] = candidates[np.arange(lo, w.end), fit.chosen]
     return db.coeffs[chosen], db.centre[chosen]
+
+
+def method_label(method: str, refine: bool) -> str:
+    """The method a report names: the per-frame method, with ``+synthesis`` when its windows were refined."""
+    return f"{method}+synthesis" if refine else method
 
 
 def _refine(path: Path, scene: Scene, coefficients: np.ndarray, windows: list[Window], fps: float,
@@ -123,14 +129,13 @@ def _refine(path: Path, scene: Scene, coefficients: np.ndarray, windows: list[Wi
     skip = settings.transient_frames(fps)
     with open_recording(path) as rec:
         for w in tqdm(windows, desc="refine by synthesis", unit="window", disable=not progress):
-            lo = w.start + (skip if w.starts_at_ejection else 0)
+            lo = w.oscillation_start(skip)
             if w.end - lo < synthesis.MIN_FRAMES:
                 continue
             t = (np.arange(lo, w.end) - w.start) / fps
             start = synthesis.start_motion(coefficients[lo : w.end], t, fps)
             refined = synthesis.refine_window(renderer, roi_frames(rec, scene, lo, w.end - lo), t, start)
-            c = refined.motion.coefficients(t)
-            coefficients[lo : w.end] = np.stack([c.d, c.p, c.a, c.b], axis=1)
+            coefficients[lo : w.end] = refined.motion.coefficients(t).to_array()
     return coefficients, centre_displacement(*coefficients.T, scene.nozzle.radius_mm)
 
 

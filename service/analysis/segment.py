@@ -42,6 +42,10 @@ class Window:
     starts_at_ejection: bool
     ends_at_ejection: bool
 
+    def oscillation_start(self, transient: int) -> int:
+        """First frame after the ejection's ``transient`` frames when the window starts at one, else its start."""
+        return min(self.start + transient, self.end) if self.starts_at_ejection else self.start
+
 
 def windows_between(ejections: ArrayLike, n_frames: int) -> list[Window]:
     """The windows of an ``n_frames`` series cut at ``ejections`` (frame indices, each in [0, n_frames))."""

@@ -28,13 +28,14 @@ from scipy.optimize import least_squares
 
 from service.analysis.fit import fit_window
 from service.analysis.results import FitSettings
-from service.physics import WindowTruth
+from service.physics import L1, L2, WindowTruth
 from service.render.renderer import Renderer
 
-#: Parameter order of the search: Eq. 1's window motion, then the camera's blur sigma (px).
-_NAMES = ("d", "p", "A1", "g1", "f1", "phi1", "A2", "g2", "f2", "phi2")
-#: Typical size of each parameter's change (mm, -, mm, 1/s, Hz, rad, ..., px): LM works in units of these.
+#: Search parameters: Eq. 1's window motion in WindowTruth's order (d, p, A1, g1, f1, phi1, A2, g2, f2,
+#: phi2), then the camera's blur sigma (px). Typical size of each parameter's change (mm, -, mm, 1/s, Hz,
+#: rad, ..., px): LM works in units of these.
 _SCALE = np.array([1e-3, 1e-2, 1e-3, 30.0, 5.0, 0.05, 1e-3, 60.0, 10.0, 0.1, 0.1])
+#: Which of the motion's parameters are decay rates.
 _DECAYS = np.isin(np.arange(10), (3, 7))
 #: Finite-difference steps of the per-frame coefficients (d mm, p, a mm, b mm) and of the blur (px):
 #: large enough to move a highlight across the supersampled pixel grid, small against the motion.
@@ -48,7 +49,7 @@ _AMPLIFY = (1.0, 2.0, 4.0)
 #: Shifts of the sag p of the starts tried (the shipped models' per-frame p is off by ~0.03-0.08 RMS).
 _SHIFT_P = (-0.03, 0.0, 0.03)
 #: l2 / l1 of scene.md: mode 2's frequency over mode 1's for an ideal membrane.
-_BESSEL_RATIO = 5.520078110286311 / 2.404825557695773
+_BESSEL_RATIO = L2 / L1
 #: Mode 1 (amplitude mm, decay 1/s, frequency Hz, phase) where neither a(t) nor b(t) shows a resolved mode.
 _TYPICAL_MODE_1 = (0.015, 500.0, 1500.0, 0.0)
 #: Frames a window needs for the search (ten parameters and the blur, with room to spare).
@@ -65,8 +66,7 @@ class Refined:
     blur_sigma_px: float
     rms_start: float  # pixel residual RMS at the start, in stored pixel units
     rms: float  # and at the end
-    evaluations: int
-    converged: bool
+    evaluations: int  # renders of the window the search made
 
 
 def start_motion(coefficients: np.ndarray, t: np.ndarray, fps: float) -> WindowTruth:
@@ -138,8 +138,7 @@ class _Problem:
 def _coefficients(params: np.ndarray, t: np.ndarray) -> np.ndarray:
     """Per-frame (d, p, a, b), shape (m, 4), of the motion in ``params[:10]`` at ``t`` (s); the search's decay
     parameters stand for their absolute values (a decay rate is >= 0 without bounds on the search)."""
-    c = WindowTruth(*np.where(_DECAYS, np.abs(params[:10]), params[:10])).coefficients(t)
-    return np.stack([c.d, c.p, c.a, c.b], axis=1)
+    return WindowTruth(*np.where(_DECAYS, np.abs(params[:10]), params[:10])).coefficients(t).to_array()
 
 
 def _coefficient_derivatives(params: np.ndarray, t: np.ndarray) -> np.ndarray:
@@ -173,10 +172,10 @@ def _canonical(params: np.ndarray) -> WindowTruth:
 
 
 def _variants(start: WindowTruth) -> list[WindowTruth]:
-    """``start`` with both mode amplitudes times each of :data:`_AMPLIFY`, mode 1 as it is and turned over (phase
-    + pi), p moved by each of :data:`_SHIFT_P`: per-frame estimates of a and b shrink towards 0 (a regressor given an ambiguous image returns the
-    mean of its possible shapes), a bulge and a dip of the same size can look alike from below, and the
-    sag p trades against mode 1 near the centre (both curve it)."""
+    """``start`` with both mode amplitudes times each of :data:`_AMPLIFY`, mode 1 as it is and turned over
+    (phase + pi), p moved by each of :data:`_SHIFT_P`: per-frame estimates of a and b shrink towards 0 (a
+    regressor given an ambiguous image returns the mean of its possible shapes), a bulge and a dip of the
+    same size can look alike from below, and the sag p trades against mode 1 near the centre (both curve it)."""
     return [replace(start, p=start.p + sag, A1=start.A1 * k, A2=start.A2 * k, phi1=start.phi1 + turn)
             for k in _AMPLIFY for turn in (0.0, np.pi) for sag in _SHIFT_P]
 
@@ -192,4 +191,4 @@ def refine_window(renderer: Renderer, frames: np.ndarray, t: np.ndarray, start: 
                           max_nfev=_EVALUATIONS)
     params = found.x * _SCALE
     return Refined(_canonical(params), abs(float(params[10])), rms_start, float(np.sqrt(np.mean(found.fun**2))),
-                   problem.renders, bool(found.status > 0))
+                   problem.renders)

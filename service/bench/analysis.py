@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from service import DEFAULT_MODELS
-from service.analysis.offline import analyse_recording
+from service.analysis.offline import analyse_recording, method_label
 from service.analysis.score import summary
 from service.cli import add_scene_option
 from service.errors import MeniscopeError, require_folder_of
@@ -130,7 +130,7 @@ def run(args: argparse.Namespace) -> int:
     results: dict = {"recordings": [p.name for p in recordings], "methods": {}, "per_recording": {}}
     for method in methods:
         measured = run_method_apart(method, recordings, scene, args.models, args.database, args.refine)
-        method = f"{method}+synthesis" if args.refine else method
+        method = method_label(method, args.refine)
         rows = measured["rows"]
         by_noise = defaultdict(list)
         for r in rows:
