@@ -34,3 +34,5 @@ if [ "$dev" = 1 ]; then
 else
   "$py" -m pip install -q -e ".[aravis]"
 fi
+# compile the window fit's numba kernels now (cached beside the code), not at the service's first window
+"$py" -c "from service.analysis.fit import warm; warm()"

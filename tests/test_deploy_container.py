@@ -78,6 +78,16 @@ def test_the_image_builds_in_two_stages_and_runs_without_root() -> None:
     assert not any(op == "RUN" and "pip install" in a for op, a in runtime), "the runtime stage installs nothing"
 
 
+
+def test_the_image_compiles_the_window_fit_as_the_user_that_runs_it() -> None:
+    """numba's cache is written at build time, by the runtime's user into its NUMBA_CACHE_DIR, so that the
+    container's fit workers load the compiled fit instead of compiling it at the first window."""
+    runtime = _stages()[-1]
+    user = max(i for i, (op, _) in enumerate(runtime) if op == "USER")
+    warms = [i for i, (op, a) in enumerate(runtime) if op == "RUN" and "warm()" in a]
+    assert warms and warms[-1] > user
+    assert "NUMBA_CACHE_DIR=" in " ".join(a for op, a in runtime if op == "ENV")
+
 def test_the_image_checks_health_bakes_models_and_serves() -> None:
     runtime = _stages()[-1]
     [health] = [a for op, a in runtime if op == "HEALTHCHECK"]

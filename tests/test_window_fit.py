@@ -3,6 +3,9 @@ frequency at the extremes the analysis issue lists (a test each)."""
 from __future__ import annotations
 
 import json
+import os
+import subprocess
+import sys
 import warnings
 
 import numpy as np
@@ -10,10 +13,12 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
+from scipy.optimize import least_squares
 from scipy.special import logsumexp
 
+from service.analysis import fit as fit_module, kernels
 from service.analysis.fit import fit_window, model_curve
-from service.analysis.pencil import Exponentials
+from service.analysis.pencil import energy
 from service.analysis.peer import available, harminv_modes
 from service.analysis.results import FitSettings, Report, Source
 from service.analysis.settling import envelope, settling_time
@@ -301,13 +306,50 @@ def test_the_settling_time_that_stopped_bench_tradeoff():
     assert envelope(t, a, g)[0] == pytest.approx(5e-4, rel=1e-9)
 
 
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 10_000), noise=st.sampled_from([0.0, 2e-4, 1e-3, 5e-3]),
+       loss=st.sampled_from(["soft_l1", "linear"]))
+def test_the_compiled_levenberg_marquardt_reaches_scipy_s_optimum(seed, noise, loss):
+    """From the fit's own two-mode start, our LM ends at a cost no worse than MINPACK's (scipy, same residuals)."""
+    rng = np.random.default_rng(seed)
+    y = series([(0.02, rng.uniform(50, 1500), rng.uniform(300, 2700), rng.uniform(-3, 3)),
+                (0.006, rng.uniform(500, 3000), rng.uniform(700, 6500), rng.uniform(-3, 3))], noise=noise, seed=seed)
+    n = np.arange(N, dtype=np.float64)
+    window = fit_module._Window(n, (y - np.median(y)) / np.ptp(y), FitSettings(loss=loss))
+    start = window.starts(2, fit_module._pencil_modes(n, window.y, N, 6))
+
+    def residuals(params: np.ndarray) -> np.ndarray:
+        return kernels.weighted_jacobian(n, window.y, window.scale, window.robust, params)[0]
+
+    # both search each mode's decay g as sqrt(g), so that g >= 0
+    decays = (np.arange(start.size) % 4 == 1) & (np.arange(start.size) > 1)
+    squared = lambda x: np.where(decays, x**2, x)  # noqa: E731
+    ours = kernels.levenberg_marquardt(n, window.y, window.scale, window.robust, start, 1e-10, 2000)
+    minpack = squared(least_squares(lambda x: residuals(squared(x)), np.where(decays, np.sqrt(start), start),
+                                    method="lm", xtol=1e-12, ftol=1e-12, max_nfev=4000).x)
+    assert residuals(ours) @ residuals(ours) <= residuals(minpack) @ residuals(minpack) * (1 + 1e-6) + 1e-20
+
+
 def test_a_pencil_pole_without_amplitude_explains_nothing_even_when_it_would_overflow():
     with np.errstate(all="raise"):
-        e = Exponentials(np.array([1e200 + 0j, 0.5 + 0.5j]), np.array([0j, 1 + 0j]), N)
-        assert e.energy()[0] == 0.0 and e.energy()[1] > 0
+        e = energy(np.array([1e200 + 0j, 0.5 + 0.5j]), np.array([0j, 1 + 0j]), N)
+        assert e[0] == 0.0 and e[1] > 0
 
 
 def test_an_empty_window_is_failed_not_a_crash():
     r = fit_window(np.array([]), FPS)
     assert r.status == "failed" and r.samples == 0 and r.end_frame == r.start_frame
     json_clean(r)
+
+
+def test_warm_leaves_every_fit_kernel_in_numba_s_cache(tmp_path) -> None:
+    """After one process has warmed the fit, a new process (a fit worker) loads every kernel and compiles none."""
+    report = ("from service.analysis import fit, kernels, pencil; fit.warm(); "
+              "import numba; print(sum(sum(f.stats.cache_misses.values()) for m in (kernels, pencil) "
+              "for f in vars(m).values() if isinstance(f, numba.core.registry.CPUDispatcher)))")
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path)}
+    runs = [subprocess.run([sys.executable, "-c", report], env=env, capture_output=True, text=True, timeout=300)
+            for _ in range(2)]
+    assert all(r.returncode == 0 for r in runs), runs[-1].stderr
+    assert int(runs[0].stdout) > 0 and int(runs[1].stdout) == 0

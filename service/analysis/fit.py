@@ -4,8 +4,8 @@
 
 Eq. 1 makes ``c = d + p R`` constant in a window; the drift ``v`` is there so that a slow bias of
 the upstream estimate is not mistaken for a slow mode (it is reported, and is ~0 on clean data).
-Per model order the matrix pencil gives the start, Levenberg-Marquardt (MINPACK via
-``scipy.optimize.leastsq``) refines it under a soft-L1 loss whose scale is a robust noise
+Per model order the matrix pencil gives the start, Levenberg-Marquardt (compiled:
+:mod:`service.analysis.kernels`) refines it under a soft-L1 loss whose scale is a robust noise
 estimate, so a few bad frames do not drag the fit. The order is chosen by BIC: it is consistent
 (with ~190 samples it does not add modes that noise alone explains, where AIC/AICc would more
 often), and its log(n) penalty is what makes "settled" mean "no oscillation above the noise".
@@ -18,19 +18,17 @@ from typing import Sequence
 
 import numpy as np
 from numpy.typing import ArrayLike
-from scipy.optimize import leastsq
 from scipy.special import stdtrit
 from threadpoolctl import ThreadpoolController
 from tqdm import tqdm
 
-from service.analysis.pencil import MatrixPencil
+from service.analysis import kernels, pencil
+from service.analysis.kernels import BASE as _BASE, PER_MODE as _PER_MODE
 from service.analysis.results import FitSettings, WindowResult
 from service.analysis.segment import Window, robust_sigma
 from service.analysis.settling import damping_ratio, quality_factor, settle, tolerance
 from service.physics import damped_mode
 
-_BASE = 2  # offset c, drift v
-_PER_MODE = 4  # a = A cos(phi), b = -A sin(phi), w (rad/sample), g (1/sample)
 _MIN_DOF = 3  # residual degrees of freedom a model order needs to be tried
 #: A mode that decays by e within a frame is a transient, not a resolved oscillation (1/sample).
 _MAX_DECAY = 1.0
@@ -50,6 +48,8 @@ _LM_EVALUATIONS = 20
 #: Pencil parameter (Hankel rows) of the start: the LM refines the start, so the pencil needs only to
 #: separate the 2 M + 2 poles, not Hua & Sarkar's N / 3 (whose SVD is ~10x slower at N = 190).
 _PENCIL = 20
+#: Pencil pole pairs turning fewer cycles over the window stand in for the offset or a trend.
+_PENCIL_MIN_CYCLES = 0.25
 _IRLS_STEPS = 100  # at most; the order-0 cost settles to 1e-6 (relative) in ~5-10 rounds
 #: The fit's matrices are small: a multi-threaded BLAS only fights the other threads for the cores
 #: (7x slower per window on a loaded 2-core machine), so each fit runs its BLAS on one thread.
@@ -66,84 +66,6 @@ def _noise_from_differences(n: np.ndarray, y: np.ndarray) -> float:
     consecutive = np.diff(n) == 1
     diffs = np.diff(y)[consecutive] if consecutive.sum() >= 3 else np.diff(y)
     return robust_sigma(diffs) / np.sqrt(2.0)
-
-
-def _columns(n: np.ndarray, params: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Model and Jacobian of c + v n + sum_k exp(-g_k n) (a_k cos w_k n + b_k sin w_k n).
-
-    Parameters
-    ----------
-    n : array of shape (N,), sample index since the window start.
-    params : array of shape (2 + 4 M,): c, v, then a, b, w, g per mode (per-sample units).
-
-    Returns
-    -------
-    model : array of shape (N,); jacobian : array of shape (N, 2 + 4 M).
-
-    With z = exp(n (i w - g)) and q = z (a - i b): the mode is Re q, its a and b columns Re z and
-    Im z, and its w and g columns -n Im q and -n Re q (few array operations: it runs at every LM step).
-    """
-    a, b, w, g = params[_BASE:].reshape(-1, _PER_MODE).T  # each (M,)
-    with np.errstate(under="ignore"):
-        z = np.exp(n[:, None] * (1j * w - g))  # (N, M)
-    q = z * (a - 1j * b)
-    nq = q * -n[:, None]
-    jac = np.empty((n.size, params.size))
-    jac[:, 0], jac[:, 1] = 1.0, n
-    modes = jac[:, _BASE:].reshape(n.size, -1, _PER_MODE)  # a view: (N, M, 4)
-    modes[:, :, 0], modes[:, :, 1], modes[:, :, 2], modes[:, :, 3] = z.real, z.imag, nq.imag, nq.real
-    return params[0] + params[1] * n + q.real.sum(axis=1), jac
-
-
-def _soft_l1(r: np.ndarray, scale: float) -> tuple[np.ndarray, np.ndarray]:
-    """Residuals rescaled so that their sum of squares is the soft-L1 cost, and d(rescaled)/dr.
-
-    ``sum r'^2 = sum C^2 rho(r^2 / C^2)`` with ``rho(z) = 2 (sqrt(1 + z) - 1)`` (quadratic below the
-    scale C, linear above), written as ``r' = r sqrt(2 / (sqrt(1 + z) + 1))`` so that it is smooth at 0.
-    """
-    z = (r / scale) ** 2
-    root = np.sqrt(1.0 + z)
-    weight = np.sqrt(2.0 / (root + 1.0))
-    return r * weight, weight * (1.0 - z / (2.0 * root * (root + 1.0)))
-
-
-class _Search:
-    """One LM search of a :class:`_Window` in x = params with sqrt(g) for g, so that g >= 0 without
-    bounds: residuals and Jacobian (MINPACK asks for both at each x, so computed once per x)."""
-
-    def __init__(self, window: "_Window", start: np.ndarray) -> None:
-        self.window, self.decay = window, np.s_[_BASE + 3 :: _PER_MODE]
-        self.x0 = start.copy()
-        self.x0[self.decay] = np.sqrt(self.x0[self.decay])
-        self._key: bytes | None = None
-
-    def _evaluate(self, x: np.ndarray) -> None:
-        """Residuals and Jacobian at x, unless x is the point last evaluated."""
-        key = x.tobytes()
-        if key == self._key:
-            return
-        p = self.params(x)
-        model, j = _columns(self.window.n, p)
-        j[:, self.decay] *= 2.0 * x[self.decay]
-        self._r, dr = self.window.residuals(model)
-        j *= dr[:, None]
-        self._j, self._key = j, key
-
-    def params(self, x: np.ndarray) -> np.ndarray:
-        """Model parameters (g = x^2) of a search point."""
-        p = x.copy()
-        p[self.decay] = x[self.decay] ** 2
-        return p
-
-    def residuals(self, x: np.ndarray) -> np.ndarray:
-        """Residuals as minimised at x, shape (N,)."""
-        self._evaluate(x)
-        return self._r
-
-    def jacobian(self, x: np.ndarray) -> np.ndarray:
-        """Their Jacobian in x, shape (N, k)."""
-        self._evaluate(x)
-        return self._j
 
 
 @dataclass(frozen=True)
@@ -164,13 +86,7 @@ class _Window:
     def __init__(self, n: np.ndarray, y: np.ndarray, settings: FitSettings) -> None:
         self.n, self.y, self.settings = n, y, settings
         self.scale = max(_noise_from_differences(n, y), _EXACT)  # soft-L1 scale, normalised units
-
-    def residuals(self, model: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Residuals as minimised, and their derivative with respect to the plain residual."""
-        r = model - self.y
-        if self.settings.loss == "linear":
-            return r, np.ones_like(r)
-        return _soft_l1(r, self.scale)
+        self.robust = settings.loss == "soft_l1"
 
     def starts(self, order: int, pencil_modes: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
         """Start for ``order`` modes: the most energetic pencil pairs, linear coefficients by least squares."""
@@ -180,13 +96,7 @@ class _Window:
         w = np.concatenate([w[:order], np.full(missing, np.pi / span)])  # half a cycle per window
         g = np.concatenate([g[:order], np.full(missing, 1.0 / span)])
         w, g = np.clip(w, 1e-3, np.pi - 1e-3), np.clip(g, 1e-4, _MAX_DECAY)
-        nonlinear = np.stack([np.zeros(order), np.zeros(order), w, g], axis=1).reshape(-1)
-        _, design = _columns(self.n, np.concatenate([[0.0, 0.0], nonlinear]))
-        linear_columns = np.r_[0, 1, (_BASE + np.arange(order)[:, None] * _PER_MODE + np.array([0, 1])).ravel()]
-        coef = np.linalg.lstsq(design[:, linear_columns], self.y, rcond=None)[0]
-        params = np.concatenate([[0.0, 0.0], nonlinear])
-        params[linear_columns] = coef
-        return params
+        return kernels.linear_start(self.n, self.y, w, g)
 
     def bic(self, cost: float, k: int) -> float:
         """n ln(cost / n) + k ln n, with residuals under ``_EXACT`` counted as exact."""
@@ -194,22 +104,9 @@ class _Window:
         return float(n * np.log(cost / n + _EXACT**2) + k * np.log(n))
 
     def linear_fit(self, design: np.ndarray) -> tuple[np.ndarray, float]:
-        """Coefficients of ``design`` (N, k) and their robust cost, by iteratively reweighted least squares.
-
-        For a linear model this reaches the optimum LM would; the soft-L1 weight is
-        rho'(z) = 1 / sqrt(1 + z), z = (r / C)^2.
-        """
-        weight, cost = np.ones_like(self.y), np.inf
-        for _ in range(_IRLS_STEPS):
-            weighted = design.T * weight
-            params = np.linalg.solve(weighted @ design, weighted @ self.y)
-            model = design @ params
-            minimised = self.residuals(model)[0]
-            previous, cost = cost, float(minimised @ minimised)
-            if self.settings.loss == "linear" or previous - cost <= 1e-6 * cost:  # BIC differences that matter are >> 1e-6
-                break
-            weight = 1.0 / np.sqrt(1.0 + ((model - self.y) / self.scale) ** 2)
-        return params, cost
+        """Coefficients of ``design`` (N, k) and their robust cost (:func:`kernels.linear_fit`)."""
+        params, cost = kernels.linear_fit(design, self.y, self.scale, self.robust, _IRLS_STEPS)
+        return params, float(cost)
 
     def fit_baseline(self) -> _OrderFit:
         """Order 0: offset and drift alone."""
@@ -221,24 +118,18 @@ class _Window:
         return baseline.bic < self.bic(cost, 1)
 
     def fit(self, order: int, start: np.ndarray) -> _OrderFit:
-        """Refine ``start`` by LM (:class:`_Search`); then covariance in (w, g)."""
-        search = _Search(self, start)
-        # MINPACK's lmder through leastsq: the same optimum as least_squares(method="lm"), 17 % less overhead
-        # (full_output: an unconverged search is judged like any other fit, by BIC and its intervals, not warned of)
-        # and leastsq's own covariance (unused: _judge computes it safely) may overflow on absurd series
-        with np.errstate(over="ignore", invalid="ignore"):
-            x = leastsq(search.residuals, search.x0, Dfun=search.jacobian, full_output=True, ftol=_LM_TOLERANCE,
-                        xtol=_LM_TOLERANCE, maxfev=_LM_EVALUATIONS * (search.x0.size + 1))[0]
-        return self._judge(order, _canonical(search.params(np.atleast_1d(x))))
+        """Refine ``start`` by LM (:func:`kernels.levenberg_marquardt`), then judge it."""
+        params = kernels.levenberg_marquardt(self.n, self.y, self.scale, self.robust, start, _LM_TOLERANCE,
+                                             _LM_EVALUATIONS * (start.size + 1))
+        return self._judge(order, _canonical(params))
 
     def _judge(self, order: int, params: np.ndarray) -> _OrderFit:
         """Cost, BIC, CI half-widths and (for modes) whether they are resolved."""
-        model, j = _columns(self.n, params)
-        r, dr = self.residuals(model)
+        r, j = kernels.weighted_jacobian(self.n, self.y, self.scale, self.robust, params)
         n, k = self.n.size, params.size
         cost = float(r @ r)
         bic = self.bic(cost, k)
-        variance = _covariance_diagonal(dr[:, None] * j) * cost / (n - k)
+        variance = kernels.covariance_diagonal(j) * cost / (n - k)
         half = stdtrit(n - k, 0.5 + self.settings.confidence / 2) * np.sqrt(variance)
         return _OrderFit(order, params, half, cost, bic, _unresolved(params, half, self.n[-1] - self.n[0] + 1))
 
@@ -251,17 +142,6 @@ def _canonical(params: np.ndarray) -> np.ndarray:
     modes[:, 1] *= np.where(w < 0, -1.0, 1.0)
     modes[:, 2] = np.abs(w)
     return p
-
-
-def _covariance_diagonal(jac: np.ndarray) -> np.ndarray:
-    """diag((J^T J)^-1), shape (k,), inf for parameters in a (numerically) unidentifiable direction."""
-    norms = np.linalg.norm(jac, axis=0)
-    if not np.all(norms > 0):
-        return np.full(jac.shape[1], np.inf)
-    _, sv, vt = np.linalg.svd(jac / norms, full_matrices=False)
-    if sv[-1] <= 1e-10 * sv[0]:
-        return np.full(jac.shape[1], np.inf)
-    return ((vt.T / sv) ** 2).sum(axis=1) / norms**2
 
 
 def _unresolved(params: np.ndarray, half: np.ndarray, span: float) -> str | None:
@@ -370,8 +250,9 @@ def _pencil_modes(n: np.ndarray, y: np.ndarray, length: int, order: int) -> tupl
     """Pencil pole pairs (w, g per sample, most energetic first) of the gap-filled, detrended series."""
     grid = np.arange(length, dtype=np.float64)
     filled = np.interp(grid, n, y)
-    filled -= np.polyval(np.polyfit(grid, filled, 1), grid)
-    return MatrixPencil(filled, pencil=min(max(_PENCIL, order), length // 3)).estimate(order).damped_sinusoids()
+    centred = grid - grid.mean()
+    filled -= filled.mean() + centred * (centred @ filled) / (centred @ centred)  # least-squares line
+    return pencil.damped_sinusoids(filled, min(max(_PENCIL, order), length // 3), order, _PENCIL_MIN_CYCLES)
 
 
 def _result(
@@ -379,7 +260,7 @@ def _result(
     centre: float, spread: float, fps: float, settings: FitSettings, common: dict,
 ) -> WindowResult:
     """Back to mm, Hz and 1/s; the status, the settling metrics and r2 of the chosen fit."""
-    model, _ = _columns(window.n, fit.params)
+    model, _ = kernels.columns(window.n, fit.params)
     ss_res = float(np.sum((window.y - model) ** 2))
     ss_tot = float(np.sum((window.y - window.y.mean()) ** 2))
     numbers = dict(
@@ -446,6 +327,15 @@ def model_curve(result: WindowResult, t: ArrayLike) -> np.ndarray:
     for m in result.modes:
         curve = curve + damped_mode(t, m.amplitude_mm, m.decay_rate_per_s, m.frequency_hz, m.phase_rad)
     return curve
+
+
+def warm() -> None:
+    """Compile the fit's kernels (or load them from numba's cache) on a small window of each loss, so that the
+    first real window does not wait for the compiler (~15 s uncached on two cores, ~0.5 s from the cache)."""
+    t = np.arange(64) / 19000.0
+    y = damped_mode(t, 0.01, 300.0, 1500.0, 0.3) + damped_mode(t, 0.004, 900.0, 3900.0, 1.0)
+    for loss in ("soft_l1", "linear"):
+        fit_window(y, 19000.0, FitSettings(loss=loss))
 
 
 def fit_windows(

@@ -1,7 +1,7 @@
 """Window fits in worker processes: the caller hands a closed window over and never waits for it.
 
-Processes rather than threads because the fit is many small numpy and MINPACK calls that hold the
-interpreter lock, which inference, acquisition and the web server need; the workers run at a lower
+Processes rather than threads because the fit's Python around its compiled kernels (a few dozen calls
+per window) holds the interpreter lock, which inference, acquisition and the web server need; the workers run at a lower
 priority (``nice``, 10 by default) so that on a busy machine frames keep flowing and windows wait. One window per
 worker is in flight and none waits behind it: a window that finds every worker busy is refused (the
 caller counts it), so a fit slower than the ejection rate costs windows, never memory or frames, and
