@@ -54,6 +54,25 @@ def test_analyze_writes_the_report_the_table_and_the_plot(recording: Path, tmp_p
     # the per-frame D(0, t) follows the truth (how closely is the inverse method's business: see the bench)
     assert np.corrcoef(table[:, 6], truth_centre(truth))[0, 1] > 0.5
     assert out.with_suffix(".png").stat().st_size > 10_000
+    # poles from the frames' brightness by default: each window says where its modes' poles came from
+    assert data["fit"]["poles"] == "frames" and {w["poles_from"] for w in data["windows"]} <= {"frames", "series"}
+    assert all((w["poles_from"] is None) == (not w["modes"]) for w in data["windows"])
+
+
+def test_analyze_takes_the_poles_from_the_frames_unless_told(recording: Path, tmp_path: Path):
+    truth = {w["start_frame"]: w["truth"]["f1"] for w in read_truth(recording)["windows"]}
+    errors = {}
+    for poles in ("frames", "series"):
+        out = tmp_path / f"{poles}.json"
+        assert meniscope("analyze", recording, "--poles", poles, "--out", out, "--quiet").returncode == 0
+        data = json.loads(out.read_text())
+        assert data["fit"]["poles"] == poles
+        errors[poles] = [abs(w["modes"][0]["frequency_hz"] / truth[w["start_frame"]] - 1) for w in data["windows"]
+                         if w["modes"] and w["start_frame"] in truth]
+        assert {w["poles_from"] for w in data["windows"] if w["modes"]} <= {poles, "series"}
+    # on this recording D(0, t) alone doubles one window's frequency (the network's |a| response); the frames do not
+    assert max(errors["frames"]) < 0.03 and max(errors["series"]) > 0.5
+    assert np.median(errors["frames"]) < np.median(errors["series"])
 
 
 def test_analyze_at_a_known_rate_and_from_the_printers_file(recording: Path, tmp_path: Path):
@@ -76,7 +95,7 @@ def test_fit_recovers_the_true_motion_of_every_window(recording: Path, tmp_path:
     done = meniscope("fit", series, "--fps", "19000", "--ejection-hz", "100", "--out", out, "--quiet")
     assert done.returncode == 0, done.stderr
     data = check_layout(out)
-    assert data["ejections"] == truth["ejections"]
+    assert data["ejections"] == truth["ejections"] and data["fit"]["poles"] == "series"  # no frames to take them from
     for w, tw in zip(data["windows"], truth["windows"]):
         assert w["status"] == "ok" and w["modes"][0]["frequency_hz"] == pytest.approx(tw["truth"]["f1"], rel=1e-4)
         assert w["modes"][0]["decay_rate_per_s"] == pytest.approx(tw["truth"]["g1"], rel=1e-3)
@@ -92,6 +111,7 @@ def test_fit_recovers_the_true_motion_of_every_window(recording: Path, tmp_path:
     (("fit", "SERIES", "--fps", "19000", "--ejections", "nowhere.txt"), "nowhere.txt"),
     (("analyze", "REC", "--method", "nearest", "--database", "nodb"), "nodb"),
     (("analyze", "REC", "--models", "nomodels"), "nomodels"),
+    (("analyze", "REC", "--refine", "--poles", "frames"), "--poles"),
 ])
 def test_bad_input_is_one_line_naming_the_culprit(recording: Path, tmp_path: Path, verb_args, names):
     series = tmp_path / "s.csv"

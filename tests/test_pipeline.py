@@ -45,7 +45,7 @@ class HeldFits:
 
     def release(self) -> None:
         for closed, fps, on_fitted in self.held:
-            on_fitted(closed, fit_one(closed.window, closed.values, fps, self.settings))
+            on_fitted(closed, fit_one(closed.window, closed.values, fps, self.settings, closed.brightness))
         self.held.clear()
 
 

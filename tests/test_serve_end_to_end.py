@@ -17,10 +17,12 @@ from websockets.sync.client import connect
 from service import DEFAULT_MODELS, DEFAULT_SCENE
 from service.analysis.fit import fit_window
 from service.analysis.results import FitSettings
+from service.analysis.segment import frame_brightness
 from service.analysis.steady import window_steady_centre
 from service.inverse.network import NetworkMethod
 from service.pipeline.demo import DEMO_TRUTH
 from service.recordings import open_recording
+from service.recordings.roi import roi_frames
 from service.scene import Scene
 from service.server.messages import WINDOW_TOPIC
 from tests.metric_contract import missing_from
@@ -77,15 +79,17 @@ def session(demo_cine: Path, tmp_path_factory: pytest.TempPathFactory):  # type:
 
 @pytest.fixture(scope="module")
 def offline(demo_cine: Path) -> dict[int, float]:
-    """The dominant frequency of each truth window, analysed offline: same model, same steady D(0, t), same fit."""
+    """The dominant frequency of each truth window, analysed offline: same model, same steady D(0, t) and frame
+    brightness, same fit."""
     scene, fps = Scene.load(DEFAULT_SCENE), TRUTH["recording"]["fps"]
     with open_recording(demo_cine) as rec:
-        coeffs = NetworkMethod(DEFAULT_MODELS, scene).infer(rec.read(0, len(rec))).coefficients
+        frames = roi_frames(rec, scene, 0, len(rec))  # what the pipeline infers: the ROI
+    coeffs, brightness = NetworkMethod(DEFAULT_MODELS, scene).infer(frames).coefficients, frame_brightness(frames)
     out = {}
     for w in TRUTH["windows"]:
         s, e = w["start_frame"], w["end_frame"]
         steady = window_steady_centre(coeffs[s:e], scene.nozzle.radius_mm, FitSettings().transient_frames(fps), True)
-        result = fit_window(steady, fps, starts_at_ejection=True, ends_at_ejection=True)
+        result = fit_window(steady, fps, starts_at_ejection=True, ends_at_ejection=True, brightness=brightness[s:e])
         out[s] = result.modes[0].frequency_hz if result.modes else float("nan")
     return out
 
@@ -123,10 +127,6 @@ def test_windows_match_the_offline_analysis_of_the_same_recording(session, offli
         assert dominant(m) == pytest.approx(expected, rel=1e-3), m["window"]
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "the default network model's centre estimate limits the fitted frequency: on the demo recording the "
-    "offline analysis with the same model is off by more than 2% on most windows (docs/service.md, "
-    "'Accuracy'); the pipeline itself reproduces the offline analysis (test above)"))
 def test_window_frequencies_match_the_recording_truth_within_two_percent(session) -> None:  # type: ignore[no-untyped-def]
     _, got = session
     errors = [abs(dominant(m) / WINDOWS[m["window"]["start_frame"] % PERIOD]["truth"]["f1"] - 1)

@@ -64,6 +64,44 @@ def test_the_model_order_is_the_one_the_data_needs():
                           FitSettings(max_modes=1)).modes) == 1
 
 
+
+def test_poles_from_the_frames_brightness_amplitude_and_offset_from_the_series():
+    """A per-frame shape estimate that halves the mode, wanders and doubles its frequency in places (as the
+    learned methods' do) beside a clean brightness: frequency and decay are the brightness's, amplitude,
+    phase and offset the series's at those poles."""
+    truth = (0.02, 400.0, 1500.0, 0.3)
+    shrunk = series([(0.01, *truth[1:]), (0.004, 150.0, 3000.0, 1.0)], offset=0.01, noise=1.5e-3, seed=3)
+    brightness = 80.0 + 900.0 * series([truth], noise=2e-5, seed=4)
+    plain, pinned = fit_window(shrunk, FPS), fit_window(shrunk, FPS, brightness=brightness)
+    assert plain.modes[0].frequency_hz == pytest.approx(3000, rel=0.02)  # the wandering series alone misleads
+    assert pinned.poles_from == "frames" and plain.poles_from == "series"
+    first = pinned.modes[0]
+    assert first.frequency_hz == pytest.approx(1500, rel=1e-3) and first.decay_rate_per_s == pytest.approx(400, rel=0.02)
+    assert first.frequency_ci_hz[0] < first.frequency_hz < first.frequency_ci_hz[1]  # the brightness fit's interval
+    assert first.amplitude_mm == pytest.approx(0.01, rel=0.2) and pinned.offset_mm == pytest.approx(0.01, abs=5e-4)
+    assert fit_window(shrunk, FPS, FitSettings(poles="series"), brightness=brightness) == plain
+    json_clean(pinned)
+
+
+def test_the_brightness_second_harmonic_is_not_taken_for_a_mode():
+    """Brightness is not linear in the height: a strong mode brightens at twice its frequency too."""
+    mode = series([(1.0, 300.0, 1200.0, 0.0)])
+    pinned = fit_window(series([(0.02, 300.0, 1200.0, 0.0)], noise=1e-4), FPS, brightness=mode + 0.4 * mode**2)
+    assert pinned.poles_from == "frames" and [round(m.frequency_hz) for m in pinned.modes] == [1200]
+
+
+@pytest.mark.parametrize("brightness", [np.full(N, 80.0), 80.0 + np.random.default_rng(0).normal(0, 0.5, N),
+                                        np.full(N, np.nan)], ids=["constant", "noise", "missing"])
+def test_frames_without_a_resolved_oscillation_leave_the_poles_to_the_series(brightness):
+    y = series([(0.02, 400.0, 1500.0, 0.3)], noise=2e-4)
+    r = fit_window(y, FPS, brightness=brightness)
+    assert r == fit_window(y, FPS) and r.poles_from == "series"
+
+
+def test_brightness_of_another_length_is_refused():
+    with pytest.raises(ValueError, match="brightness values for a window of"):
+        fit_window(series([(0.02, 400.0, 1500.0, 0.3)]), FPS, brightness=np.ones(N - 1))
+
 def test_settling_time_is_where_the_envelope_meets_five_percent():
     r = fit_window(series([(0.02, 1000.0, 1500.0, 0.0)], noise=1e-5), FPS)
     assert r.settled and r.settling_time_s == pytest.approx(np.log(20) / 1000, rel=0.02)

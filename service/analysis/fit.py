@@ -14,7 +14,7 @@ Confidence intervals come from the Gauss-Newton covariance at the optimum (Stude
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Sequence
+from typing import Literal, Sequence
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -78,6 +78,7 @@ class _OrderFit:
     cost: float  # sum of squared (robust) residuals
     bic: float
     problem: str | None  # why its modes are not resolved, None when they are
+    poles_from: Literal["series", "frames"] = "series"
 
 
 class _Window:
@@ -122,6 +123,20 @@ class _Window:
         params = kernels.levenberg_marquardt(self.n, self.y, self.scale, self.robust, start, _LM_TOLERANCE,
                                              _LM_EVALUATIONS * (start.size + 1))
         return self._judge(order, _canonical(params))
+
+    def pinned(self, poles: _OrderFit) -> _OrderFit:
+        """This window fitted with another series' poles (each mode's w and g, and their intervals): offset,
+        drift and each mode's (a, b) by IRLS."""
+        params = poles.params.copy()
+        linear = np.r_[0, 1, (_BASE + _PER_MODE * np.arange(poles.order)[:, None] + np.array([0, 1])).ravel()]
+        _, design = kernels.columns(self.n, params)
+        params[linear], cost = self.linear_fit(np.ascontiguousarray(design[:, linear]))
+        _, j = kernels.weighted_jacobian(self.n, self.y, self.scale, self.robust, params)
+        n, k = self.n.size, params.size
+        half = poles.half_width.copy()
+        variance = kernels.covariance_diagonal(np.ascontiguousarray(j[:, linear])) * cost / max(n - k, 1)
+        half[linear] = stdtrit(max(n - k, 1), 0.5 + self.settings.confidence / 2) * np.sqrt(variance)
+        return _OrderFit(poles.order, params, half, cost, self.bic(cost, k), None, "frames")
 
     def _judge(self, order: int, params: np.ndarray) -> _OrderFit:
         """Cost, BIC, CI half-widths and (for modes) whether they are resolved."""
@@ -186,6 +201,7 @@ def fit_window(
     start_frame: int = 0,
     starts_at_ejection: bool = False,
     ends_at_ejection: bool = False,
+    brightness: ArrayLike | None = None,
 ) -> WindowResult:
     """Fit one window of the centre displacement and judge it (ok, settled, unresolved or failed).
 
@@ -195,17 +211,21 @@ def fit_window(
         A window that starts at an ejection has its first ``settings.transient_frames(fps)`` left out.
     fps : frames per second (frame i is at t = i / fps).
     settings : model orders, loss, confidence level and settling tolerance.
+    brightness : array of shape (N,), the window's mean frame brightness (any unit, NaN missing): with
+        ``settings.poles == "frames"`` the modes' frequencies and decay rates are those of its fit when it
+        resolves an oscillation, and the series gives their amplitudes and phases, the offset and the drift.
 
     Returns
     -------
     WindowResult with modes in mm, Hz, 1/s, rad (dominant, i.e. smallest decay rate, first).
     """
     with _BLAS.limit(limits=1, user_api="blas"):
-        return _fit_window(values, fps, settings, index, start_frame, starts_at_ejection, ends_at_ejection)
+        return _fit_window(values, fps, settings, index, start_frame, starts_at_ejection, ends_at_ejection,
+                           brightness)
 
 
 def _fit_window(values: ArrayLike, fps: float, settings: FitSettings, index: int, start_frame: int,
-                starts_at_ejection: bool, ends_at_ejection: bool) -> WindowResult:
+                starts_at_ejection: bool, ends_at_ejection: bool, brightness: ArrayLike | None) -> WindowResult:
     """:func:`fit_window` on the calling thread's BLAS settings."""
     x = np.asarray(values, dtype=np.float64).reshape(-1)
     missing = int(x.size - np.isfinite(x).sum())
@@ -237,13 +257,50 @@ def _fit_window(values: ArrayLike, fps: float, settings: FitSettings, index: int
             residual_amplitude_mm=0.0, noise_mm=0.0,
         )
     window = _Window(n, (raw - centre) / spread, settings)
-    fits = [window.fit_baseline()]
-    orders = [m for m in range(1, settings.max_modes + 1) if n.size >= min_samples(m)]
-    if orders:
-        pencil_modes = _pencil_modes(n, window.y, x.size, 2 * orders[-1] + 2)
-        fits += [window.fit(m, window.starts(m, pencil_modes)) for m in orders]
-    chosen, problem = _choose(fits)
+    use_frames = settings.poles == "frames" and brightness is not None
+    poles = _brightness_poles(brightness, x.size, skip, settings) if use_frames else None
+    chosen, problem = (window.pinned(poles), None) if poles is not None else _choose(_order_fits(window, x.size, settings))
     return _result(chosen, problem, window, centre, spread, fps, settings, common)
+
+
+def _order_fits(window: _Window, length: int, settings: FitSettings) -> list[_OrderFit]:
+    """The fit of each model order (0 to ``settings.max_modes``) a window ``length`` frames long can take."""
+    fits = [window.fit_baseline()]
+    orders = [m for m in range(1, settings.max_modes + 1) if window.n.size >= min_samples(m)]
+    if orders:
+        pencil_modes = _pencil_modes(window.n, window.y, length, 2 * orders[-1] + 2)
+        fits += [window.fit(m, window.starts(m, pencil_modes)) for m in orders]
+    return fits
+
+
+def _has_harmonic(fit: _OrderFit) -> bool:
+    """Whether a mode of ``fit`` sits at twice another's frequency (within their intervals): brightness is not
+    linear in the surface's height, so a strong mode also brightens at its second harmonic, which is no mode
+    of the surface (Eq. 1's second mode lies at l2 / l1 = 2.30 times the first)."""
+    w = fit.params[_BASE + 2 :: _PER_MODE]
+    half = fit.half_width[_BASE + 2 :: _PER_MODE]
+    return any(abs(w[j] - 2 * w[i]) <= half[j] + 2 * half[i] for i in range(w.size) for j in range(w.size) if i != j)
+
+
+def _brightness_poles(brightness: ArrayLike, length: int, skip: int, settings: FitSettings) -> _OrderFit | None:
+    """The fit of a window's mean frame brightness (``length`` values, NaN missing) when it resolves an
+    oscillation: its modes' w and g are the poles the window's series is fitted with. None when it does not."""
+    x = np.asarray(brightness, dtype=np.float64).reshape(-1).copy()
+    if x.size != length:
+        raise ValueError(f"{x.size} brightness values for a window of {length} frames")
+    x[:skip] = np.nan
+    finite = np.isfinite(x)
+    if finite.sum() < min_samples(1) or settings.max_modes == 0:
+        return None
+    raw = x[finite]
+    centre = float(np.median(raw))
+    spread = float(np.max(np.abs(raw - centre)))
+    if not 0 < spread < _MAX_VALUE:
+        return None
+    fits = _order_fits(_Window(np.flatnonzero(finite).astype(np.float64), (raw - centre) / spread, settings),
+                       x.size, settings)
+    chosen, problem = _choose([f for f in fits if not _has_harmonic(f)])
+    return chosen if chosen.order > 0 and problem is None else None
 
 
 def _pencil_modes(n: np.ndarray, y: np.ndarray, length: int, order: int) -> tuple[np.ndarray, np.ndarray]:
@@ -293,7 +350,7 @@ def _result(
     s = settle(amp, decay, duration, settings.settle_fraction, settings.settle_floor_mm)
     status = "unresolved" if fit.problem else "ok"
     return WindowResult(
-        status=status, reason=problem, **common, **numbers, modes=estimates,
+        status=status, reason=problem, **common, **numbers, modes=estimates, poles_from=fit.poles_from,
         settling_time_s=s.time_s, settled=s.settled, residual_amplitude_mm=s.residual_amplitude_mm,
     )
 
@@ -339,14 +396,17 @@ def warm() -> None:
 
 
 def fit_windows(
-    series: ArrayLike, fps: float, windows: Sequence[Window], settings: FitSettings = FitSettings(), progress: bool = True
+    series: ArrayLike, fps: float, windows: Sequence[Window], settings: FitSettings = FitSettings(), progress: bool = True,
+    brightness: ArrayLike | None = None,
 ) -> list[WindowResult]:
-    """One :func:`fit_window` per window of ``series`` (mm per frame), with a progress bar over windows."""
+    """One :func:`fit_window` per window of ``series`` (mm per frame), with a progress bar over windows;
+    ``brightness`` (same shape, the frames' mean brightness) as :func:`fit_window` takes it."""
     x = np.asarray(series, dtype=np.float64).reshape(-1)
     return [
         fit_window(
             x[w.start : w.end], fps, settings, index=w.index, start_frame=w.start,
             starts_at_ejection=w.starts_at_ejection, ends_at_ejection=w.ends_at_ejection,
+            brightness=None if brightness is None else np.asarray(brightness)[w.start : w.end],
         )
         for w in tqdm(windows, desc="fit", unit="window", disable=not progress)
     ]

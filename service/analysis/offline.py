@@ -18,7 +18,8 @@ from tqdm import tqdm
 from service.analysis import synthesis
 from service.analysis.fit import fit_windows
 from service.analysis.results import FitSettings, Report, Source
-from service.analysis.segment import Window, find_ejections, frame_activity, frame_steps, series_activity, windows_between
+from service.analysis.segment import (Window, find_ejections, frame_activity, frame_brightness, frame_steps,
+                                      series_activity, windows_between)
 from service.analysis.steady import steady_centre
 from service.csvtable import write_columns
 from service.errors import MeniscopeError
@@ -64,21 +65,25 @@ def analyse_recording(
     frames, and one fit per window.
 
     ``opened``: the method and database :func:`open_method` returned, when analysing several
-    recordings with one (they are opened here otherwise).
+    recordings with one (they are opened here otherwise). With ``refine`` the windows keep their own poles
+    (``settings.poles`` becomes "series"): the refined motion is the window's inversion.
     """
+    if refine:
+        settings = settings.model_copy(update={"poles": "series"})
     inverse, db = opened or open_method(method, scene, models, database)
     with open_recording(path) as rec:
         n, fps = len(rec), rec.fps
         if n < 2:
             raise MeniscopeError(path, f"{n} frame(s): a window analysis needs at least 2")
         coefficients, centre = np.empty((n, 4)), np.empty(n)
-        steps = np.empty(n)
+        steps, brightness = np.empty(n), np.empty(n)
         candidates = np.empty((n, CANDIDATES), np.int64) if method == "regularised" else None
         previous = None
         with tqdm(total=n, unit="frame", desc=f"{method} {path.name}", disable=not progress) as bar:
             for start, frames in roi_chunks(rec, scene):
                 part = slice(start, start + len(frames))
                 steps[part] = frame_steps(frames, previous)
+                brightness[part] = frame_brightness(frames)
                 previous = frames[-1]
                 if candidates is None:
                     out = inverse.infer(frames)
@@ -95,7 +100,7 @@ def analyse_recording(
     if refine:
         coefficients, centre = _refine(path, scene, coefficients, windows, fps, settings, progress)
     steady = steady_centre(coefficients, windows, scene.nozzle.radius_mm, settings.transient_frames(fps))
-    results = fit_windows(steady, fps, windows, settings, progress=progress)
+    results = fit_windows(steady, fps, windows, settings, progress=progress, brightness=brightness)
     report = Report(source=source, method=method_label(method, refine), ejections=cuts.tolist(), windows=results,
                     fit=settings)
     return Analysis(report, InverseOutput(coefficients=coefficients, centre=centre), steady)
@@ -148,6 +153,7 @@ def analyse_series(
         cuts = np.empty(0, np.int64)
     else:
         cuts, _ = find_ejections(series_activity(values), fps, ejections.file, ejections.hz)
+    settings = settings.model_copy(update={"poles": "series"})  # a series alone: no frames to take poles from
     results = fit_windows(values, fps, windows_between(cuts, len(values)), settings, progress=progress)
     return Report(source=source, method="series", ejections=cuts.tolist(), windows=results, fit=settings)
 

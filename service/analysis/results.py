@@ -43,6 +43,11 @@ class FitSettings(_Frozen):
     #: Time after an ejection that shows the droplet leaving, not the meniscus oscillating: those frames are
     #: left out of the fit (t still counts from the ejection). The simulator's transient lasts 0.25 ms.
     transient_s: NonNegative = 3e-4
+    #: Where each window's poles (its modes' frequencies and decay rates) come from: the fitted series itself, or
+    #: the window's frames (their mean brightness, which the surface's motion modulates with the same poles and
+    #: far less noise than a per-frame estimate of the shape; it says nothing of amplitude or offset, which
+    #: the series gives). A window whose frames show no resolved oscillation falls back to the series.
+    poles: Literal["series", "frames"] = "frames"
 
     def transient_frames(self, fps: float) -> int:
         """Frames after an ejection that :attr:`transient_s` covers (rounded up)."""
@@ -95,6 +100,8 @@ class WindowResult(_Frozen):
     r2: Finite | None = None
     #: Robust noise level of the fit residuals (1.4826 MAD).
     noise_mm: NonNegative | None = None
+    #: Where the modes' frequencies and decay rates came from (FitSettings.poles); null without modes.
+    poles_from: Literal["series", "frames"] | None = None
     samples: Annotated[int, Field(ge=0)] = 0  # finite samples fitted
     missing: Annotated[int, Field(ge=0)] = 0  # non-finite samples skipped
     transient_frames: Annotated[int, Field(ge=0)] = 0  # frames after the ejection left out (FitSettings.transient_s)

@@ -140,6 +140,12 @@ def frame_steps(frames: np.ndarray, previous: np.ndarray | None = None) -> np.nd
     return step
 
 
+def frame_brightness(frames: np.ndarray) -> np.ndarray:
+    """Mean pixel value of each frame (N, H, W) -> (N,), float64: the highlights the surface moves modulate
+    it with the surface's own frequencies and decay rates (the window fit's poles, FitSettings.poles)."""
+    return frames.reshape(len(frames), -1).mean(axis=1, dtype=np.float64)
+
+
 def frame_activity(steps: ArrayLike) -> np.ndarray:
     """Robust z-score of :func:`frame_steps` (shape (N,)).
 

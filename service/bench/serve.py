@@ -118,6 +118,7 @@ def stage_costs(recording: Path, configs: list[tuple[int, int]], frames: int = 3
     """CPU microseconds per frame of each stage (one thread at a time), and the fit's milliseconds per window."""
     from service import DEFAULT_MODELS, DEFAULT_SCENE
     from service.analysis.fit import fit_window
+    from service.analysis.segment import frame_brightness
     from service.analysis.steady import window_steady_centre
     from service.inverse.network import NetworkMethod
     from service.pipeline.activity import ActivityTracker
@@ -141,17 +142,18 @@ def stage_costs(recording: Path, configs: list[tuple[int, int]], frames: int = 3
         method = NetworkMethod(DEFAULT_MODELS, scene, threads=threads, batch=size)
         method.infer(batch.pixels[:size])
         costs[f"infer_{size}x{threads}"], out = cpu_us_per_frame(lambda: method.infer(batch.pixels), len(batch))
-    coefficients = out.coefficients
+    per_frame = np.column_stack([out.coefficients, frame_brightness(batch.pixels)])  # as the pipeline pushes them
     tracker, segmenter = ActivityTracker(), segmenter_for(ServiceSettings(), fps)
     costs["activity_segmentation"], closed = cpu_us_per_frame(lambda: [
         w for lo in range(0, len(batch), 512) for w in segmenter.push(
-            batch.indices[lo:lo + 512], coefficients[lo:lo + 512],
+            batch.indices[lo:lo + 512], per_frame[lo:lo + 512],
             tracker.update(batch.pixels[lo:lo + 512], batch.indices[lo:lo + 512]), np.zeros(len(batch.indices[lo:lo + 512])))
     ], len(batch))
     transient = FitSettings().transient_frames(fps)  # the series and the skipped transient the pipeline's fit gets
-    series = [(window_steady_centre(c.values, scene.nozzle.radius_mm, transient, c.window.starts_at_ejection),
-               c.window.starts_at_ejection) for c in closed]
-    fit_us, _ = cpu_us_per_frame(lambda: [fit_window(v, fps, starts_at_ejection=e) for v, e in series], len(series))
+    series = [(window_steady_centre(c.values[:, :4], scene.nozzle.radius_mm, transient, c.window.starts_at_ejection),
+               c.values[:, 4], c.window.starts_at_ejection) for c in closed]
+    fit_us, _ = cpu_us_per_frame(lambda: [fit_window(v, fps, starts_at_ejection=e, brightness=b) for v, b, e in series],
+                                 len(series))
     costs["fit_ms_per_window"] = fit_us / 1e3
     costs["fit_per_frame_at_100_hz"] = fit_us * 100 / fps
     costs["windows_fitted"] = len(closed)

@@ -31,10 +31,12 @@ def _lower_priority(nice: int) -> None:
     os.nice(nice)
 
 
-def fit_one(window: Window, values: np.ndarray, fps: float, settings: FitSettings) -> WindowResult:
+def fit_one(window: Window, values: np.ndarray, fps: float, settings: FitSettings,
+            brightness: np.ndarray | None = None) -> WindowResult:
     """:func:`fit_window` on one closed window (runs in a worker process)."""
     return fit_window(values, fps, settings, index=window.index, start_frame=window.start,
-                      starts_at_ejection=window.starts_at_ejection, ends_at_ejection=window.ends_at_ejection)
+                      starts_at_ejection=window.starts_at_ejection, ends_at_ejection=window.ends_at_ejection,
+                      brightness=brightness)
 
 
 def _failed(closed: ClosedWindow, exc: BaseException) -> WindowResult:
@@ -64,7 +66,7 @@ class FitPool:
         if not self._slots.acquire(blocking=False):
             return False
         try:
-            future = self._pool.submit(fit_one, closed.window, closed.values, fps, self.settings)
+            future = self._pool.submit(fit_one, closed.window, closed.values, fps, self.settings, closed.brightness)
         except BrokenProcessPool:
             self._slots.release()
             self.broken = True

@@ -21,7 +21,7 @@ from typing import Protocol
 import numpy as np
 
 from service.analysis.results import WindowResult
-from service.analysis.segment import MIN_EJECTION_PERIOD_S
+from service.analysis.segment import MIN_EJECTION_PERIOD_S, frame_brightness
 from service.analysis.steady import window_steady_centre
 from service.errors import MeniscopeError
 from service.inverse.base import InverseMethod
@@ -249,16 +249,19 @@ class Pipeline:
         self.sink.on_inference(time.perf_counter() - t0, len(batch))
         self.stats.frames_inferred += len(batch)
         z = self.activity.update(pixels, batch.indices)
-        self._dispatch(self.segmenter.push(batch.indices, out.coefficients, z, arrival))
+        per_frame = np.column_stack([out.coefficients, frame_brightness(pixels)])  # d, p, a, b, brightness
+        self._dispatch(self.segmenter.push(batch.indices, per_frame, z, arrival))
         self.stats.latest = LatestFrame(int(batch.indices[-1]), pixels[-1].copy(),
                                         tuple(float(c) for c in out.coefficients[-1]), float(out.centre[-1]))
         self._update_trace(batch.indices, out.centre)
 
     def _dispatch(self, closed: list[ClosedWindow]) -> None:
-        """Each closed window's steady D(0, t) (as ``meniscope analyze`` fits it) to the fit workers."""
+        """Each closed window's steady D(0, t) and brightness (as ``meniscope analyze`` fits them) to the fit
+        workers."""
         for window in closed:
-            window = replace(window, values=window_steady_centre(window.values, self._radius, self._transient,
-                                                                 window.window.starts_at_ejection))
+            window = replace(window, values=window_steady_centre(window.values[:, :4], self._radius, self._transient,
+                                                                 window.window.starts_at_ejection),
+                             brightness=window.values[:, 4])
             self.stats.windows_closed += 1
             dispatched_at = time.monotonic()
             if not self.fits.submit(window, self._fps, partial(self._fitted, dispatched_at)):

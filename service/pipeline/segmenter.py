@@ -23,12 +23,14 @@ class ClosedWindow:
 
     ``values``: (end - start, ...) what was pushed per frame (the coefficients d, p, a, b, or a displacement),
     NaN where frames are missing;
-    ``closed_at``: monotonic time (s) the frame that closed it was acquired.
+    ``closed_at``: monotonic time (s) the frame that closed it was acquired;
+    ``brightness``: (end - start,) the frames' mean brightness, where the fit takes its poles from the frames.
     """
 
     window: Window
     values: np.ndarray
     closed_at: float
+    brightness: np.ndarray | None = None
 
 
 class StreamingSegmenter:

@@ -44,6 +44,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--refine", action="store_true",
                    help="refine each window's motion on its frames through the renderer, starting from the method's "
                    "per-frame values: seconds per window instead of milliseconds, far more accurate decay and amplitude")
+    p.add_argument("--poles", choices=("frames", "series"),
+                   help="where each window's frequencies and decay rates come from: its frames' mean brightness "
+                   "(default; amplitudes, phases and offset still from D(0, t)) or D(0, t) alone (always with --refine: "
+                   "the refined motion is the window's inversion, its poles its own)")
     _common(p)
     p.set_defaults(func=run_analyze)
 
@@ -58,7 +62,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run_fit)
 
 
-def _settings(args: argparse.Namespace):
+def _settings(args: argparse.Namespace, poles: str = "series"):
+    """The fit settings the options ask for, the windows' poles from ``poles`` ("frames" or "series")."""
     from service.analysis.results import FitSettings
 
     for name, value in (("--settle-fraction", args.settle_fraction), ("--settle-floor-um", args.settle_floor_um),
@@ -70,7 +75,7 @@ def _settings(args: argparse.Namespace):
     if not 0 < args.settle_fraction < 1:
         raise MeniscopeError("--settle-fraction", f"must lie between 0 and 1, got {args.settle_fraction}")
     return FitSettings(max_modes=args.max_modes, settle_fraction=args.settle_fraction,
-                       settle_floor_mm=args.settle_floor_um * 1e-3, transient_s=args.transient_ms * 1e-3)
+                       settle_floor_mm=args.settle_floor_um * 1e-3, transient_s=args.transient_ms * 1e-3, poles=poles)
 
 
 def _outputs(out: Path) -> tuple[Path, Path, Path]:
@@ -97,7 +102,9 @@ def run_analyze(args: argparse.Namespace) -> int:
     from service.scene import Scene
     from service.simulate import truth_path
 
-    settings = _settings(args)
+    if args.refine and args.poles == "frames":
+        raise MeniscopeError("--poles", "frames cannot be used with --refine: a refined window's poles are its own")
+    settings = _settings(args, args.poles or ("series" if args.refine else "frames"))
     report_path, csv_path, png_path = _outputs(args.out)
     scene = Scene.load(args.scene)
     analysis = analyse_recording(args.recording, scene, args.method, args.models or DEFAULT_MODELS, args.database,
