@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import gc
+import math
 import shutil
 import threading
 import weakref
@@ -45,7 +46,7 @@ class HeldFits:
 
     def release(self) -> None:
         for closed, fps, on_fitted in self.held:
-            on_fitted(closed, fit_one(closed.window, closed.values, fps, self.settings))
+            on_fitted(closed, fit_one(closed.window, closed.values, fps, self.settings), math.nan, math.nan)
         self.held.clear()
 
 

@@ -67,13 +67,13 @@ def measure(settings: ServiceSettings, seconds: float) -> dict:
     from service.server.publishers import Publishers
     from service.server.zmq_publisher import ZmqPublisher
 
-    stages: list[tuple[float, float, float]] = []  # per published window: to dispatch, to fitted, to published (s)
+    stages: list[tuple[float, ...]] = []  # per published window: its times from closed to published (s)
 
     class Timed(Publishers):
         def _window(self, fitted: FittedWindow) -> None:
             super()._window(fitted)
-            stages.append((fitted.dispatched_at - fitted.closed_at, fitted.fitted_at - fitted.dispatched_at,
-                           time.monotonic() - fitted.fitted_at))
+            stages.append((fitted.closed_at, fitted.dispatched_at, fitted.fit_started_at, fitted.fit_finished_at,
+                           fitted.fitted_at, time.monotonic()))
 
     stats = PipelineStats()
     supervisor: Supervisor | None = None
@@ -104,17 +104,21 @@ def measure(settings: ServiceSettings, seconds: float) -> dict:
             loop.close()
     elapsed = end[0] - start[0]
     acquired, inferred, dropped, closed, skipped, published = (e - s for e, s in zip(end[2:], start[2:]))
-    parts = np.array(stages[start[7]:end[7]]).reshape(-1, 3) * 1e3
-    window_latency = parts.sum(axis=1)
-    pct = lambda v, q: float(np.percentile(v, q)) if v.size else None  # noqa: E731
+    times = np.array(stages[start[7]:end[7]]).reshape(-1, 6) * 1e3
+    closed_at, dispatched_at, started_at, finished_at, fitted_at, published_at = times.T
+    window_latency = published_at - closed_at
+    # where it goes: the closing frame waiting for inference and segmentation, the hand-off to the fit worker and
+    # back (NaN for a fit that raised), the fit in its worker, publishing
+    parts = {"to_fit": dispatched_at - closed_at, "handoff": (started_at - dispatched_at) + (fitted_at - finished_at),
+             "fit": finished_at - started_at, "publish": published_at - fitted_at}
+    pct = lambda v, q: float(np.nanpercentile(v, q)) if np.isfinite(v).any() else None  # noqa: E731
     return {
         "seconds": elapsed, "load_average": [start[1], end[1]],
         "frames_per_s_in": acquired / elapsed, "frames_per_s_inferred": inferred / elapsed,
         "dropped_fraction": dropped / max(acquired, 1),
         "windows_closed": closed, "windows_published": published, "windows_skipped": skipped,
         "publish_latency_ms_p50": pct(window_latency, 50), "publish_latency_ms_p99": pct(window_latency, 99),
-        # where it goes: the closing frame waiting for inference and segmentation, the fit workers, publishing
-        **{f"{stage}_ms_p{q}": pct(parts[:, k], q) for k, stage in enumerate(("to_fit", "fit", "publish")) for q in (50, 99)},
+        **{f"{stage}_ms_p{q}": pct(part, q) for stage, part in parts.items() for q in (50, 99)},
         "inference_calls": metrics.registry.get_sample_value("meniscope_inference_latency_seconds_count"),
     }
 
@@ -186,7 +190,8 @@ def markdown(results: dict) -> str:
         f"{os.cpu_count()} CPUs.",
         "",
         "| batch x threads | variant | speed | fit modes | frames/s in | frames/s inferred | dropped | windows closed / published / unfitted "
-        "| publish latency p50 / p99 (ms) | of which: to the fit / fit / publishing, p50 (p99) | load average |",
+        "| publish latency p50 / p99 (ms) | of which: to the fit / hand-off / fit / publishing, p50 (p99) "
+        "| load average |",
         "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in results["runs"]:
@@ -195,7 +200,7 @@ def markdown(results: dict) -> str:
             f"{_fmt(r['frames_per_s_inferred'])} | {r['dropped_fraction']:.1%} | {r['windows_closed']} / "
             f"{r['windows_published']} / {r['windows_skipped']} | {_fmt(r['publish_latency_ms_p50'], '.1f')} / "
             f"{_fmt(r['publish_latency_ms_p99'], '.1f')} | "
-            + " / ".join(f"{_fmt(r[f'{k}_ms_p50'], '.1f')} ({_fmt(r[f'{k}_ms_p99'], '.1f')})" for k in ("to_fit", "fit", "publish"))
+            + " / ".join(f"{_fmt(r[f'{k}_ms_p50'], '.1f')} ({_fmt(r[f'{k}_ms_p99'], '.1f')})" for k in ("to_fit", "handoff", "fit", "publish"))
             + f" | {r['load_average'][0]:.1f} -> {r['load_average'][1]:.1f} |")
     c = results["stage_costs"]
     lines += ["", f"CPU per frame, each stage alone on one thread ({c['windows_fitted']} windows fitted):", "",

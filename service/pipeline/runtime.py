@@ -44,8 +44,8 @@ DROP_REPORT_S = 10.0
 class FittedWindow:
     """A window's result with its samples (mm, NaN where missing), the name of the source its frames came
     from (:attr:`ServiceSettings.source_name`: a fit may come back after the settings changed), and when
-    (monotonic s) the frame that closed it was read, the window went to the fit workers and its fit came
-    back: where latency goes."""
+    (monotonic s) the frame that closed it was read, the window went to the fit workers, a worker started
+    and finished its fit (NaN if the fit raised) and its fit came back: where latency goes."""
 
     result: WindowResult
     source: str
@@ -53,6 +53,8 @@ class FittedWindow:
     fps: float
     closed_at: float
     dispatched_at: float
+    fit_started_at: float
+    fit_finished_at: float
     fitted_at: float
 
 
@@ -307,9 +309,10 @@ class Pipeline:
             if not self.fits.submit(window, self._fps, partial(self._fitted, dispatched_at)):
                 self.stats.windows_skipped += 1
 
-    def _fitted(self, dispatched_at: float, closed: ClosedWindow, result: WindowResult) -> None:
+    def _fitted(self, dispatched_at: float, closed: ClosedWindow, result: WindowResult, started_at: float,
+                finished_at: float) -> None:
         self.sink.on_window(FittedWindow(result, self.settings.source_name, closed.values, self._fps,
-                                         closed.closed_at, dispatched_at, time.monotonic()))
+                                         closed.closed_at, dispatched_at, started_at, finished_at, time.monotonic()))
 
     def _update_trace(self, indices: np.ndarray, centre: np.ndarray) -> None:
         """Keep the last ``trace_frames`` samples; send them ``trace_hz`` times a second."""
