@@ -51,11 +51,16 @@ class ServiceSettings(BaseSettings):
     method: Method = Field("network", description="network (fast), direct, nearest or nearest-approx (accurate, "
                                                   "needs nearest_database)")
     nearest_database: Path | None = Field(None, description="render database of the nearest methods")
-    read_frames: Annotated[int, Field(ge=1, le=4096)] = Field(128, description="frames per source read")
+    read_frames: Annotated[int, Field(ge=1, le=4096)] = Field(
+        64, description="frames per source read: a frame waits in the source until its read is full, and is inferred "
+                        "after the frames read before it")
     batch: Annotated[int, Field(ge=1, le=4096)] = Field(512, description="frames per inference call, at most")
+    batch_ms: Positive = Field(
+        2.0, description="inference latency budget (ms): a call takes no more frames than it infers in this time at "
+                         "the cost per frame measured so far, so a window's closing frame never waits behind a long call")
     threads: Annotated[int, Field(ge=1, le=64)] = Field(1, description="onnxruntime intra-op threads")
     queue_batches: Annotated[int, Field(ge=1, le=1024)] = Field(
-        32, description="source reads waiting for inference before new ones are dropped")
+        64, description="source reads waiting for inference before new ones are dropped")
     # --- segmentation and fit
     ejection_hz: Positive | None = Field(100.0, description="expected ejection rate: no two within half a period")
     activity_threshold: Positive = Field(8.0, description="robust sigmas of frame change that mark an ejection")

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import gc
+import math
 import shutil
 import threading
 import weakref
@@ -19,7 +20,7 @@ from service.inverse.base import InverseMethod, InverseOutput
 from service.inverse.network import NetworkMethod
 from service.pipeline.demo import DEMO_AVI
 from service.pipeline.fitting import OnFitted, fit_one
-from service.pipeline.runtime import FittedWindow, Pipeline, PipelineStats, TraceSnippet
+from service.pipeline.runtime import BatchBudget, FittedWindow, Pipeline, PipelineStats, TraceSnippet
 from service.pipeline.segmenter import ClosedWindow
 from service.pipeline.supervisor import Health
 from service.recordings import open_recording, open_writer
@@ -45,7 +46,8 @@ class HeldFits:
 
     def release(self) -> None:
         for closed, fps, on_fitted in self.held:
-            on_fitted(closed, fit_one(closed.window, closed.values, fps, self.settings, closed.brightness))
+            on_fitted(closed, fit_one(closed.window, closed.values, fps, self.settings, closed.brightness), math.nan,
+                      math.nan)
         self.held.clear()
 
 
@@ -164,3 +166,73 @@ def test_a_camera_smaller_than_the_roi_is_one_error_naming_the_source(tmp_path: 
             Pipeline(ServiceSettings(), scene, source, Gate(source), HeldFits(FitSettings()), Collected(),
                      PipelineStats())
     assert str(err.value) == f"{tmp_path / 'small.cine'}: scene ROI 96x96 at (0, 0) lies outside the 64x64 frame"
+
+
+class Calls(InverseMethod):
+    """An inverse method that keeps the frames of each call and infers nothing (zeros)."""
+
+    name = "calls"
+
+    def __init__(self) -> None:
+        self.calls: list[np.ndarray] = []
+
+    def infer(self, frames: np.ndarray) -> InverseOutput:
+        self.calls.append(frames.copy())
+        return InverseOutput(np.zeros((len(frames), 4)), np.zeros(len(frames)))
+
+
+class Dispatched(HeldFits):
+    """Fit workers that note, for each window handed to them, how many frames had been inferred by then."""
+
+    def __init__(self, settings: FitSettings, stats: PipelineStats) -> None:
+        super().__init__(settings)
+        self.stats = stats
+        self.inferred_at: list[int] = []
+
+    def submit(self, closed: ClosedWindow, fps: float, on_fitted: OnFitted) -> bool:
+        self.inferred_at.append(self.stats.frames_inferred)
+        return super().submit(closed, fps, on_fitted)
+
+
+def test_a_read_larger_than_the_inference_cap_is_split_across_calls_losing_and_repeating_no_frame(
+        demo_cine: Path, scene: Scene) -> None:
+    # reads of 16 frames, calls of at most 5 (a budget no call of 5 frames comes near)
+    settings = ServiceSettings(read_frames=16, batch=5, batch_ms=1000, queue_batches=1024)
+    stats, method = PipelineStats(), Calls()
+    with open_source(f"file://{demo_cine}?speed=max") as source:
+        assert Pipeline(settings, scene, source, method, HeldFits(settings.fit), Collected(), stats).run(threading.Event())
+    with open_recording(demo_cine) as demo:
+        everything = demo.read(0, len(demo))
+    assert max(len(c) for c in method.calls) == 5
+    np.testing.assert_array_equal(np.concatenate(method.calls), everything)
+    assert stats.frames_inferred == stats.frames_acquired == len(everything)
+
+
+def test_a_window_goes_to_the_fit_with_at_most_one_call_of_frames_inferred_past_its_closing_frame(
+        demo_cine: Path, scene: Scene) -> None:
+    # the queue holds the whole recording at once (read as fast as it reads): a cap by frames read would take it all
+    settings = ServiceSettings(read_frames=128, batch=8, batch_ms=1000, queue_batches=1024)
+    stats = PipelineStats()
+    fits = Dispatched(settings.fit, stats)
+    with open_source(f"file://{demo_cine}?speed=max") as source:
+        assert Pipeline(settings, scene, source, Calls(), fits, Collected(), stats).run(threading.Event())
+    closed_at_ejection = [(closed.window.end, at) for (closed, _, _), at in zip(fits.held, fits.inferred_at)
+                          if closed.window.ends_at_ejection]
+    assert len(closed_at_ejection) >= 3  # the demo's 4 windows: all but the last end at an ejection
+    for end, inferred in closed_at_ejection:  # frame ``end`` (the next ejection) closed it
+        assert end + 1 <= inferred <= end + 8
+
+
+def test_the_inference_cap_is_the_frames_the_measured_cost_allows_within_the_budget() -> None:
+    budget = BatchBudget(0.002, most=512, first=128, smoothing=0.5)
+    assert budget.frames() == 128  # nothing measured yet: one read
+    budget.record(0.010, 100)  # 100 us a frame: 20 frames in 2 ms
+    assert budget.frames() == 20
+    budget.record(0.030, 100)  # a slower call (a busy machine) halfway in: 200 us a frame
+    assert budget.frames() == 10
+    budget.record(10.0, 1)
+    assert budget.frames() == 1  # never below one frame
+    fast = BatchBudget(0.002, most=512, first=1024)
+    assert fast.frames() == 512  # never above ``most``
+    fast.record(1e-6, 1000)
+    assert fast.frames() == 512

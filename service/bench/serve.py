@@ -1,7 +1,9 @@
 """``meniscope bench serve``: the live pipeline end to end on a replayed recording, as ``meniscope serve`` runs it.
 
-Per configuration (inference batch x onnxruntime threads) and replay speed (1: the camera's rate,
-19,000 frames/s for the demo) one run of ``--seconds`` through the real supervisor, pipeline, fit
+Per configuration (inference batch x onnxruntime threads), replay speed (1: the camera's rate,
+19,000 frames/s for the demo), fit model order and variant (any other service settings, e.g.
+``--variants "batch_ms=1000,read_frames=128;batch_ms=2"`` to compare an inference batch bounded in frames
+with one bounded in time) one run of ``--seconds`` through the real supervisor, pipeline, fit
 workers and publishers (SQLite history in a temporary folder, ZeroMQ on a free port, metrics; only
 HTTP is left out): frames read and inferred per second, the fraction dropped, windows closed,
 published and left unfitted, and how long after a window closed (the frame that closed it was
@@ -27,6 +29,7 @@ from pathlib import Path
 from urllib.parse import quote
 
 import numpy as np
+from pydantic import ValidationError
 
 from service.analysis.results import FitSettings
 from service.bench import parse_pairs
@@ -48,6 +51,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--fit-nice", type=int, default=10, help="niceness of the fit workers (default 10)")
     p.add_argument("--max-modes", default="2", help="fit model orders to compare, comma-separated: 1 fits half the "
                    "models of 2 (default 2, the service's default)")
+    p.add_argument("--variants", default="", help="service settings to compare, KEY=VALUE pairs joined by ',', "
+                   "variants by ';' (default: one variant, the defaults)")
     p.add_argument("--out", type=Path, default=Path("bench-serve"), help="folder for the results")
     p.set_defaults(func=run)
 
@@ -62,13 +67,13 @@ def measure(settings: ServiceSettings, seconds: float) -> dict:
     from service.server.publishers import Publishers
     from service.server.zmq_publisher import ZmqPublisher
 
-    stages: list[tuple[float, float, float]] = []  # per published window: to dispatch, to fitted, to published (s)
+    stages: list[tuple[float, ...]] = []  # per published window: its times from closed to published (s)
 
     class Timed(Publishers):
         def _window(self, fitted: FittedWindow) -> None:
             super()._window(fitted)
-            stages.append((fitted.dispatched_at - fitted.closed_at, fitted.fitted_at - fitted.dispatched_at,
-                           time.monotonic() - fitted.fitted_at))
+            stages.append((fitted.closed_at, fitted.dispatched_at, fitted.fit_started_at, fitted.fit_finished_at,
+                           fitted.fitted_at, time.monotonic()))
 
     stats = PipelineStats()
     supervisor: Supervisor | None = None
@@ -99,17 +104,21 @@ def measure(settings: ServiceSettings, seconds: float) -> dict:
             loop.close()
     elapsed = end[0] - start[0]
     acquired, inferred, dropped, closed, skipped, published = (e - s for e, s in zip(end[2:], start[2:]))
-    parts = np.array(stages[start[7]:end[7]]).reshape(-1, 3) * 1e3
-    window_latency = parts.sum(axis=1)
-    pct = lambda v, q: float(np.percentile(v, q)) if v.size else None  # noqa: E731
+    times = np.array(stages[start[7]:end[7]]).reshape(-1, 6) * 1e3
+    closed_at, dispatched_at, started_at, finished_at, fitted_at, published_at = times.T
+    window_latency = published_at - closed_at
+    # where it goes: the closing frame waiting for inference and segmentation, the hand-off to the fit worker and
+    # back (NaN for a fit that raised), the fit in its worker, publishing
+    parts = {"to_fit": dispatched_at - closed_at, "handoff": (started_at - dispatched_at) + (fitted_at - finished_at),
+             "fit": finished_at - started_at, "publish": published_at - fitted_at}
+    pct = lambda v, q: float(np.nanpercentile(v, q)) if np.isfinite(v).any() else None  # noqa: E731
     return {
         "seconds": elapsed, "load_average": [start[1], end[1]],
         "frames_per_s_in": acquired / elapsed, "frames_per_s_inferred": inferred / elapsed,
         "dropped_fraction": dropped / max(acquired, 1),
         "windows_closed": closed, "windows_published": published, "windows_skipped": skipped,
         "publish_latency_ms_p50": pct(window_latency, 50), "publish_latency_ms_p99": pct(window_latency, 99),
-        # where it goes: the closing frame waiting for inference and segmentation, the fit workers, publishing
-        **{f"{stage}_ms_p{q}": pct(parts[:, k], q) for k, stage in enumerate(("to_fit", "fit", "publish")) for q in (50, 99)},
+        **{f"{stage}_ms_p{q}": pct(part, q) for stage, part in parts.items() for q in (50, 99)},
         "inference_calls": metrics.registry.get_sample_value("meniscope_inference_latency_seconds_count"),
     }
 
@@ -160,6 +169,18 @@ def stage_costs(recording: Path, configs: list[tuple[int, int]], frames: int = 3
     return costs
 
 
+def parse_variants(text: str) -> list[tuple[str, dict[str, str]]]:
+    """"batch_ms=1000,read_frames=128;batch_ms=2" -> [(its text, {key: value}), ...]; "" -> one variant of no
+    changes. The values stay text: the settings parse them."""
+    variants = []
+    for group in text.split(";"):
+        pairs = [item.strip() for item in group.split(",") if item.strip()]
+        if any("=" not in item for item in pairs):
+            raise MeniscopeError("--variants", f"expected KEY=VALUE pairs like batch_ms=2,read_frames=64, got {group!r}")
+        variants.append((",".join(pairs), dict(item.split("=", 1) for item in pairs)))
+    return variants
+
+
 def _fmt(x: float | None, spec: str = ".0f") -> str:
     return "-" if x is None else format(x, spec)
 
@@ -170,17 +191,18 @@ def markdown(results: dict) -> str:
         f"at nice {results['fit_nice']}, "
         f"{os.cpu_count()} CPUs.",
         "",
-        "| batch x threads | speed | fit modes | frames/s in | frames/s inferred | dropped | windows closed / published / unfitted "
-        "| publish latency p50 / p99 (ms) | of which: to the fit / fit / publishing, p50 (p99) | load average |",
-        "|---|---|---|---|---|---|---|---|---|---|",
+        "| batch x threads | variant | speed | fit modes | frames/s in | frames/s inferred | dropped | windows closed / published / unfitted "
+        "| publish latency p50 / p99 (ms) | of which: to the fit / hand-off / fit / publishing, p50 (p99) "
+        "| load average |",
+        "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in results["runs"]:
         lines.append(
-            f"| {r['batch']} x {r['threads']} | {r['run']} | {r.get('max_modes', 2)} | {_fmt(r['frames_per_s_in'])} | "
+            f"| {r['batch']} x {r['threads']} | {r.get('variant') or 'defaults'} | {r['run']} | {r.get('max_modes', 2)} | {_fmt(r['frames_per_s_in'])} | "
             f"{_fmt(r['frames_per_s_inferred'])} | {r['dropped_fraction']:.1%} | {r['windows_closed']} / "
             f"{r['windows_published']} / {r['windows_skipped']} | {_fmt(r['publish_latency_ms_p50'], '.1f')} / "
             f"{_fmt(r['publish_latency_ms_p99'], '.1f')} | "
-            + " / ".join(f"{_fmt(r[f'{k}_ms_p50'], '.1f')} ({_fmt(r[f'{k}_ms_p99'], '.1f')})" for k in ("to_fit", "fit", "publish"))
+            + " / ".join(f"{_fmt(r[f'{k}_ms_p50'], '.1f')} ({_fmt(r[f'{k}_ms_p99'], '.1f')})" for k in ("to_fit", "handoff", "fit", "publish"))
             + f" | {r['load_average'][0]:.1f} -> {r['load_average'][1]:.1f} |")
     c = results["stage_costs"]
     lines += ["", f"CPU per frame, each stage alone on one thread ({c['windows_fitted']} windows fitted):", "",
@@ -204,6 +226,7 @@ def run(args: argparse.Namespace) -> int:
         [FitSettings(max_modes=m) for m in max_modes]
     except ValueError:
         raise MeniscopeError("--max-modes", f"expected orders 0 to 2 like 1,2, got {args.max_modes!r}") from None
+    variants = parse_variants(args.variants)
     recording = (args.source or demo_recording(default_data_dir())).resolve()
     if not recording.is_file():
         raise MeniscopeError(recording, "no such recording")
@@ -211,15 +234,20 @@ def run(args: argparse.Namespace) -> int:
     results: dict = {"source": str(recording), "seconds": args.seconds, "fit_workers": args.fit_workers,
                      "fit_nice": args.fit_nice, "runs": []}
     for batch, threads in configs:
-        for speed, modes in itertools.product(speeds, max_modes):
+        for speed, modes, (variant, overrides) in itertools.product(speeds, max_modes, variants):
             name = f"x{speed:g}"
-            settings = ServiceSettings(source=f"file://{quote(str(recording))}?speed={speed}&loop=1",
-                                       recordings_dir=recording.parent, batch=batch, threads=threads,
-                                       fit=FitSettings(max_modes=modes), fit_workers=args.fit_workers,
-                                       fit_nice=args.fit_nice, zmq_publish=None)
-            print(f"bench serve: batch {batch} x {threads} threads, {name}, up to {modes} modes ...", flush=True)
-            results["runs"].append({"batch": batch, "threads": threads, "run": name, "max_modes": modes,
-                                    **measure(settings, args.seconds)})
+            try:
+                settings = ServiceSettings(**{
+                    "source": f"file://{quote(str(recording))}?speed={speed}&loop=1",
+                    "recordings_dir": recording.parent, "batch": batch, "threads": threads,
+                    "fit": FitSettings(max_modes=modes), "fit_workers": args.fit_workers, "fit_nice": args.fit_nice,
+                    "zmq_publish": None, **overrides})
+            except ValidationError as exc:
+                raise MeniscopeError("--variants", f"{variant!r}: {exc.errors()[0]['msg']}") from None
+            print(f"bench serve: batch {batch} x {threads} threads, {variant or 'defaults'}, {name}, "
+                  f"up to {modes} modes ...", flush=True)
+            results["runs"].append({"batch": batch, "threads": threads, "variant": variant, "run": name,
+                                    "max_modes": modes, **measure(settings, args.seconds)})
     results["stage_costs"] = stage_costs(recording, configs)
     (args.out / "serve.json").write_text(json.dumps(results, indent=1))
     table = markdown(results)

@@ -6,14 +6,21 @@ priority (``nice``, 10 by default) so that on a busy machine frames keep flowing
 worker is in flight and none waits behind it: a window that finds every worker busy is refused (the
 caller counts it), so a fit slower than the ejection rate costs windows, never memory or frames, and
 what is published is as fresh as the fit allows.
+
+Each worker has a pipe of its own: the caller writes the window straight into it and a thread per worker,
+asleep in the pipe's read until the result comes, hands the result on. (A ``ProcessPoolExecutor`` passes
+each window through two threads of its own on the way in and one on the way out, each waiting for the
+interpreter lock: milliseconds per window on a busy machine.)
 """
 from __future__ import annotations
 
+import math
 import multiprocessing
 import os
+import queue
 import threading
-from concurrent.futures import Future, ProcessPoolExecutor
-from concurrent.futures.process import BrokenProcessPool
+import time
+from multiprocessing.connection import Connection
 from typing import Callable
 
 import numpy as np
@@ -24,11 +31,9 @@ from service.analysis.segment import Window
 from service.errors import MeniscopeError
 from service.pipeline.segmenter import ClosedWindow
 
-#: What the pool calls with each finished fit: the window and its result (a failed one if the fit raised).
-OnFitted = Callable[[ClosedWindow, WindowResult], None]
-
-def _lower_priority(nice: int) -> None:
-    os.nice(nice)
+#: What the pool calls with each finished fit: the window, its result (a failed one if the fit raised), and when
+#: (monotonic s: one clock for every process on the machine) its worker started and finished it (NaN if it raised).
+OnFitted = Callable[[ClosedWindow, WindowResult, float, float], None]
 
 
 def fit_one(window: Window, values: np.ndarray, fps: float, settings: FitSettings,
@@ -39,12 +44,41 @@ def fit_one(window: Window, values: np.ndarray, fps: float, settings: FitSetting
                       brightness=brightness)
 
 
-def _failed(closed: ClosedWindow, exc: BaseException) -> WindowResult:
+def _serve(conn: Connection, settings: FitSettings, nice: int) -> None:
+    """A worker process: fit each (window, values, fps, brightness) the pipe brings until None, answering each
+    with (result, started, finished) (monotonic s) or, if the fit raised, the error as text."""
+    os.nice(nice)
+    while (job := conn.recv()) is not None:
+        started = time.monotonic()
+        window, values, fps, brightness = job
+        try:
+            answer: tuple[WindowResult, float, float] | str = (fit_one(window, values, fps, settings, brightness),
+                                                               started, time.monotonic())
+        except Exception as exc:  # noqa: BLE001 - reported as the window's failed fit
+            answer = f"{type(exc).__name__}: {exc}"
+        conn.send(answer)
+
+
+def _failed(closed: ClosedWindow, reason: str) -> WindowResult:
     w = closed.window
     return WindowResult(index=w.index, start_frame=w.start, end_frame=w.end, status="failed",
-                        reason=f"the fit raised {type(exc).__name__}: {exc}", samples=int(np.isfinite(closed.values).sum()),
+                        reason=reason, samples=int(np.isfinite(closed.values).sum()),
                         missing=int((~np.isfinite(closed.values)).sum()), starts_at_ejection=w.starts_at_ejection,
                         ends_at_ejection=w.ends_at_ejection)
+
+
+class _Worker:
+    """One worker process, the caller's end of its pipe and the window it is fitting (None when idle)."""
+
+    def __init__(self, settings: FitSettings, nice: int) -> None:
+        # spawn, not fork: forking a process whose other threads hold locks can deadlock the child
+        context = multiprocessing.get_context("spawn")
+        self.conn, child = context.Pipe()
+        self.process = context.Process(target=_serve, args=(child, settings, nice), name="meniscope-fit",
+                                       daemon=True)
+        self.process.start()
+        child.close()
+        self.job: tuple[ClosedWindow, OnFitted] | None = None
 
 
 class FitPool:
@@ -53,34 +87,61 @@ class FitPool:
 
     def __init__(self, workers: int, settings: FitSettings, nice: int = 10) -> None:
         self.workers, self.settings, self.nice = workers, settings, nice
-        # spawn, not fork: forking a process whose other threads hold locks can deadlock the child
-        self._pool = ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("spawn"),
-                                         initializer=_lower_priority, initargs=(nice,))
-        self._slots = threading.BoundedSemaphore(workers)
         self.broken = False
-        warm = np.sin(np.arange(64) / 3.0)  # start the workers and import scipy now, not at the first window
-        self._pool.submit(fit_one, Window(0, 0, 64, False, False), warm, 1.0, settings).result()
+        self._closing = False
+        self._idle: queue.SimpleQueue[_Worker] = queue.SimpleQueue()
+        self._all = [_Worker(settings, nice) for _ in range(workers)]
+        warm = np.sin(np.arange(64) / 3.0)  # start the workers, import and load the compiled fit now, not at the first window
+        for worker in self._all:
+            worker.conn.send((Window(0, 0, 64, False, False), warm, 1.0, warm))
+        for worker in self._all:
+            worker.conn.recv()
+            threading.Thread(target=self._receive, args=(worker,), name="meniscope-fit-results", daemon=True).start()
+            self._idle.put(worker)
 
     def submit(self, closed: ClosedWindow, fps: float, on_fitted: OnFitted) -> bool:
-        """Start fitting ``closed`` (sampled at ``fps``); False (and nothing done) when every slot is busy."""
-        if not self._slots.acquire(blocking=False):
-            return False
+        """Start fitting ``closed`` (sampled at ``fps``); False (and nothing done) when every worker is busy."""
+        if self.broken:
+            raise MeniscopeError("fit workers", "a fit worker process died; starting new ones")
         try:
-            future = self._pool.submit(fit_one, closed.window, closed.values, fps, self.settings, closed.brightness)
-        except BrokenProcessPool:
-            self._slots.release()
-            self.broken = True
+            worker = self._idle.get_nowait()
+        except queue.Empty:
+            return False
+        worker.job = (closed, on_fitted)
+        try:
+            worker.conn.send((closed.window, closed.values, fps, closed.brightness))
+        except OSError:  # the worker died since its last fit
+            worker.job, self.broken = None, True
             raise MeniscopeError("fit workers", "a fit worker process died; starting new ones") from None
-        future.add_done_callback(lambda f: self._done(closed, f, on_fitted))
         return True
 
-    def _done(self, closed: ClosedWindow, future: Future, on_fitted: OnFitted) -> None:
-        self._slots.release()
-        if future.cancelled():
-            return
-        exc = future.exception()
-        on_fitted(closed, _failed(closed, exc) if exc is not None else future.result())
+    def _receive(self, worker: _Worker) -> None:
+        """The worker's results, each to its callback, until its pipe closes (a worker that died: the pool is
+        broken, its window reported failed)."""
+        while True:
+            try:
+                answer = worker.conn.recv()
+            except (EOFError, OSError):
+                worker.conn.close()
+                if not self._closing:
+                    self.broken = True
+                    if worker.job is not None:
+                        closed, on_fitted = worker.job
+                        on_fitted(closed, _failed(closed, "the fit worker process died"), math.nan, math.nan)
+                return
+            assert worker.job is not None
+            (closed, on_fitted), worker.job = worker.job, None
+            self._idle.put(worker)
+            if isinstance(answer, str):
+                on_fitted(closed, _failed(closed, f"the fit raised {answer}"), math.nan, math.nan)
+            else:
+                on_fitted(closed, *answer)
 
     def close(self) -> None:
-        """Stop the workers; fits not yet started are dropped."""
-        self._pool.shutdown(wait=False, cancel_futures=True)
+        """Stop the workers: each finishes the fit it is on (its result still delivered) and exits."""
+        self._closing = True
+        for worker in self._all:
+            try:
+                worker.conn.send(None)
+            except OSError:  # already gone
+                pass

@@ -4,9 +4,11 @@ Two threads and a process pool. The acquisition thread only reads the source, cu
 the scene's region of interest at once (a sensor larger than the ROI costs no queue memory or copies
 beyond it) and offers it to a queue of ``queue_batches`` reads; when the queue is full the batch is
 dropped and counted, so a camera is never made to wait and memory never grows. The inference thread
-takes everything queued (up to ``batch`` frames) in one ONNX call, scores frame activity, cuts windows
-at ejections and hands closed windows to the :class:`FitPool`. Results, the live trace and timings go
-to a :class:`PipelineSink`.
+takes what is queued in one ONNX call, but no more frames than it infers within ``batch_ms`` at the cost
+per frame measured so far (:class:`BatchBudget`; a read that would pass the cap is split, its rest taken
+next), so a window's closing frame waits for at most one short call before its own; then it scores
+frame activity, cuts windows at ejections and hands closed windows to the :class:`FitPool` at once.
+Results, the live trace and timings go to a :class:`PipelineSink`.
 """
 from __future__ import annotations
 
@@ -42,8 +44,8 @@ DROP_REPORT_S = 10.0
 class FittedWindow:
     """A window's result with its samples (mm, NaN where missing), the name of the source its frames came
     from (:attr:`ServiceSettings.source_name`: a fit may come back after the settings changed), and when
-    (monotonic s) the frame that closed it was read, the window went to the fit workers and its fit came
-    back: where latency goes."""
+    (monotonic s) the frame that closed it was read, the window went to the fit workers, a worker started
+    and finished its fit (NaN if the fit raised) and its fit came back: where latency goes."""
 
     result: WindowResult
     source: str
@@ -51,6 +53,8 @@ class FittedWindow:
     fps: float
     closed_at: float
     dispatched_at: float
+    fit_started_at: float
+    fit_finished_at: float
     fitted_at: float
 
 
@@ -117,6 +121,29 @@ class RateMeter:
         return self.rate
 
 
+class BatchBudget:
+    """How many frames one inference call may take: as many as it infers within ``seconds`` at the cost per
+    frame measured so far (an exponential average of recent calls), between 1 and ``most``; ``first`` before
+    any call was measured. Bounded in time rather than frames because the cost per frame varies several
+    times over with the method and with the machine's load."""
+
+    def __init__(self, seconds: float, most: int, first: int, smoothing: float = 0.2) -> None:
+        self.seconds, self.most, self.smoothing = seconds, most, smoothing
+        self._first = max(1, min(first, most))
+        self._cost: float | None = None  # seconds per frame
+
+    def frames(self) -> int:
+        """The cap for the next call."""
+        if self._cost is None:
+            return self._first
+        return max(1, min(self.most, int(self.seconds / self._cost)))
+
+    def record(self, seconds: float, frames: int) -> None:
+        """Count a call that inferred ``frames`` in ``seconds``."""
+        cost = seconds / max(frames, 1)
+        self._cost = cost if self._cost is None else self._cost + self.smoothing * (cost - self._cost)
+
+
 def segmenter_for(settings: ServiceSettings, fps: float) -> StreamingSegmenter:
     """The live segmenter ``settings`` ask for at ``fps``: no two ejections within half the expected period
     (:data:`MIN_EJECTION_PERIOD_S` when no rate is given), windows cut at ``max_window_s``."""
@@ -142,6 +169,8 @@ class Pipeline:
         self.segmenter = segmenter_for(settings, fps)
         self.activity = ActivityTracker()
         self._queue: queue.Queue[tuple[FrameBatch, float]] = queue.Queue(settings.queue_batches)
+        self._rest: tuple[FrameBatch, float] | None = None  # a read's frames past the last call's cap
+        self.budget = BatchBudget(settings.batch_ms / 1e3, settings.batch, settings.read_frames)
         self._trace, self._trace_first = np.empty(0), 0
         self._trace_next = 0.0
         self._acquired = threading.Event()  # set when acquisition stopped (end, error or stop)
@@ -209,25 +238,39 @@ class Pipeline:
         """The inference loop; True when the stream ended (everything read was processed)."""
         meter = RateMeter()
         while not stop.is_set():
-            try:
-                taken = [self._queue.get(timeout=0.05)]
-            except queue.Empty:
-                if self._acquired.is_set():
+            taken = self._take(self.budget.frames())
+            if not taken:
+                if self._acquired.is_set() and self._queue.empty():  # empty once acquisition stopped: all done
                     return self._error is None
                 self.stats.fps_out = meter.add(0, time.monotonic())
                 continue
-            frames = len(taken[0][0])
-            while frames < self.settings.batch:
-                try:
-                    taken.append(self._queue.get_nowait())
-                except queue.Empty:
-                    break
-                frames += len(taken[-1][0])
             self._process(FrameBatch.concatenate([b for b, _ in taken]),
                           np.concatenate([np.full(len(b), t) for b, t in taken]))
-            self.stats.fps_out = meter.add(frames, time.monotonic())
+            self.stats.fps_out = meter.add(sum(len(b) for b, _ in taken), time.monotonic())
             self._report_drops()
         return False
+
+    def _take(self, most: int) -> list[tuple[FrameBatch, float]]:
+        """Reads (with their arrival times) for one call, ``most`` frames in all: the rest of a read split by the
+        last call first, then queued ones, waiting (at most 0.05 s) only for the first; a read that would pass
+        ``most`` is split and its rest kept. Empty when nothing came."""
+        taken: list[tuple[FrameBatch, float]] = []
+        frames = 0
+        while frames < most:
+            if self._rest is not None:
+                item, self._rest = self._rest, None
+            else:
+                try:
+                    item = self._queue.get_nowait() if taken else self._queue.get(timeout=0.05)
+                except queue.Empty:
+                    break
+            batch, arrival = item
+            if frames + len(batch) > most:
+                cut = most - frames
+                item, self._rest = (batch.select(slice(cut)), arrival), (batch.select(slice(cut, None)), arrival)
+            taken.append(item)
+            frames += len(item[0])
+        return taken
 
     def _report_drops(self) -> None:
         """Say so (a log warning, at most every ``DROP_REPORT_S``) when frames were dropped since the last time."""
@@ -246,7 +289,9 @@ class Pipeline:
         pixels = batch.pixels
         t0 = time.perf_counter()
         out = self.method.infer(pixels)
-        self.sink.on_inference(time.perf_counter() - t0, len(batch))
+        seconds = time.perf_counter() - t0
+        self.budget.record(seconds, len(batch))
+        self.sink.on_inference(seconds, len(batch))
         self.stats.frames_inferred += len(batch)
         z = self.activity.update(pixels, batch.indices)
         per_frame = np.column_stack([out.coefficients, frame_brightness(pixels)])  # d, p, a, b, brightness
@@ -267,9 +312,10 @@ class Pipeline:
             if not self.fits.submit(window, self._fps, partial(self._fitted, dispatched_at)):
                 self.stats.windows_skipped += 1
 
-    def _fitted(self, dispatched_at: float, closed: ClosedWindow, result: WindowResult) -> None:
+    def _fitted(self, dispatched_at: float, closed: ClosedWindow, result: WindowResult, started_at: float,
+                finished_at: float) -> None:
         self.sink.on_window(FittedWindow(result, self.settings.source_name, closed.values, self._fps,
-                                         closed.closed_at, dispatched_at, time.monotonic()))
+                                         closed.closed_at, dispatched_at, started_at, finished_at, time.monotonic()))
 
     def _update_trace(self, indices: np.ndarray, centre: np.ndarray) -> None:
         """Keep the last ``trace_frames`` samples; send them ``trace_hz`` times a second."""

@@ -1,0 +1,97 @@
+"""The fit workers (service.pipeline.fitting.FitPool): windows handed over and fitted in other processes, one
+in flight per worker, and a worker that dies."""
+from __future__ import annotations
+
+import os
+import signal
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from service.analysis.results import FitSettings, WindowResult
+from service.analysis.segment import Window
+from service.errors import MeniscopeError
+from service.pipeline.fitting import FitPool, fit_one
+from service.pipeline.segmenter import ClosedWindow
+
+FPS = 19000.0
+
+
+def damped(n: int = 190) -> np.ndarray:
+    """A clean damped oscillation (mm) as a window's steady D(0, t)."""
+    t = np.arange(n) / FPS
+    return 0.01 * np.exp(-400 * t) * np.cos(2 * np.pi * 1500 * t)
+
+
+class Results:
+    """Collects what the pool hands back, and says when ``expected`` results have come."""
+
+    def __init__(self, expected: int) -> None:
+        self.got: list[tuple[ClosedWindow, WindowResult, float, float, float]] = []
+        self.expected, self.done = expected, threading.Event()
+
+    def __call__(self, closed: ClosedWindow, result: WindowResult, started: float, finished: float) -> None:
+        self.got.append((closed, result, started, finished, time.monotonic()))
+        if len(self.got) >= self.expected:
+            self.done.set()
+
+
+@pytest.fixture()
+def pool() -> FitPool:
+    pool = FitPool(1, FitSettings(), nice=0)
+    yield pool
+    pool.close()
+
+
+def test_a_window_is_fitted_in_its_worker_as_in_process_and_its_times_follow_each_other(pool: FitPool) -> None:
+    closed = ClosedWindow(Window(3, 100, 290, True, True), damped(), 0.0)
+    results = Results(1)
+    submitted = time.monotonic()
+    assert pool.submit(closed, FPS, results)
+    assert results.done.wait(60)
+    (back, result, started, finished, delivered), = results.got
+    assert back is closed
+    assert result == fit_one(closed.window, closed.values, FPS, FitSettings())
+    assert submitted <= started <= finished <= delivered  # one monotonic clock across the processes
+
+
+def test_a_window_finding_every_worker_busy_is_refused_and_the_worker_takes_the_next_once_free(pool: FitPool) -> None:
+    first, second = (ClosedWindow(Window(k, 0, 190, True, True), damped(), 0.0) for k in (0, 1))
+    results = Results(1)
+    assert pool.submit(first, FPS, results)
+    assert not pool.submit(second, FPS, results)  # one worker, one window in flight: refused, nothing queued
+    assert results.done.wait(60)
+    results.expected, results.done = 2, threading.Event()
+    assert pool.submit(second, FPS, results)
+    assert results.done.wait(60)
+    assert [closed.window.index for closed, *_ in results.got] == [0, 1]
+
+
+def kill_worker(pool: FitPool) -> None:
+    """Kill the pool's one worker process, as the OOM killer would, and wait until it is gone."""
+    process = pool._all[0].process  # noqa: SLF001 - the test reaches for the process to kill it
+    os.kill(process.pid, signal.SIGKILL)
+    process.join(10)
+
+
+def test_a_worker_that_dies_while_fitting_fails_its_window_and_the_pool_reports_itself_broken(pool: FitPool) -> None:
+    results = Results(1)
+    n = 200_000  # a fit of seconds: still running when the worker is killed just after the hand-over
+    long_window = ClosedWindow(Window(0, 0, n, True, True), damped(n), 0.0)
+    assert pool.submit(long_window, FPS, results)
+    kill_worker(pool)
+    assert results.done.wait(30)
+    (closed, result, started, finished, _), = results.got
+    assert closed is long_window
+    assert (result.status, result.reason) == ("failed", "the fit worker process died")
+    assert np.isnan(started) and np.isnan(finished)
+    assert pool.broken  # the supervisor starts new workers
+
+
+def test_a_window_handed_to_a_worker_that_died_idle_is_refused_with_an_error_naming_the_workers(pool: FitPool) -> None:
+    kill_worker(pool)
+    with pytest.raises(MeniscopeError, match="fit worker process died"):
+        pool.submit(ClosedWindow(Window(0, 0, 190, True, True), damped(), 0.0), FPS, Results(1))
+    assert pool.broken
