@@ -21,7 +21,7 @@ from service.analysis.fit import fit_window, model_curve
 from service.analysis.pencil import energy
 from service.analysis.peer import available, harminv_modes
 from service.analysis.results import FitSettings, Report, Source
-from service.analysis.settling import envelope, settling_time
+from service.analysis.settling import envelope, settle, settling_time, tolerance
 from service.physics import damped_mode
 
 FPS = 19000.0
@@ -320,6 +320,18 @@ def test_settling_time_is_right_and_quiet_at_extreme_amplitudes_and_decays(ampli
         t = settling_time(amplitudes, decays, tol)
     assert t == pytest.approx(expected, rel=1e-9)
 
+
+
+def test_settle_is_quiet_and_finite_where_the_amplitudes_sum_past_the_float_range():
+    """The band is 5 % of each term summed (1e307 mm here), and an envelope past the float range is inf, not a
+    warning; the result goes out with the residual amplitude null (not finite), never NaN."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        s = settle([1e308, 1e308], [1.0, 1.0], 1.0, 0.05, 5e-4)
+        assert tolerance([1e308, 1e308], 0.05, 5e-4) == pytest.approx(1e307)
+        assert envelope(0.0, [1e308, 1e308], [1.0, 1.0])[0] == np.inf
+    assert s.tolerance_mm == pytest.approx(1e307) and not s.settled
+    assert s.time_s is None and s.residual_amplitude_mm == pytest.approx(2 * (1e308 / np.e))
 
 @settings(max_examples=300, deadline=None)
 @given(amplitudes=st.lists(st.floats(1e-300, 1e300), min_size=1, max_size=3),

@@ -32,13 +32,15 @@ def envelope(t: ArrayLike, amplitudes: ArrayLike, decays: ArrayLike) -> np.ndarr
     t = np.atleast_1d(np.asarray(t, dtype=np.float64))
     amplitudes = np.abs(np.asarray(amplitudes, dtype=np.float64)).reshape(-1)
     decays = np.asarray(decays, dtype=np.float64).reshape(-1)
-    with np.errstate(under="ignore"):
+    with np.errstate(under="ignore", over="ignore"):  # a sum past the float range is inf: above any tolerance
         return (amplitudes * np.exp(-np.outer(t, decays))).sum(axis=1)
 
 
 def tolerance(amplitudes: ArrayLike, fraction: float, floor_mm: float) -> float:
-    """max(fraction * E(0), floor_mm): the band the envelope must stay in (mm)."""
-    return max(fraction * float(np.abs(np.asarray(amplitudes, dtype=np.float64)).sum()), floor_mm)
+    """max(fraction * E(0), floor_mm): the band the envelope must stay in (mm); the fraction is taken of each term
+    before they are summed, so that amplitudes summing past the float range still give a finite band."""
+    with np.errstate(over="ignore"):
+        return max(float((fraction * np.abs(np.asarray(amplitudes, dtype=np.float64))).sum()), floor_mm)
 
 
 def _log_sum_exp(x: np.ndarray) -> float:
