@@ -2,6 +2,9 @@
 from __future__ import annotations
 
 import json
+import shutil
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -10,7 +13,7 @@ import pytest
 from service.cli import main
 from service.recordings import open_writer
 from service.verbs import recordings as verbs
-from tests.servicekit import meniscope
+from tests.servicekit import CLI_TIMEOUT_S, checkout_env, meniscope
 
 FRAMES = np.random.default_rng(3).integers(0, 4096, (12, 6, 10)).astype(np.uint16)
 
@@ -84,6 +87,10 @@ def test_bad_input_is_one_line_and_exit_2(
 
 
 def test_the_installed_command_runs(cine: Path) -> None:
-    done = meniscope("info", cine)
+    """The console script the install puts beside this Python (pyproject's [project.scripts]), not ``-m``."""
+    script = shutil.which("meniscope", path=str(Path(sys.executable).parent))
+    assert script, f"no meniscope script beside {sys.executable}: is the project installed (deploy/install.sh)?"
+    done = subprocess.run([script, "info", str(cine)], capture_output=True, text=True, timeout=CLI_TIMEOUT_S,
+                          env=checkout_env())
     assert done.returncode == 0, done.stderr
     assert json.loads(done.stdout)["frames"] == 12
