@@ -169,9 +169,21 @@ def load_settings(config: Path | None = None, fallbacks: Mapping[str, Any] | Non
     try:
         return ServiceSettings(**{k: v for k, v in overrides.items() if v is not None})
     except ValidationError as exc:
-        raise settings_error(exc, config) from None
+        key = str(exc.errors()[0]["loc"][0]) if exc.errors()[0]["loc"] else ""
+        raise settings_error(exc, _origin(key, config, layers[0], overrides)) from None
     finally:
         _LAYERS.reset(token)
+
+
+def _origin(key: str, config: Path | None, table: Mapping[str, Any], overrides: Mapping[str, Any]) -> Path | str | None:
+    """Where the value of setting ``key`` came from, strongest first: an option, its environment variable, the
+    config file (None: a default or fallback), so that an error names what the user has to change."""
+    variable = f"MENISCOPE_{key.upper()}"
+    if overrides.get(key) is not None:
+        return f"--{key.replace('_', '-')}"
+    if any(name.upper() == variable or name.upper().startswith(variable + "__") for name in os.environ):
+        return variable
+    return config if key in table or key not in ServiceSettings.model_fields else None
 
 
 def settings_error(exc: ValidationError, where: Path | str | None = None) -> MeniscopeError:
