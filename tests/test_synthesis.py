@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from service import DEFAULT_SCENE
-from service.analysis.synthesis import refine_window, start_motion
+from service.analysis.synthesis import refine_window, standard_errors, start_motion
 from service.camera_effects import CameraEffects
 from service.physics import WindowTruth
 from service.render.renderer import Renderer
@@ -54,6 +54,22 @@ def test_refinement_lowers_the_pixel_residual_and_reports_its_search(renderer):
     assert 0 < refined.evaluations <= 18 + 5 * 100  # one render per start tried, then per LM evaluation one and per Jacobian four
     assert refined.blur_sigma_px == pytest.approx(0.7, abs=0.1)
 
+
+
+def test_the_pixel_fit_s_standard_errors_grow_with_the_noise_and_cover_the_truth(renderer):
+    """A refined window's intervals come from its pixel fit (s^2 (J'J)^-1): wider on a noisier camera, and, where
+    the noise dominates the search's own tolerance and the 12-bit rounding, the truth within a few standard errors
+    of what was found."""
+    errors = {}
+    for read_noise in (2.0, 20.0):
+        camera = CameraEffects(bit_depth=12, blur_sigma_px=0.7, full_well_e=16000.0, read_noise_dn=read_noise)
+        frames = frames_of(renderer, TRUE, camera, seed=1)
+        refined = refine_window(renderer, frames, T, TRUE)
+        errors[read_noise] = standard_errors(renderer, frames, T, refined)
+        f_error, g_error = errors[read_noise][4], errors[read_noise][3]
+        assert 0 < f_error < 0.01 * TRUE.f1 and 0 < g_error < 0.5 * TRUE.g1
+    assert abs(refined.motion.f1 - TRUE.f1) < 4 * f_error and abs(refined.motion.g1 - TRUE.g1) < 4 * g_error
+    assert np.all(errors[20.0][:10] > errors[2.0][:10])
 
 def test_the_start_undoes_the_window_offset_of_the_per_frame_fits():
     start = start_motion(TRUE.coefficients(T).to_array(), T, FPS)

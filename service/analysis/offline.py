@@ -13,11 +13,12 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from scipy.stats import norm
 from tqdm import tqdm
 
 from service.analysis import synthesis
 from service.analysis.fit import fit_windows
-from service.analysis.results import FitSettings, Report, Source
+from service.analysis.results import FitSettings, Report, Source, WindowResult
 from service.analysis.segment import (Window, find_ejections, frame_activity, frame_brightness, frame_steps,
                                       series_activity, windows_between)
 from service.analysis.steady import steady_centre
@@ -29,7 +30,7 @@ from service.inverse.manifest import sha256_file
 from service.inverse.methods import open_method
 from service.inverse.nearest import NearestDatabase
 from service.recordings import open_recording
-from service.physics import centre_displacement
+from service.physics import WindowTruth, centre_displacement
 from service.recordings.roi import roi_chunks, roi_frames
 from service.render.renderer import Renderer
 from service.scene import Scene
@@ -97,10 +98,13 @@ def analyse_recording(
     windows = windows_between(cuts, n)
     if candidates is not None:
         coefficients, centre = _regularise(db, candidates, windows, fps, settings, progress)
+    motions = {}
     if refine:
-        coefficients, centre = _refine(path, scene, coefficients, windows, fps, settings, progress)
+        coefficients, centre, motions = _refine(path, scene, coefficients, windows, fps, settings, progress)
     steady = steady_centre(coefficients, windows, scene.nozzle.radius_mm, settings.transient_frames(fps))
     results = fit_windows(steady, fps, windows, settings, progress=progress, brightness=brightness)
+    results = [_with_pixel_intervals(r, *motions[r.index], fps, settings.confidence) if r.index in motions else r
+               for r in results]
     report = Report(source=source, method=method_label(method, refine), ejections=cuts.tolist(), windows=results,
                     fit=settings)
     return Analysis(report, InverseOutput(coefficients=coefficients, centre=centre), steady)
@@ -126,10 +130,13 @@ def method_label(method: str, refine: bool) -> str:
 
 
 def _refine(path: Path, scene: Scene, coefficients: np.ndarray, windows: list[Window], fps: float,
-            settings: FitSettings, progress: bool) -> tuple[np.ndarray, np.ndarray]:
+            settings: FitSettings, progress: bool) -> tuple[np.ndarray, np.ndarray, dict[int, tuple[WindowTruth,
+                                                                                                    np.ndarray]]]:
     """Per frame, the coefficients of its window's motion refined on the window's frames (after the ejection's
-    transient; windows too short for the search keep their per-frame values)."""
+    transient; windows too short for the search keep their per-frame values), and per refined window (by index)
+    its motion and the standard errors of the pixel fit (:func:`synthesis.standard_errors`)."""
     coefficients = coefficients.copy()
+    motions = {}
     renderer = Renderer(scene)
     skip = settings.transient_frames(fps)
     with open_recording(path) as rec:
@@ -139,9 +146,26 @@ def _refine(path: Path, scene: Scene, coefficients: np.ndarray, windows: list[Wi
                 continue
             t = (np.arange(lo, w.end) - w.start) / fps
             start = synthesis.start_motion(coefficients[lo : w.end], t, fps)
-            refined = synthesis.refine_window(renderer, roi_frames(rec, scene, lo, w.end - lo), t, start)
+            frames = roi_frames(rec, scene, lo, w.end - lo)
+            refined = synthesis.refine_window(renderer, frames, t, start)
             coefficients[lo : w.end] = refined.motion.coefficients(t).to_array()
-    return coefficients, centre_displacement(*coefficients.T, scene.nozzle.radius_mm)
+            motions[w.index] = refined.motion, synthesis.standard_errors(renderer, frames, t, refined)
+    return coefficients, centre_displacement(*coefficients.T, scene.nozzle.radius_mm), motions
+
+
+def _with_pixel_intervals(result: WindowResult, motion: WindowTruth, errors: np.ndarray, fps: float,
+                          confidence: float) -> WindowResult:
+    """A refined window's result with each mode's frequency and decay intervals from the pixel fit's standard
+    errors (the mode of the motion nearest in frequency), not from the window fit of its noise-free D(0, t)."""
+    z = float(norm.ppf(0.5 + confidence / 2))  # ~10^5 pixel residuals: Student's t is the normal
+    modes = []
+    for mode in result.model_dump()["modes"]:
+        k = int(np.argmin(np.abs(np.array([motion.f1, motion.f2]) - mode["frequency_hz"])))
+        f_error, g_error = errors[4 + 4 * k], errors[3 + 4 * k]
+        f, g = mode["frequency_hz"], mode["decay_rate_per_s"]
+        modes.append({**mode, "frequency_ci_hz": (max(f - z * f_error, 0.0), min(f + z * f_error, fps / 2)),
+                      "decay_rate_ci_per_s": (max(g - z * g_error, 0.0), g + z * g_error)})
+    return WindowResult.model_validate({**result.model_dump(), "modes": modes})
 
 
 def analyse_series(

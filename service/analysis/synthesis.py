@@ -192,3 +192,20 @@ def refine_window(renderer: Renderer, frames: np.ndarray, t: np.ndarray, start: 
     params = found.x * _SCALE
     return Refined(_canonical(params), abs(float(params[10])), rms_start, float(np.sqrt(np.mean(found.fun**2))),
                    problem.renders)
+
+
+def standard_errors(renderer: Renderer, frames: np.ndarray, t: np.ndarray, refined: Refined) -> np.ndarray:
+    """Standard errors of a refined window's motion (WindowTruth's order, d ... phi2) and blur (px), shape (11,),
+    from the pixel fit at its optimum: s^2 (J'J)^-1, s^2 the residual variance per pixel. The pixels'
+    errors are not independent (a renderer's mismatch is correlated across a highlight), so these are
+    lower bounds; still they say how sharply the window's frames pin each number down, where the window
+    fit of the refined, noise-free D(0, t) would give intervals of nothing but round-off. Five renders."""
+    problem = _Problem(renderer, frames, np.asarray(t, np.float64))
+    x = np.array([*refined.motion.as_dict().values(), refined.blur_sigma_px]) / _SCALE
+    residuals, jac = problem.residuals(x), problem.jacobian(x)
+    variance = float(residuals @ residuals) / max(residuals.size - x.size, 1)
+    normal = jac.T @ jac
+    with np.errstate(divide="ignore", invalid="ignore"):
+        covariance = np.linalg.pinv(normal) * variance
+    errors = np.sqrt(np.clip(np.diag(covariance), 0.0, None)) * _SCALE
+    return np.where(np.linalg.matrix_rank(normal) == x.size, errors, np.inf)
