@@ -90,6 +90,15 @@ def test_the_brightness_second_harmonic_is_not_taken_for_a_mode():
     assert pinned.poles_from == "frames" and [round(m.frequency_hz) for m in pinned.modes] == [1200]
 
 
+
+def test_the_frames_poles_hold_where_only_a_higher_order_of_the_brightness_is_unresolved():
+    """Brightness swinging slowly (under a cycle per window) beside the mode: its 2-mode fit is unresolved, its
+    1-mode fit is not, and that one gives the poles."""
+    brightness = series([(1.0, 300.0, 1500.0, 0.2), (0.5, 0.0, 40.0, 0.3)], noise=1e-3)
+    assert "better but unresolved" in fit_window(brightness, FPS).reason
+    pinned = fit_window(series([(0.005, 300.0, 1500.0, 0.2)], noise=2e-3, seed=1), FPS, brightness=brightness)
+    assert pinned.poles_from == "frames" and pinned.modes[0].frequency_hz == pytest.approx(1500, rel=2e-3)
+
 @pytest.mark.parametrize("brightness", [np.full(N, 80.0), 80.0 + np.random.default_rng(0).normal(0, 0.5, N),
                                         np.full(N, np.nan)], ids=["constant", "noise", "missing"])
 def test_frames_without_a_resolved_oscillation_leave_the_poles_to_the_series(brightness):

@@ -299,8 +299,8 @@ def _brightness_poles(brightness: ArrayLike, length: int, skip: int, settings: F
         return None
     fits = _order_fits(_Window(np.flatnonzero(finite).astype(np.float64), (raw - centre) / spread, settings),
                        x.size, settings)
-    chosen, problem = _choose([f for f in fits if not _has_harmonic(f)])
-    return chosen if chosen.order > 0 and problem is None else None
+    chosen, _ = _choose([f for f in fits if not _has_harmonic(f)])  # resolved, if a higher order was not
+    return chosen if chosen.order > 0 and chosen.problem is None else None
 
 
 def _pencil_modes(n: np.ndarray, y: np.ndarray, length: int, order: int) -> tuple[np.ndarray, np.ndarray]:
