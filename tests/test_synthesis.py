@@ -89,7 +89,7 @@ def test_a_motion_is_plausible_inside_the_coefficient_ranges_with_its_modes_in_o
 
 def test_the_search_leaves_the_mirrored_surface_for_the_true_one(renderer):
     """The surface mirrored about its rim plane (sag and modes of the other sign) is a start the search would
-    stay near; the mirror of where it ends fits better and leads back to the truth."""
+    stay near (without the second LM run from the mirror of where it ends, it ends at p = +0.07)."""
     frames = frames_of(renderer, TRUE, CameraEffects(bit_depth=12, blur_sigma_px=0.7, full_well_e=16000.0))
     mirror = replace(TRUE, p=-TRUE.p, phi1=TRUE.phi1 + np.pi, phi2=TRUE.phi2 + np.pi)
     refined = refine_window(renderer, frames, T, mirror).motion
