@@ -28,7 +28,7 @@ from scipy.optimize import least_squares
 
 from service.analysis.fit import fit_window
 from service.analysis.results import FitSettings
-from service.physics import L1, L2, WindowTruth
+from service.physics import L1, L2, CoefficientRanges, WindowTruth
 from service.render.renderer import Renderer
 
 #: Search parameters: Eq. 1's window motion in WindowTruth's order (d, p, A1, g1, f1, phi1, A2, g2, f2,
@@ -50,6 +50,11 @@ _AMPLIFY = (1.0, 2.0, 4.0)
 _SHIFT_P = (-0.03, 0.0, 0.03)
 #: l2 / l1 of scene.md: mode 2's frequency over mode 1's for an ideal membrane.
 _BESSEL_RATIO = L2 / L1
+#: Mode 2's frequency over mode 1's where the frames' spectrum is searched for mode 2: the membrane's
+#: l2 / l1 = 2.30 give or take the 2.2-2.4 a real meniscus departs from it, with a margin.
+_MODE_2_RATIO = (2.1, 2.5)
+#: Zero padding of the frames' spectrum (times the window's frames): peaks read to a few Hz, not 100.
+_PAD = 16
 #: Mode 1 (amplitude mm, decay 1/s, frequency Hz, phase) where neither a(t) nor b(t) shows a resolved mode.
 _TYPICAL_MODE_1 = (0.015, 500.0, 1500.0, 0.0)
 #: Frames a window needs for the search (ten parameters and the blur, with room to spare).
@@ -92,6 +97,55 @@ def start_motion(coefficients: np.ndarray, t: np.ndarray, fps: float) -> WindowT
     return _canonical(np.array([d, p, *one, *two], np.float64))
 
 
+def frames_start(start: WindowTruth, frames: np.ndarray, t: np.ndarray) -> WindowTruth:
+    """``start`` with each mode's frequency, phase and decay read from the window's frames (m, H, W) at
+    consecutive times ``t``, not from the per-frame method, whose a(t) and b(t) can miss a mode (a slow swing
+    or the other mode taken for it) where every pixel still oscillates with it. Mode 1 is the strongest peak of
+    the pixels' summed power spectrum (two cycles per window up to Nyquist), mode 2 the strongest within
+    :data:`_MODE_2_RATIO` of it (the Bessel ratio where none is). Each mode's amplitude keeps the RMS the start
+    gives it over the window (the per-frame method sees how much a(t) and b(t) move, if not when), kept
+    within a tenth of and the whole of its coefficient's :class:`CoefficientRanges`."""
+    y = frames.reshape(len(t), -1).astype(np.float64)
+    y -= y.mean(axis=0)
+    dt = float(np.median(np.diff(t)))
+    n = _PAD * len(t)
+    freqs = np.fft.rfftfreq(n, dt)
+    power = (np.abs(np.fft.rfft(y * np.hanning(len(t))[:, None], n, axis=0)) ** 2).sum(axis=1)
+    f1 = _peak(freqs, power, 2.0 / (len(t) * dt), freqs[-1]) or start.f1
+    f2 = _peak(freqs, power, _MODE_2_RATIO[0] * f1, min(_MODE_2_RATIO[1] * f1, freqs[-1])) or f1 * _BESSEL_RATIO
+    ranges = CoefficientRanges()
+    modes = []
+    for amplitude, decay, frequency, phase, most in ((start.A1, start.g1, f1, start.phi1, ranges.a[1]),
+                                                     (start.A2, start.g2, f2, start.phi2, ranges.b[1])):
+        new_decay, new_phase = _decay_and_phase(y, t, frequency, phase)
+        rms = np.sqrt(np.mean(np.exp(-2 * decay * t)) / np.mean(np.exp(-2 * new_decay * t)))
+        modes += [np.clip(amplitude * rms, 0.1 * most, most), new_decay, frequency, new_phase]
+    return WindowTruth(start.d, start.p, *map(float, modes))
+
+
+def _peak(freqs: np.ndarray, power: np.ndarray, low: float, high: float) -> float | None:
+    """The frequency of the strongest local maximum of ``power`` in [low, high], None where there is none."""
+    inner = (power[1:-1] > power[:-2]) & (power[1:-1] >= power[2:]) & (freqs[1:-1] >= low) & (freqs[1:-1] <= high)
+    found = np.flatnonzero(inner) + 1
+    return float(freqs[found[np.argmax(power[found])]]) if found.size else None
+
+
+def _decay_and_phase(y: np.ndarray, t: np.ndarray, frequency: float, near: float) -> tuple[float, float]:
+    """A mode's decay rate and phase at ``frequency`` from the centred pixel series ``y`` (m, pixels). Each pixel
+    follows the mode times its own sensitivity s: its projection on exp(-2 pi i f t) is s A e^(i phi) / 2, so
+    the sum of the projections squared has angle 2 phi (phi up to pi: the one nearer ``near`` is taken), and
+    the ratio of that sum's magnitudes over the window's two halves is exp(2 g half-length)."""
+    rotated = y * np.exp(-2j * np.pi * frequency * t)[:, None]
+    half = len(t) // 2
+    first, second = (np.abs(np.sum(rotated[part].sum(axis=0) ** 2))
+                     for part in (slice(0, half), slice(half, 2 * half)))
+    decay = max(0.0, float(np.log(first / second) / (2 * (t[half] - t[0])))) if second > 0 else 0.0
+    phase = float(np.angle(np.sum(rotated.sum(axis=0) ** 2)) / 2)
+    if np.cos(phase - near) < 0:
+        phase += np.pi
+    return decay, float(np.mod(phase, 2 * np.pi))
+
+
 class _Problem:
     """Residuals and Jacobian of one window's frames, in search units x = parameters / _SCALE."""
 
@@ -104,6 +158,15 @@ class _Problem:
         """Linear renders (k m, H, W) of stacked per-frame coefficients (k m, 4)."""
         self.renders += len(coefficients) // len(self.t)
         return self.renderer.render(coefficients)
+
+    def cost(self, motion: WindowTruth, blur: float) -> float:
+        """Mean squared residual of ``motion`` seen through ``blur`` (px): one render."""
+        return float(np.mean(self.residuals(_point(motion, blur)) ** 2))
+
+    def best(self, motions: list[WindowTruth]) -> tuple[float, WindowTruth]:
+        """The cost and the motion of whichever of ``motions`` fits the frames best at the start's blur."""
+        costs = [self.cost(m, _START_BLUR) for m in motions]
+        return min(costs), motions[int(np.argmin(costs))]
 
     def residuals(self, x: np.ndarray) -> np.ndarray:
         """Frames minus gain * blurred render + offset, gain and offset the least-squares ones; (m H W,)."""
@@ -180,18 +243,68 @@ def _variants(start: WindowTruth) -> list[WindowTruth]:
             for k in _AMPLIFY for turn in (0.0, np.pi) for sag in _SHIFT_P]
 
 
-def refine_window(renderer: Renderer, frames: np.ndarray, t: np.ndarray, start: WindowTruth) -> Refined:
-    """Refine ``start`` on a window's ROI frames (m, H, W) at times ``t`` (m,) s since the window start: LM from
-    whichever of :func:`_variants` of ``start`` fits the frames best (one render each)."""
-    problem = _Problem(renderer, frames, np.asarray(t, np.float64))
-    starts = [np.array([*start.as_dict().values(), _START_BLUR]) / _SCALE for start in _variants(start)]
-    costs = [float(np.mean(problem.residuals(x) ** 2)) for x in starts]
-    x0, rms_start = starts[int(np.argmin(costs))], float(np.sqrt(min(costs)))
-    found = least_squares(problem.residuals, x0, jac=problem.jacobian, method="lm", xtol=1e-6, ftol=1e-8,
-                          max_nfev=_EVALUATIONS)
+
+def plausible(motion: WindowTruth, t: np.ndarray) -> bool:
+    """Whether a window's motion is one the analysis can report: mode 1 at two cycles per window or more (a
+    slower swing is not an oscillation the window can show), below mode 2, below the Nyquist frequency of the
+    times ``t`` (consecutive frames), and its per-frame (d, p, a, b) inside the default
+    :class:`CoefficientRanges` (where renders are informative and the models are trained; a search that leaves
+    them has fitted the frames' noise with a motion no meniscus makes)."""
+    ranges = CoefficientRanges()
+    low, high = np.array([ranges.d, ranges.p, ranges.a, ranges.b]).T
+    coefficients = motion.coefficients(t).to_array()
+    dt = float(np.median(np.diff(t)))
+    return bool(2.0 / (len(t) * dt) <= motion.f1 < motion.f2 < 0.5 / dt
+                and np.all((coefficients >= low) & (coefficients <= high)))
+
+
+def _point(motion: WindowTruth, blur: float) -> np.ndarray:
+    """The search's point (its units: :data:`_SCALE`) of a motion and blur (px)."""
+    return np.array([*motion.as_dict().values(), blur]) / _SCALE
+
+
+def _mirrored(motion: WindowTruth) -> WindowTruth:
+    """The motion's surface mirrored about its rim plane (p and both modes of the other sign), which can look
+    alike from below: on a window of s101_lab the search from the network's start ended at p = -0.125, mode 1
+    turned over, where the truth was p = +0.126, with 11 times the truth's pixel residual (two more windows
+    ended at p of the wrong sign, +0.109 for -0.111 and +0.098 for -0.099, d off by 0.02-0.03 mm)."""
+    return replace(motion, p=-motion.p, phi1=motion.phi1 + np.pi, phi2=motion.phi2 + np.pi)
+
+
+def _search(problem: _Problem, motion: WindowTruth, blur: float) -> tuple[WindowTruth, float, float]:
+    """LM from ``motion`` and ``blur``, then once more from the mirror of where it ended (:func:`_mirrored`;
+    LM, not the mirror's own residual, decides: the mirrored minimum's rim d sits elsewhere, by 0.023 and
+    0.027 mm on two windows of s101_lab): the motion, blur and mean squared residual of the better end."""
+    first = _levenberg_marquardt(problem, motion, blur)
+    return min(first, _levenberg_marquardt(problem, _mirrored(first[0]), first[1]), key=lambda end: end[2])
+
+
+def _levenberg_marquardt(problem: _Problem, motion: WindowTruth, blur: float) -> tuple[WindowTruth, float, float]:
+    """LM from ``motion`` and ``blur``: the motion, blur and mean squared residual it ends at."""
+    found = least_squares(problem.residuals, _point(motion, blur), jac=problem.jacobian, method="lm", xtol=1e-6,
+                          ftol=1e-8, max_nfev=_EVALUATIONS)
     params = found.x * _SCALE
-    return Refined(_canonical(params), abs(float(params[10])), rms_start, float(np.sqrt(np.mean(found.fun**2))),
-                   problem.renders)
+    return _canonical(params), abs(float(params[10])), float(np.mean(found.fun**2))
+
+
+def refine_window(renderer: Renderer, frames: np.ndarray, t: np.ndarray, start: WindowTruth) -> Refined:
+    """Refine ``start`` on a window's ROI frames (m, H, W) at times ``t`` (m,) s since the window start. Two
+    starts: ``start`` and :func:`frames_start` of it; each one's :func:`_variants` are rendered once and
+    :func:`_search` runs from the best-fitting variant of the better start, then (where it ends in an
+    implausible motion, see :func:`plausible`) from the other's. The plausible result is returned, else the one
+    that fits best."""
+    t = np.asarray(t, np.float64)
+    problem = _Problem(renderer, frames, t)
+    starts = sorted((problem.best(_variants(base)) for base in (start, frames_start(start, frames, t))),
+                    key=lambda pair: pair[0])
+    ends = []
+    for cost, motion in starts:
+        ends.append((*_search(problem, motion, _START_BLUR), cost))
+        if plausible(ends[-1][0], t):
+            break
+    motion, blur, cost, start_cost = next((end for end in reversed(ends) if plausible(end[0], t)),
+                                          min(ends, key=lambda end: end[2]))
+    return Refined(motion, blur, float(np.sqrt(start_cost)), float(np.sqrt(cost)), problem.renders)
 
 
 def standard_errors(renderer: Renderer, frames: np.ndarray, t: np.ndarray, refined: Refined) -> np.ndarray:
@@ -201,7 +314,7 @@ def standard_errors(renderer: Renderer, frames: np.ndarray, t: np.ndarray, refin
     lower bounds; still they say how sharply the window's frames pin each number down, where the window
     fit of the refined, noise-free D(0, t) would give intervals of nothing but round-off. Five renders."""
     problem = _Problem(renderer, frames, np.asarray(t, np.float64))
-    x = np.array([*refined.motion.as_dict().values(), refined.blur_sigma_px]) / _SCALE
+    x = _point(refined.motion, refined.blur_sigma_px)
     residuals, jac = problem.residuals(x), problem.jacobian(x)
     variance = float(residuals @ residuals) / max(residuals.size - x.size, 1)
     normal = jac.T @ jac
