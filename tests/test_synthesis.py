@@ -61,7 +61,6 @@ def test_refinement_lowers_the_pixel_residual_and_reports_its_search(renderer):
     assert refined.blur_sigma_px == pytest.approx(0.7, abs=0.1)
 
 
-
 def test_the_pixel_fit_s_standard_errors_grow_with_the_noise_and_cover_the_truth(renderer):
     """A refined window's intervals come from its pixel fit (s^2 (J'J)^-1): wider on a noisier camera, and, where
     the noise dominates the search's own tolerance and the 12-bit rounding, the truth within a few standard errors

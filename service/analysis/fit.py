@@ -230,7 +230,7 @@ def _fit_window(values: ArrayLike, fps: float, settings: FitSettings, index: int
     x = np.asarray(values, dtype=np.float64).reshape(-1)
     missing = int(x.size - np.isfinite(x).sum())
     skip = min(settings.transient_frames(fps), x.size) if starts_at_ejection else 0
-    x = np.concatenate([np.full(skip, np.nan), x[skip:]])
+    x = _after_transient(x, skip)
     finite = np.isfinite(x)
     common = dict(
         index=index, start_frame=start_frame, end_frame=start_frame + x.size,
@@ -243,13 +243,11 @@ def _fit_window(values: ArrayLike, fps: float, settings: FitSettings, index: int
             status="failed", **common,
             reason=f"{int(finite.sum())} finite samples of {x.size}; testing for an oscillation needs {need}",
         )
-    n, raw = np.flatnonzero(finite).astype(np.float64), x[finite]
-    largest = float(np.max(np.abs(raw)))
+    largest = float(np.max(np.abs(x[finite])))
     if largest > _MAX_VALUE:
         return WindowResult(status="failed", **common, reason=f"values up to {largest:.3g}: beyond {_MAX_VALUE:.0e} "
                             "the fit's sums of squares would overflow (a unit or a corrupt sample?)")
-    centre = float(np.median(raw))
-    spread = float(np.max(np.abs(raw - centre)))
+    n, raw, centre, spread = _centred(x)
     if spread <= 8 * np.finfo(float).eps * max(abs(centre), np.finfo(float).tiny):
         return WindowResult(
             status="settled", reason="constant series: no oscillation (r2 undefined)", **common,
@@ -261,6 +259,19 @@ def _fit_window(values: ArrayLike, fps: float, settings: FitSettings, index: int
     poles = _brightness_poles(brightness, x.size, skip, settings) if use_frames else None
     chosen, problem = (window.pinned(poles), None) if poles is not None else _choose(_order_fits(window, x.size, settings))
     return _result(chosen, problem, window, centre, spread, fps, settings, common)
+
+
+def _after_transient(x: np.ndarray, skip: int) -> np.ndarray:
+    """A window's samples (N,) with the first ``skip`` (the ejection's transient) missing."""
+    return np.concatenate([np.full(skip, np.nan), x[skip:]])
+
+
+def _centred(x: np.ndarray) -> tuple[np.ndarray, np.ndarray, float, float]:
+    """The finite samples of ``x`` (N,): their indices (as floats), values, median and largest deviation from it."""
+    finite = np.isfinite(x)
+    raw = x[finite]
+    centre = float(np.median(raw))
+    return np.flatnonzero(finite).astype(np.float64), raw, centre, float(np.max(np.abs(raw - centre)))
 
 
 def _order_fits(window: _Window, length: int, settings: FitSettings) -> list[_OrderFit]:
@@ -285,20 +296,16 @@ def _has_harmonic(fit: _OrderFit) -> bool:
 def _brightness_poles(brightness: ArrayLike, length: int, skip: int, settings: FitSettings) -> _OrderFit | None:
     """The fit of a window's mean frame brightness (``length`` values, NaN missing) when it resolves an
     oscillation: its modes' w and g are the poles the window's series is fitted with. None when it does not."""
-    x = np.asarray(brightness, dtype=np.float64).reshape(-1).copy()
+    x = np.asarray(brightness, dtype=np.float64).reshape(-1)
     if x.size != length:
         raise ValueError(f"{x.size} brightness values for a window of {length} frames")
-    x[:skip] = np.nan
-    finite = np.isfinite(x)
-    if finite.sum() < min_samples(1) or settings.max_modes == 0:
+    x = _after_transient(x, skip)
+    if np.isfinite(x).sum() < min_samples(1) or settings.max_modes == 0:
         return None
-    raw = x[finite]
-    centre = float(np.median(raw))
-    spread = float(np.max(np.abs(raw - centre)))
+    n, raw, centre, spread = _centred(x)
     if not 0 < spread < _MAX_VALUE:
         return None
-    fits = _order_fits(_Window(np.flatnonzero(finite).astype(np.float64), (raw - centre) / spread, settings),
-                       x.size, settings)
+    fits = _order_fits(_Window(n, (raw - centre) / spread, settings), x.size, settings)
     chosen, _ = _choose([f for f in fits if not _has_harmonic(f)])  # resolved, if a higher order was not
     return chosen if chosen.order > 0 and chosen.problem is None else None
 

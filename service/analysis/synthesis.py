@@ -243,7 +243,6 @@ def _variants(start: WindowTruth) -> list[WindowTruth]:
             for k in _AMPLIFY for turn in (0.0, np.pi) for sag in _SHIFT_P]
 
 
-
 def plausible(motion: WindowTruth, t: np.ndarray) -> bool:
     """Whether a window's motion is one the analysis can report: mode 1 at two cycles per window or more (a
     slower swing is not an oscillation the window can show), below mode 2, below the Nyquist frequency of the

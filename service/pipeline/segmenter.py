@@ -21,8 +21,8 @@ from service.analysis.segment import Window
 class ClosedWindow:
     """A window whose frames are all in: its place in the stream, its samples and when it closed.
 
-    ``values``: (end - start, ...) what was pushed per frame (the coefficients d, p, a, b, or a displacement),
-    NaN where frames are missing;
+    ``values``: (end - start, ...) what was pushed per frame (the live pipeline's d, p, a, b and brightness;
+    after its dispatch, the steady D(0, t)), NaN where frames are missing;
     ``closed_at``: monotonic time (s) the frame that closed it was acquired;
     ``brightness``: (end - start,) the frames' mean brightness, where the fit takes its poles from the frames.
     """
