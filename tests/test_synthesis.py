@@ -10,6 +10,8 @@ import numpy as np
 import pytest
 
 from service import DEFAULT_SCENE
+from service.analysis.fit import fit_window
+from service.analysis.offline import _with_pixel_intervals
 from service.analysis.synthesis import frames_start, plausible, refine_window, standard_errors, start_motion
 from service.camera_effects import CameraEffects
 from service.physics import WindowTruth
@@ -109,3 +111,22 @@ def test_the_search_leaves_the_mirrored_surface_for_the_true_one(renderer):
     mirror = replace(TRUE, p=-TRUE.p, phi1=TRUE.phi1 + np.pi, phi2=TRUE.phi2 + np.pi)
     refined = refine_window(renderer, frames, T, mirror).motion
     assert refined.p == pytest.approx(TRUE.p, abs=0.01) and relative(refined.f1, TRUE.f1) < 1e-3
+
+
+def test_a_refined_window_reports_the_pixel_fit_s_intervals_for_each_mode_and_null_where_unidentifiable():
+    """Each reported mode takes the interval of the motion's mode nearest in frequency, z = 1.96 standard errors
+    at 95 %; an unidentifiable direction (infinite error) gives the whole band 0 to Nyquist for a frequency, as the
+    window fit does, and no decay interval, which the reason names."""
+    result = fit_window(TRUE.coefficients(T).centre(0.25), FPS)
+    errors = np.zeros(11)
+    errors[[3, 4, 7, 8]] = 2.0, 0.5, 6.0, 1.5  # g1, f1, g2, f2
+    intervals = _with_pixel_intervals(result, TRUE, errors, FPS, 0.95)
+    first, second = intervals.modes
+    assert first.frequency_ci_hz == pytest.approx((first.frequency_hz - 0.98, first.frequency_hz + 0.98), abs=1e-3)
+    assert first.decay_rate_ci_per_s == pytest.approx((first.decay_rate_per_s - 3.92, first.decay_rate_per_s + 3.92),
+                                                      abs=1e-3)
+    assert second.frequency_ci_hz == pytest.approx((second.frequency_hz - 2.94, second.frequency_hz + 2.94), abs=1e-3)
+    errors[[7, 8]] = np.inf
+    unknown = _with_pixel_intervals(result, TRUE, errors, FPS, 0.95)
+    assert unknown.modes[1].frequency_ci_hz == (0.0, FPS / 2) and unknown.modes[1].decay_rate_ci_per_s is None
+    assert "mode 2 decay_rate_ci_per_s not finite" in unknown.reason
