@@ -1,14 +1,15 @@
 """The live pipeline: source -> bounded queue -> batched inference -> activity and segmentation -> fits.
 
-Two threads and a process pool. The acquisition thread only reads the source, cuts each batch down to
+Two threads and a process pool. The acquisition thread reads the source, cuts each batch down to
 the scene's region of interest at once (a sensor larger than the ROI costs no queue memory or copies
-beyond it) and offers it to a queue of ``queue_batches`` reads; when the queue is full the batch is
-dropped and counted, so a camera is never made to wait and memory never grows. The inference thread
-takes what is queued in one ONNX call, but no more frames than it infers within ``batch_ms`` at the cost
-per frame measured so far (:class:`BatchBudget`; a read that would pass the cap is split, its rest taken
-next), so a window's closing frame waits for at most one short call before its own; then it scores
-frame activity, cuts windows at ejections and hands closed windows to the :class:`FitPool` at once.
-Results, the live trace and timings go to a :class:`PipelineSink`.
+beyond it), scores each frame's activity and mean brightness (cheap numpy that the inference thread,
+the busier of the two, need not wait for) and offers the read to a queue of ``queue_batches`` reads;
+when the queue is full the read is dropped and counted, so a camera is never made to wait and memory
+never grows. The inference thread takes what is queued in one ONNX call, but no more frames than it
+infers within ``batch_ms`` at the cost per frame measured so far (:class:`BatchBudget`; a read that
+would pass the cap is split, its rest taken next), so a window's closing frame waits for at most one
+short call before its own; then it cuts windows at ejections and hands closed windows to the
+:class:`FitPool` at once. Results, the live trace and timings go to a :class:`PipelineSink`.
 """
 from __future__ import annotations
 
@@ -38,6 +39,31 @@ log = logging.getLogger(__name__)
 
 #: Seconds between two warnings that frames were dropped.
 DROP_REPORT_S = 10.0
+
+
+@dataclass(frozen=True)
+class Acquired:
+    """A read's ROI frames and what acquisition measured of each (N,): when it was read (monotonic s), its
+    activity z-score and its mean brightness."""
+
+    batch: FrameBatch
+    arrival: np.ndarray
+    activity: np.ndarray
+    brightness: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.batch)
+
+    def select(self, which: slice) -> "Acquired":
+        return Acquired(self.batch.select(which), self.arrival[which], self.activity[which], self.brightness[which])
+
+    @classmethod
+    def concatenate(cls, parts: list["Acquired"]) -> "Acquired":
+        """One of several (at least one), in order."""
+        if len(parts) == 1:
+            return parts[0]
+        return cls(FrameBatch.concatenate([p.batch for p in parts]),
+                   *(np.concatenate([getattr(p, f) for p in parts]) for f in ("arrival", "activity", "brightness")))
 
 
 @dataclass(frozen=True)
@@ -168,8 +194,8 @@ class Pipeline:
         fps = source.fps
         self.segmenter = segmenter_for(settings, fps)
         self.activity = ActivityTracker()
-        self._queue: queue.Queue[tuple[FrameBatch, float]] = queue.Queue(settings.queue_batches)
-        self._rest: tuple[FrameBatch, float] | None = None  # a read's frames past the last call's cap
+        self._queue: queue.Queue[Acquired] = queue.Queue(settings.queue_batches)
+        self._rest: Acquired | None = None  # a read's frames past the last call's cap
         self.budget = BatchBudget(settings.batch_ms / 1e3, settings.batch, settings.read_frames)
         self._trace, self._trace_first = np.empty(0), 0
         self._trace_next = 0.0
@@ -197,7 +223,7 @@ class Pipeline:
         return ended
 
     def _acquire(self, stop: threading.Event, done: threading.Event) -> None:
-        """Read the source and offer every batch's ROI to the queue; a full queue drops the batch."""
+        """Read the source, score every batch's ROI and offer it to the queue; a full queue drops the batch."""
         meter, stats = RateMeter(), self.stats
         lost = self.source.stats
         try:
@@ -216,8 +242,10 @@ class Pipeline:
                 stats.frame_gaps += seen.gaps - lost.gaps
                 stats.frames_lost_upstream += seen.dropped - lost.dropped
                 lost = seen
+                acquired = Acquired(batch, np.full(len(batch), now), self.activity.update(batch.pixels, batch.indices),
+                                    frame_brightness(batch.pixels))
                 try:
-                    self._queue.put_nowait((batch, now))
+                    self._queue.put_nowait(acquired)
                 except queue.Full:
                     stats.frames_dropped += len(batch)
         except MeniscopeError as exc:
@@ -244,17 +272,17 @@ class Pipeline:
                     return self._error is None
                 self.stats.fps_out = meter.add(0, time.monotonic())
                 continue
-            self._process(FrameBatch.concatenate([b for b, _ in taken]),
-                          np.concatenate([np.full(len(b), t) for b, t in taken]))
-            self.stats.fps_out = meter.add(sum(len(b) for b, _ in taken), time.monotonic())
+            acquired = Acquired.concatenate(taken)
+            self._process(acquired)
+            self.stats.fps_out = meter.add(len(acquired), time.monotonic())
             self._report_drops()
         return False
 
-    def _take(self, most: int) -> list[tuple[FrameBatch, float]]:
-        """Reads (with their arrival times) for one call, ``most`` frames in all: the rest of a read split by the
-        last call first, then queued ones, waiting (at most 0.05 s) only for the first; a read that would pass
-        ``most`` is split and its rest kept. Empty when nothing came."""
-        taken: list[tuple[FrameBatch, float]] = []
+    def _take(self, most: int) -> list[Acquired]:
+        """Reads for one call, ``most`` frames in all: the rest of a read split by the last call first, then
+        queued ones, waiting (at most 0.05 s) only for the first; a read that would pass ``most`` is split and
+        its rest kept. Empty when nothing came."""
+        taken: list[Acquired] = []
         frames = 0
         while frames < most:
             if self._rest is not None:
@@ -264,12 +292,11 @@ class Pipeline:
                     item = self._queue.get_nowait() if taken else self._queue.get(timeout=0.05)
                 except queue.Empty:
                     break
-            batch, arrival = item
-            if frames + len(batch) > most:
+            if frames + len(item) > most:
                 cut = most - frames
-                item, self._rest = (batch.select(slice(cut)), arrival), (batch.select(slice(cut, None)), arrival)
+                item, self._rest = item.select(slice(cut)), item.select(slice(cut, None))
             taken.append(item)
-            frames += len(item[0])
+            frames += len(item)
         return taken
 
     def _report_drops(self) -> None:
@@ -283,9 +310,10 @@ class Pipeline:
                         "%d windows left unfitted", now - self._reported[0], dropped, s.fps_in, s.fps_out, skipped)
         self._reported = (now, s.frames_dropped, s.windows_skipped)
 
-    def _process(self, batch: FrameBatch, arrival: np.ndarray) -> None:
+    def _process(self, acquired: Acquired) -> None:
         """Infer one batch of ROI frames, cut windows and hand them to the fits; update the trace and the latest
         frame."""
+        batch = acquired.batch
         pixels = batch.pixels
         t0 = time.perf_counter()
         out = self.method.infer(pixels)
@@ -293,9 +321,8 @@ class Pipeline:
         self.budget.record(seconds, len(batch))
         self.sink.on_inference(seconds, len(batch))
         self.stats.frames_inferred += len(batch)
-        z = self.activity.update(pixels, batch.indices)
-        per_frame = np.column_stack([out.coefficients, frame_brightness(pixels)])  # d, p, a, b, brightness
-        self._dispatch(self.segmenter.push(batch.indices, per_frame, z, arrival))
+        per_frame = np.column_stack([out.coefficients, acquired.brightness])  # d, p, a, b, brightness
+        self._dispatch(self.segmenter.push(batch.indices, per_frame, acquired.activity, acquired.arrival))
         self.stats.latest = LatestFrame(int(batch.indices[-1]), pixels[-1].copy(),
                                         tuple(float(c) for c in out.coefficients[-1]), float(out.centre[-1]))
         self._update_trace(batch.indices, out.centre)
