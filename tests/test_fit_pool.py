@@ -1,5 +1,5 @@
 """The fit workers (service.pipeline.fitting.FitPool): windows handed over and fitted in other processes, one
-in flight per worker, and a worker that dies."""
+in flight and one waiting per worker, and a worker that dies."""
 from __future__ import annotations
 
 import os
@@ -57,16 +57,20 @@ def test_a_window_is_fitted_in_its_worker_as_in_process_and_its_times_follow_eac
     assert submitted <= started <= finished <= delivered  # one monotonic clock across the processes
 
 
-def test_a_window_finding_every_worker_busy_is_refused_and_the_worker_takes_the_next_once_free(pool: FitPool) -> None:
-    first, second = (ClosedWindow(Window(k, 0, 190, True, True), damped(), 0.0) for k in (0, 1))
-    results = Results(1)
+def test_a_window_finding_every_worker_busy_waits_once_and_one_more_is_refused(pool: FitPool) -> None:
+    first, second, third = (ClosedWindow(Window(k, 0, 190, True, True), damped(), 0.0) for k in (0, 1, 2))
+    results = Results(2)
     assert pool.submit(first, FPS, results)
-    assert not pool.submit(second, FPS, results)  # one worker, one window in flight: refused, nothing queued
-    assert results.done.wait(60)
-    results.expected, results.done = 2, threading.Event()
-    assert pool.submit(second, FPS, results)
+    assert pool.submit(second, FPS, results)  # one worker busy: the window waits behind its fit
+    assert not pool.submit(third, FPS, results)  # one waiting per worker: refused, nothing queued
     assert results.done.wait(60)
     assert [closed.window.index for closed, *_ in results.got] == [0, 1]
+    (_, _, _, first_done, _), (_, _, second_started, _, _) = results.got
+    assert first_done <= second_started  # the waiting window went to the worker once it was free
+    results.expected, results.done = 3, threading.Event()
+    assert pool.submit(third, FPS, results)
+    assert results.done.wait(60)
+    assert [closed.window.index for closed, *_ in results.got] == [0, 1, 2]
 
 
 def kill_worker(pool: FitPool) -> None:
@@ -76,17 +80,20 @@ def kill_worker(pool: FitPool) -> None:
     process.join(10)
 
 
-def test_a_worker_that_dies_while_fitting_fails_its_window_and_the_pool_reports_itself_broken(pool: FitPool) -> None:
-    results = Results(1)
+def test_a_worker_that_dies_while_fitting_fails_its_window_and_the_one_waiting_and_the_pool_reports_itself_broken(
+        pool: FitPool) -> None:
+    results = Results(2)
     n = 200_000  # a fit of seconds: still running when the worker is killed just after the hand-over
     long_window = ClosedWindow(Window(0, 0, n, True, True), damped(n), 0.0)
+    waiting = ClosedWindow(Window(1, n, n + 190, True, True), damped(), 0.0)
     assert pool.submit(long_window, FPS, results)
+    assert pool.submit(waiting, FPS, results)
     kill_worker(pool)
     assert results.done.wait(30)
-    (closed, result, started, finished, _), = results.got
-    assert closed is long_window
-    assert (result.status, result.reason) == ("failed", "the fit worker process died")
-    assert np.isnan(started) and np.isnan(finished)
+    assert [closed for closed, *_ in results.got] == [long_window, waiting]
+    for _, result, started, finished, _ in results.got:
+        assert (result.status, result.reason) == ("failed", "the fit worker process died")
+        assert np.isnan(started) and np.isnan(finished)
     assert pool.broken  # the supervisor starts new workers
 
 

@@ -3,9 +3,10 @@
 Processes rather than threads because the fit's Python around its compiled kernels (a few dozen calls
 per window) holds the interpreter lock, which inference, acquisition and the web server need; the workers run at a lower
 priority (``nice``, 10 by default) so that on a busy machine frames keep flowing and windows wait. One window per
-worker is in flight and none waits behind it: a window that finds every worker busy is refused (the
-caller counts it), so a fit slower than the ejection rate costs windows, never memory or frames, and
-what is published is as fresh as the fit allows.
+worker is in flight and at most one per worker waits for it (two windows closing close together, as after
+a spell the machine was busy, are both fitted, the second one fit later); a window that finds that backlog
+full is refused (the caller counts it), so a fit slower than the ejection rate costs windows, never memory
+or frames, and what is published is at most one fit behind.
 
 Each worker has a pipe of its own: the caller writes the window straight into it and a thread per worker,
 asleep in the pipe's read until the result comes, hands the result on. (A ``ProcessPoolExecutor`` passes
@@ -17,9 +18,9 @@ from __future__ import annotations
 import math
 import multiprocessing
 import os
-import queue
 import threading
 import time
+from collections import deque
 from multiprocessing.connection import Connection
 from typing import Callable
 
@@ -67,6 +68,10 @@ def _failed(closed: ClosedWindow, reason: str) -> WindowResult:
                         ends_at_ejection=w.ends_at_ejection)
 
 
+#: A window handed to the pool: the window, its frame rate and where its result goes.
+Job = tuple[ClosedWindow, float, OnFitted]
+
+
 class _Worker:
     """One worker process, the caller's end of its pipe and the window it is fitting (None when idle)."""
 
@@ -78,7 +83,7 @@ class _Worker:
                                        daemon=True)
         self.process.start()
         child.close()
-        self.job: tuple[ClosedWindow, OnFitted] | None = None
+        self.job: Job | None = None
 
 
 class FitPool:
@@ -89,7 +94,9 @@ class FitPool:
         self.workers, self.settings, self.nice = workers, settings, nice
         self.broken = False
         self._closing = False
-        self._idle: queue.SimpleQueue[_Worker] = queue.SimpleQueue()
+        self._lock = threading.Lock()  # guards which workers are idle and the windows waiting
+        self._idle: list[_Worker] = []
+        self._waiting: deque[Job] = deque()
         self._all = [_Worker(settings, nice) for _ in range(workers)]
         warm = np.sin(np.arange(64) / 3.0)  # start the workers, import and load the compiled fit now, not at the first window
         for worker in self._all:
@@ -97,27 +104,37 @@ class FitPool:
         for worker in self._all:
             worker.conn.recv()
             threading.Thread(target=self._receive, args=(worker,), name="meniscope-fit-results", daemon=True).start()
-            self._idle.put(worker)
+            self._idle.append(worker)
 
     def submit(self, closed: ClosedWindow, fps: float, on_fitted: OnFitted) -> bool:
-        """Start fitting ``closed`` (sampled at ``fps``); False (and nothing done) when every worker is busy."""
+        """Start fitting ``closed`` (sampled at ``fps``), or queue it behind the fits in flight; False (and
+        nothing done) when every worker is busy and as many windows already wait."""
         if self.broken:
             raise MeniscopeError("fit workers", "a fit worker process died; starting new ones")
-        try:
-            worker = self._idle.get_nowait()
-        except queue.Empty:
-            return False
-        worker.job = (closed, on_fitted)
+        job = (closed, fps, on_fitted)
+        with self._lock:
+            if not self._idle:
+                if len(self._waiting) >= self.workers:
+                    return False
+                self._waiting.append(job)
+                return True
+            worker = self._idle.pop()
+        self._start(worker, job)
+        return True
+
+    def _start(self, worker: _Worker, job: Job) -> None:
+        """Hand ``job`` to ``worker``; a worker found dead breaks the pool."""
+        worker.job = job
+        closed, fps, _ = job
         try:
             worker.conn.send((closed.window, closed.values, fps, closed.brightness))
         except OSError:  # the worker died since its last fit
             worker.job, self.broken = None, True
             raise MeniscopeError("fit workers", "a fit worker process died; starting new ones") from None
-        return True
 
     def _receive(self, worker: _Worker) -> None:
-        """The worker's results, each to its callback, until its pipe closes (a worker that died: the pool is
-        broken, its window reported failed)."""
+        """The worker's results, each to its callback, then the next waiting window to the worker, until its pipe
+        closes (a worker that died: the pool is broken, its window and those waiting reported failed)."""
         while True:
             try:
                 answer = worker.conn.recv()
@@ -125,20 +142,32 @@ class FitPool:
                 worker.conn.close()
                 if not self._closing:
                     self.broken = True
-                    if worker.job is not None:
-                        closed, on_fitted = worker.job
+                    with self._lock:
+                        lost = ([worker.job] if worker.job is not None else []) + list(self._waiting)
+                        self._waiting.clear()
+                    for closed, _, on_fitted in lost:
                         on_fitted(closed, _failed(closed, "the fit worker process died"), math.nan, math.nan)
                 return
             assert worker.job is not None
-            (closed, on_fitted), worker.job = worker.job, None
-            self._idle.put(worker)
+            (closed, _, on_fitted), worker.job = worker.job, None
+            with self._lock:
+                following = self._waiting.popleft() if self._waiting and not self._closing else None
+                if following is None:
+                    self._idle.append(worker)
+            if following is not None:
+                try:
+                    self._start(worker, following)
+                except MeniscopeError:
+                    closed_next, _, on_next = following
+                    on_next(closed_next, _failed(closed_next, "the fit worker process died"), math.nan, math.nan)
             if isinstance(answer, str):
                 on_fitted(closed, _failed(closed, f"the fit raised {answer}"), math.nan, math.nan)
             else:
                 on_fitted(closed, *answer)
 
     def close(self) -> None:
-        """Stop the workers: each finishes the fit it is on (its result still delivered) and exits."""
+        """Stop the workers: each finishes the fit it is on (its result still delivered) and exits; windows still
+        waiting are not fitted."""
         self._closing = True
         for worker in self._all:
             try:
