@@ -70,10 +70,11 @@ def measure(settings: ServiceSettings, seconds: float) -> dict:
     stages: list[tuple[float, ...]] = []  # per published window: its times from closed to published (s)
 
     class Timed(Publishers):
-        def _window(self, fitted: FittedWindow) -> None:
-            super()._window(fitted)
+        def _window(self, fitted: FittedWindow) -> float:
+            sent = super()._window(fitted)
             stages.append((fitted.closed_at, fitted.dispatched_at, fitted.fit_started_at, fitted.fit_finished_at,
-                           fitted.fitted_at, time.monotonic()))
+                           fitted.fitted_at, sent))
+            return sent
 
     stats = PipelineStats()
     supervisor: Supervisor | None = None

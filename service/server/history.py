@@ -2,8 +2,9 @@
 
 One row per published window: an id that only grows (what REST's ``since`` and the published
 messages carry), the time it was stored, the source and frame rate, and the :class:`WindowResult`
-as JSON. One writer (the publishing thread) and any number of readers (REST requests, each with a
-short-lived connection of its own), which WAL lets run side by side.
+as JSON. One writer (the publishing thread, which gives each window its id before sending it and stores it
+after) and any number of readers (REST requests, each with a short-lived connection of its own),
+which WAL lets run side by side.
 """
 from __future__ import annotations
 
@@ -61,6 +62,9 @@ class History:
         except (OSError, sqlite3.Error) as exc:
             raise MeniscopeError(self.path, f"cannot open the history database: {exc}") from None
         self._inserts = 0
+        self._last_id = self._writer.execute(  # AUTOINCREMENT's record of the largest id ever given, pruned or not
+            "SELECT MAX(COALESCE((SELECT seq FROM sqlite_sequence WHERE name = 'windows'), 0), "
+            "COALESCE((SELECT MAX(id) FROM windows), 0))").fetchone()[0]
         self.prune()
 
     def _connect(self, check_same_thread: bool = True) -> sqlite3.Connection:
@@ -68,16 +72,23 @@ class History:
         conn.row_factory = sqlite3.Row
         return conn
 
-    def add(self, result: WindowResult, source: str, fps: float, stored: float | None = None) -> int:
-        """Store one result; its id."""
-        cursor = self._writer.execute(
-            "INSERT INTO windows (stored, source, fps, result) VALUES (?, ?, ?, ?)",
-            (time.time() if stored is None else stored, source, fps, result.model_dump_json()),
+    def new_id(self) -> int:
+        """The id of the next window, given now so that a window can be published before it is stored."""
+        self._last_id += 1
+        return self._last_id
+
+    def add(self, result: WindowResult, source: str, fps: float, stored: float | None = None,
+            window_id: int | None = None) -> int:
+        """Store one result under ``window_id`` (from :meth:`new_id`; a new one if None); its id."""
+        window_id = self.new_id() if window_id is None else window_id
+        self._writer.execute(
+            "INSERT INTO windows (id, stored, source, fps, result) VALUES (?, ?, ?, ?, ?)",
+            (window_id, time.time() if stored is None else stored, source, fps, result.model_dump_json()),
         )
         self._inserts += 1
         if self._inserts % PRUNE_EVERY == 0:
             self.prune()
-        return int(cursor.lastrowid or 0)
+        return window_id
 
     def prune(self, now: float | None = None) -> int:
         """Delete windows older than ``days`` or beyond the newest ``max_windows``; how many went."""

@@ -1,7 +1,8 @@
 """The pipeline's sink in the service: every window result to history, ZeroMQ, WebSocket and metrics.
 
 The pipeline hands results and trace snippets over through a bounded queue and goes on; one
-publishing thread stores each window (which gives it its id), then sends it on. If that thread ever
+publishing thread gives each window its id, sends it to ZeroMQ and the WebSocket clients, then
+stores it. If that thread ever
 fell a whole queue behind, further items would be dropped and counted rather than pile up.
 """
 from __future__ import annotations
@@ -68,11 +69,14 @@ class Publishers:
             except Exception:  # noqa: BLE001 - one bad item must not stop publishing
                 log.exception("publishing failed")
 
-    def _window(self, fitted: FittedWindow) -> None:
-        result, stored_at = fitted.result, time.time()
-        window_id = self.history.add(result, fitted.source, fitted.fps, stored_at)
-        stored = StoredWindow(window_id, stored_at, fitted.source, fitted.fps, result)
+    def _window(self, fitted: FittedWindow) -> float:
+        """Send the window to the printer (ZeroMQ) and the dashboards first, then store it: the clients that
+        act on it need not wait for the disk. When (monotonic s) it was sent."""
+        stored = StoredWindow(self.history.new_id(), time.time(), fitted.source, fitted.fps, fitted.result)
         if self.zmq is not None:
             self.zmq.send(window_message(stored))
         self.hub.broadcast(window_message(stored, fitted.values))
-        self.metrics.window(result, time.monotonic() - fitted.closed_at)
+        sent = time.monotonic()
+        self.history.add(stored.result, stored.source, stored.fps, stored.stored, stored.id)
+        self.metrics.window(stored.result, sent - fitted.closed_at)
+        return sent
