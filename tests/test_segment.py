@@ -10,7 +10,7 @@ from hypothesis import strategies as st
 
 from service.analysis.score import ejection_matches
 from service.analysis.segment import (
-    burst_period, detect_ejections, ejections_at_rate, read_ejections, robust_z, windows_between,
+    burst_period, detect_ejections, ejections_at_rate, frame_brightness, read_ejections, robust_z, windows_between,
 )
 from service.errors import MeniscopeError
 
@@ -100,3 +100,15 @@ def test_bad_ejection_files_are_one_clear_error(tmp_path: Path, text: str, messa
     with pytest.raises(MeniscopeError, match=message) as err:
         read_ejections(path, FPS, 1000)
     assert "bad.txt" in str(err.value)
+
+
+@settings(max_examples=40, deadline=None)
+@given(dtype=st.sampled_from([np.uint8, np.uint16]), side=st.sampled_from([1, 96, 256, 257]),
+       fill=st.sampled_from(["max", "zero", "random"]), seed=st.integers(0, 2**16))
+def test_frame_brightness_is_the_exact_mean_up_to_the_largest_sums(dtype, side, fill, seed) -> None:
+    """The integer sum behind it switches from 32 to 64 bits where a frame of full-scale 16-bit pixels would
+    overflow 32 (256 x 257 pixels): on both sides, and at full scale, it is the float64 mean to the last bit."""
+    top = np.iinfo(dtype).max
+    frames = {"max": np.full((3, side, side), top, dtype), "zero": np.zeros((3, side, side), dtype),
+              "random": np.random.default_rng(seed).integers(0, top, (3, side, side), endpoint=True).astype(dtype)}[fill]
+    assert np.array_equal(frame_brightness(frames), frames.reshape(3, -1).mean(axis=1, dtype=np.float64))

