@@ -2,8 +2,7 @@
 
 One row per published window: an id that only grows (what REST's ``since`` and the published
 messages carry), the time it was stored, the source and frame rate, and the :class:`WindowResult`
-as JSON. One writer (the publishing thread, which gives each window its id before sending it and stores it
-after) and any number of readers (REST requests, each with a short-lived connection of its own),
+as JSON. One writer (the publishers, which give each window its id before sending it and store it after) and any number of readers (REST requests, each with a short-lived connection of its own),
 which WAL lets run side by side.
 """
 from __future__ import annotations
@@ -73,7 +72,8 @@ class History:
         return conn
 
     def new_id(self) -> int:
-        """The id of the next window, given now so that a window can be published before it is stored."""
+        """The id of the next window, given now so that a window can be published before it is stored (from one
+        thread at a time)."""
         self._last_id += 1
         return self._last_id
 

@@ -42,7 +42,7 @@ class _PipelineCollector(Collector):
             ("frames_dropped", s.frames_dropped, "Frames read but dropped because inference was behind."),
             ("frame_gaps", s.frame_gaps, "Jumps in the source's frame indices (frames lost before the service)."),
             ("frames_lost_upstream", s.frames_lost_upstream, "Frames missing inside those jumps."),
-            ("windows_skipped", s.windows_skipped, "Windows closed while every fit worker was busy (not fitted)."),
+            ("windows_skipped", s.windows_skipped, "Windows closed while every fit worker was busy and as many windows waited (not fitted)."),
             ("websocket_messages_skipped", skipped, "Messages lagging WebSocket clients did not get."),
         ):
             yield CounterMetricFamily(f"meniscope_{name}", text, value=value)

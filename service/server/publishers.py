@@ -1,9 +1,10 @@
-"""The pipeline's sink in the service: every window result to history, ZeroMQ, WebSocket and metrics.
+"""The pipeline's sink in the service: every window result to ZeroMQ, WebSocket, history and metrics.
 
-The pipeline hands results and trace snippets over through a bounded queue and goes on; one
-publishing thread gives each window its id, sends it to ZeroMQ and the WebSocket clients, then
-stores it. If that thread ever
-fell a whole queue behind, further items would be dropped and counted rather than pile up.
+A fitted window is sent at once, on the thread that brings it (the fit pool's result thread): given its
+id by the history, sent on ZeroMQ and handed to the WebSocket clients, a thread hop and an interpreter
+lock hand-over sooner than through a queue. Storing it in SQLite and counting it, and the trace
+snippets, go through a bounded queue to one publishing thread; if that thread ever fell a whole queue
+behind, further items would be dropped and counted rather than pile up.
 """
 from __future__ import annotations
 
@@ -30,7 +31,9 @@ class Publishers:
     def __init__(self, history: History, metrics: Metrics, zmq: ZmqPublisher | None, hub: Hub) -> None:
         self.history, self.metrics, self.zmq, self.hub = history, metrics, zmq, hub
         self.dropped = 0
-        self._queue: queue.Queue[FittedWindow | TraceSnippet | None] = queue.Queue(QUEUE_ITEMS)
+        self._sending = threading.Lock()  # one window at a time gets its id and goes out (several fit workers)
+        self._queue: queue.Queue[tuple[FittedWindow, StoredWindow, float] | TraceSnippet | None] = queue.Queue(
+            QUEUE_ITEMS)
         self._thread = threading.Thread(target=self._run, name="meniscope-publish", daemon=True)
 
     def start(self) -> "Publishers":
@@ -43,7 +46,13 @@ class Publishers:
 
     # --- PipelineSink: hand over, never wait
     def on_window(self, fitted: FittedWindow) -> None:
-        self._offer(fitted)
+        try:
+            with self._sending:
+                stored, sent = self._send(fitted)
+        except Exception:  # noqa: BLE001 - one bad window must not stop the fit results
+            log.exception("publishing failed")
+            return
+        self._offer((fitted, stored, sent))
 
     def on_trace(self, trace: TraceSnippet) -> None:
         if self.hub.clients:
@@ -52,31 +61,30 @@ class Publishers:
     def on_inference(self, seconds: float, frames: int) -> None:
         self.metrics.inference_call(seconds)
 
-    def _offer(self, item: FittedWindow | TraceSnippet) -> None:
+    def _offer(self, item: tuple[FittedWindow, StoredWindow, float] | TraceSnippet) -> None:
         try:
             self._queue.put_nowait(item)
         except queue.Full:
             self.dropped += 1
 
-    # --- the publishing thread
-    def _run(self) -> None:
-        while (item := self._queue.get()) is not None:
-            try:
-                if isinstance(item, FittedWindow):
-                    self._window(item)
-                else:
-                    self.hub.broadcast(trace_message(item))
-            except Exception:  # noqa: BLE001 - one bad item must not stop publishing
-                log.exception("publishing failed")
-
-    def _window(self, fitted: FittedWindow) -> float:
-        """Send the window to the printer (ZeroMQ) and the dashboards first, then store it: the clients that
-        act on it need not wait for the disk. When (monotonic s) it was sent."""
+    def _send(self, fitted: FittedWindow) -> tuple[StoredWindow, float]:
+        """Give the window its id and send it to the printer (ZeroMQ) and the dashboards; the window as it will
+        be stored and when (monotonic s) it was sent."""
         stored = StoredWindow(self.history.new_id(), time.time(), fitted.source, fitted.fps, fitted.result)
         if self.zmq is not None:
             self.zmq.send(window_message(stored))
         self.hub.broadcast(window_message(stored, fitted.values))
-        sent = time.monotonic()
-        self.history.add(stored.result, stored.source, stored.fps, stored.stored, stored.id)
-        self.metrics.window(stored.result, sent - fitted.closed_at)
-        return sent
+        return stored, time.monotonic()
+
+    # --- the publishing thread
+    def _run(self) -> None:
+        while (item := self._queue.get()) is not None:
+            try:
+                if isinstance(item, TraceSnippet):
+                    self.hub.broadcast(trace_message(item))
+                else:
+                    fitted, stored, sent = item
+                    self.history.add(stored.result, stored.source, stored.fps, stored.stored, stored.id)
+                    self.metrics.window(stored.result, sent - fitted.closed_at)
+            except Exception:  # noqa: BLE001 - one bad item must not stop publishing
+                log.exception("publishing failed")
