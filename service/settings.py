@@ -52,7 +52,7 @@ class ServiceSettings(BaseSettings):
                                                   "needs nearest_database)")
     nearest_database: Path | None = Field(None, description="render database of the nearest methods")
     read_frames: Annotated[int, Field(ge=1, le=4096)] = Field(
-        32, description="frames per source read: a frame waits in the source until its read is full, and is inferred "
+        64, description="frames per source read: a frame waits in the source until its read is full, and is inferred "
                         "after the frames read before it")
     batch: Annotated[int, Field(ge=1, le=4096)] = Field(512, description="frames per inference call, at most")
     batch_ms: Positive = Field(
@@ -60,7 +60,7 @@ class ServiceSettings(BaseSettings):
                          "the cost per frame measured so far, so a window's closing frame never waits behind a long call")
     threads: Annotated[int, Field(ge=1, le=64)] = Field(1, description="onnxruntime intra-op threads")
     queue_batches: Annotated[int, Field(ge=1, le=1024)] = Field(
-        128, description="source reads waiting for inference before new ones are dropped")
+        64, description="source reads waiting for inference before new ones are dropped")
     # --- segmentation and fit
     ejection_hz: Positive | None = Field(100.0, description="expected ejection rate: no two within half a period")
     activity_threshold: Positive = Field(8.0, description="robust sigmas of frame change that mark an ejection")
@@ -68,7 +68,7 @@ class ServiceSettings(BaseSettings):
     fit: FitSettings = FitSettings()
     fit_workers: Annotated[int, Field(ge=1, le=16)] = Field(1, description="processes fitting windows")
     fit_nice: Annotated[int, Field(ge=0, le=19)] = Field(
-        0, description="niceness of the fit workers: 0 favours fresh windows, higher favours frames")
+        10, description="niceness of the fit workers: 0 favours fresh windows, higher favours frames")
     # --- publishing
     host: str = "127.0.0.1"
     port: Annotated[int, Field(ge=0, le=65535)] = 8000

@@ -51,7 +51,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help=f"BATCHxTHREADS inference settings, comma-separated (default {CONFIGS})")
     p.add_argument("--speeds", default="1", help="replay speeds, x the recorded rate, comma-separated (default 1)")
     p.add_argument("--fit-workers", type=int, default=1, help="fit worker processes (default 1)")
-    p.add_argument("--fit-nice", type=int, default=0, help="niceness of the fit workers (default 0, the service's)")
+    p.add_argument("--fit-nice", type=int, default=10, help="niceness of the fit workers (default 10, the service's)")
     p.add_argument("--max-modes", default="2", help="fit model orders to compare, comma-separated: 1 fits half the "
                    "models of 2 (default 2, the service's default)")
     p.add_argument("--variants", default="", help="service settings to compare, KEY=VALUE pairs joined by ',', "
@@ -182,7 +182,7 @@ def parse_variants(text: str) -> list[tuple[str, dict[str, str]]]:
     for group in text.split(";"):
         pairs = [item.strip() for item in group.split(",") if item.strip()]
         if any("=" not in item for item in pairs):
-            raise MeniscopeError("--variants", f"expected KEY=VALUE pairs like batch_ms=2,read_frames=32, got {group!r}")
+            raise MeniscopeError("--variants", f"expected KEY=VALUE pairs like batch_ms=2,read_frames=64, got {group!r}")
         variants.append((",".join(pairs), dict(item.split("=", 1) for item in pairs)))
     return variants
 

@@ -1,10 +1,9 @@
 """Window fits in worker processes: the caller hands a closed window over and never waits for it.
 
 Processes rather than threads because the fit's Python around its compiled kernels (a few dozen calls
-per window) holds the interpreter lock, which inference, acquisition and the web server need. The workers run at
-``nice`` (0 by default: a window's fit, 2-3 ms after it closes, competes on equal terms with the frames, which have
-slack; ``meniscope bench serve`` measured its p99 at 4.8-6.4 ms at nice 0 against 5.7-7.0 ms at 10) or lower
-priority, so that on an overloaded machine frames keep flowing and windows wait. One window per
+per window) holds the interpreter lock, which inference, acquisition and the web server need; the workers run at a lower
+priority (``nice``, 10 by default) so that on a busy machine frames keep flowing and windows wait (``meniscope bench
+serve`` found no latency to gain at nice 0: the fit's p99 no lower, the frames' higher). One window per
 worker is in flight and at most one per worker waits for it (two windows closing close together, as after
 a spell the machine was busy, are both fitted, the second one fit later); a window that finds that backlog
 full is refused (the caller counts it), so a fit slower than the ejection rate costs windows, never memory
@@ -92,7 +91,7 @@ class FitPool:
     """``workers`` processes at ``nice`` fitting windows with ``settings``; each result goes to the callback
     given with it."""
 
-    def __init__(self, workers: int, settings: FitSettings, nice: int = 0) -> None:
+    def __init__(self, workers: int, settings: FitSettings, nice: int = 10) -> None:
         self.workers, self.settings, self.nice = workers, settings, nice
         self.broken = False
         self._closing = False
