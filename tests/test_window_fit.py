@@ -381,11 +381,11 @@ def test_the_compiled_levenberg_marquardt_reaches_scipy_s_optimum(seed, noise, l
     def residuals(params: np.ndarray) -> np.ndarray:
         return kernels.weighted_jacobian(n, window.y, window.scale, window.robust, params)[0]
 
-    # both search each mode's decay g as sqrt(g), so that g >= 0
+    # both search each mode's decay g as sqrt(g), so that g >= 0 (abs: np.where takes the root of every entry)
     decays = (np.arange(start.size) % 4 == 1) & (np.arange(start.size) > 1)
     squared = lambda x: np.where(decays, x**2, x)  # noqa: E731
     ours = kernels.levenberg_marquardt(n, window.y, window.scale, window.robust, start, 1e-10, 2000)
-    minpack = squared(least_squares(lambda x: residuals(squared(x)), np.where(decays, np.sqrt(start), start),
+    minpack = squared(least_squares(lambda x: residuals(squared(x)), np.where(decays, np.sqrt(np.abs(start)), start),
                                     method="lm", xtol=1e-12, ftol=1e-12, max_nfev=4000).x)
     assert residuals(ours) @ residuals(ours) <= residuals(minpack) @ residuals(minpack) * (1 + 1e-6) + 1e-20
 
