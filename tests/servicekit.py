@@ -3,7 +3,6 @@ from __future__ import annotations
 
 import json
 import os
-import socket
 import subprocess
 import sys
 import threading
@@ -17,6 +16,7 @@ from typing import Any, Iterator
 
 import uvicorn
 
+from service.bench.live import free_port  # noqa: F401 - the tests' free port is the benchmark's
 from service.server.app import create_app
 from service.settings import ServiceSettings
 
@@ -40,13 +40,6 @@ def meniscope(*args: str | Path) -> subprocess.CompletedProcess:
     """Run ``meniscope ARGS`` as its own process on this checkout's code; its output is captured as text."""
     return subprocess.run([*MENISCOPE, *map(str, args)], capture_output=True, text=True, timeout=CLI_TIMEOUT_S,
                           env=checkout_env())
-
-
-def free_port() -> int:
-    """A TCP port on 127.0.0.1 that nothing listens on at the moment (the system's pick)."""
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 @contextmanager

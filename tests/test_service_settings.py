@@ -51,7 +51,6 @@ def test_a_bad_config_is_one_line_naming_the_file_and_setting(tmp_path: Path, te
     assert problem in str(err.value) and "\n" not in str(err.value)
 
 
-
 def test_a_bad_value_is_named_where_it_came_from(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """The environment variable or the option that set it, not a config file that did not."""
     config = tmp_path / "serve.toml"
@@ -64,6 +63,7 @@ def test_a_bad_value_is_named_where_it_came_from(tmp_path: Path, monkeypatch: py
     with pytest.raises(MeniscopeError) as err:
         load_settings(config, port=-7)
     assert str(err.value).startswith("--port: port:")
+
 
 def test_file_sources_resolve_inside_the_recordings_folder(tmp_path: Path) -> None:
     (tmp_path / "rec.cine").touch()

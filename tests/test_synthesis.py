@@ -78,6 +78,7 @@ def test_the_pixel_fit_s_standard_errors_grow_with_the_noise_and_cover_the_truth
     assert abs(refined.motion.f1 - TRUE.f1) < 4 * f_error and abs(refined.motion.g1 - TRUE.g1) < 4 * g_error
     assert np.all(errors[20.0][:10] > errors[2.0][:10])
 
+
 def test_the_start_undoes_the_window_offset_of_the_per_frame_fits():
     start = start_motion(TRUE.coefficients(T).to_array(), T, FPS)
     for name, value in TRUE.as_dict().items():

@@ -64,7 +64,6 @@ def test_the_model_order_is_the_one_the_data_needs():
                           FitSettings(max_modes=1)).modes) == 1
 
 
-
 def test_poles_from_the_frames_brightness_amplitude_and_offset_from_the_series():
     """A per-frame shape estimate that halves the mode, wanders and doubles its frequency in places (as the
     learned methods' do) beside a clean brightness: frequency and decay are the brightness's, amplitude,
@@ -90,7 +89,6 @@ def test_the_brightness_second_harmonic_is_not_taken_for_a_mode():
     assert pinned.poles_from == "frames" and [round(m.frequency_hz) for m in pinned.modes] == [1200]
 
 
-
 def test_the_frames_poles_hold_where_only_a_higher_order_of_the_brightness_is_unresolved():
     """Brightness swinging slowly (under a cycle per window) beside the mode: its 2-mode fit is unresolved, its
     1-mode fit is not, and that one gives the poles."""
@@ -98,6 +96,7 @@ def test_the_frames_poles_hold_where_only_a_higher_order_of_the_brightness_is_un
     assert "better but unresolved" in fit_window(brightness, FPS).reason
     pinned = fit_window(series([(0.005, 300.0, 1500.0, 0.2)], noise=2e-3, seed=1), FPS, brightness=brightness)
     assert pinned.poles_from == "frames" and pinned.modes[0].frequency_hz == pytest.approx(1500, rel=2e-3)
+
 
 @pytest.mark.parametrize("brightness", [np.full(N, 80.0), 80.0 + np.random.default_rng(0).normal(0, 0.5, N),
                                         np.full(N, np.nan)], ids=["constant", "noise", "missing"])
@@ -110,6 +109,7 @@ def test_frames_without_a_resolved_oscillation_leave_the_poles_to_the_series(bri
 def test_brightness_of_another_length_is_refused():
     with pytest.raises(ValueError, match="brightness values for a window of"):
         fit_window(series([(0.02, 400.0, 1500.0, 0.3)]), FPS, brightness=np.ones(N - 1))
+
 
 def test_settling_time_is_where_the_envelope_meets_five_percent():
     r = fit_window(series([(0.02, 1000.0, 1500.0, 0.0)], noise=1e-5), FPS)
@@ -330,7 +330,6 @@ def test_settling_time_is_right_and_quiet_at_extreme_amplitudes_and_decays(ampli
     assert t == pytest.approx(expected, rel=1e-9)
 
 
-
 def test_settle_is_quiet_and_finite_where_the_amplitudes_sum_past_the_float_range():
     """The band is 5 % of each term summed (1e307 mm here), and an envelope past the float range is inf, not a
     warning; the result goes out with the residual amplitude null (not finite), never NaN."""
@@ -341,6 +340,7 @@ def test_settle_is_quiet_and_finite_where_the_amplitudes_sum_past_the_float_rang
         assert envelope(0.0, [1e308, 1e308], [1.0, 1.0])[0] == np.inf
     assert s.tolerance_mm == pytest.approx(1e307) and not s.settled
     assert s.time_s is None and s.residual_amplitude_mm == pytest.approx(2 * (1e308 / np.e))
+
 
 @settings(max_examples=300, deadline=None)
 @given(amplitudes=st.lists(st.floats(1e-300, 1e300), min_size=1, max_size=3),
@@ -363,7 +363,6 @@ def test_the_settling_time_that_stopped_bench_tradeoff():
     a, g = [3.86e-4, 1.38e-4], [3.09e-176, 3.28e-7]
     t = settling_time(a, g, 5e-4)
     assert envelope(t, a, g)[0] == pytest.approx(5e-4, rel=1e-9)
-
 
 
 @settings(max_examples=40, deadline=None)

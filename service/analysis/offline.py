@@ -159,9 +159,10 @@ def _with_pixel_intervals(result: WindowResult, motion: WindowTruth, errors: np.
     errors (the mode of the motion nearest in frequency), not from the window fit of its noise-free D(0, t)."""
     z = float(norm.ppf(0.5 + confidence / 2))  # ~10^5 pixel residuals: Student's t is the normal
     fields, modes = result.model_dump(), []
+    names = list(motion.as_dict())  # the errors' order
     for mode in fields["modes"]:
-        k = int(np.argmin(np.abs(np.array([motion.f1, motion.f2]) - mode["frequency_hz"])))
-        f_error, g_error = errors[4 + 4 * k], errors[3 + 4 * k]
+        k = int(np.argmin(np.abs(np.array([motion.f1, motion.f2]) - mode["frequency_hz"]))) + 1
+        f_error, g_error = errors[names.index(f"f{k}")], errors[names.index(f"g{k}")]
         f, g = mode["frequency_hz"], mode["decay_rate_per_s"]
         modes.append({**mode, "frequency_ci_hz": (max(f - z * f_error, 0.0), min(f + z * f_error, fps / 2)),
                       "decay_rate_ci_per_s": (max(g - z * g_error, 0.0), g + z * g_error)})

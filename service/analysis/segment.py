@@ -144,7 +144,7 @@ def frame_brightness(frames: np.ndarray) -> np.ndarray:
     """Mean pixel value of each frame (N, H, W) -> (N,), float64: the highlights the surface moves modulate
     it with the surface's own frequencies and decay rates (the window fit's poles, FitSettings.poles)."""
     flat = frames.reshape(len(frames), -1)
-    if not np.issubdtype(flat.dtype, np.integer):
+    if not np.issubdtype(flat.dtype, np.unsignedinteger):  # an unsigned sum of signed pixels would wrap
         return flat.mean(axis=1, dtype=np.float64)
     # an exact integer sum, in 32 bits where no frame can overflow them (2.7x faster than a float64 mean, and
     # the same to the last bit: both are exact below 2**53)

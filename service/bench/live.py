@@ -133,19 +133,24 @@ class Clients:
             t.join(5)
 
 
-def scrape(service: Service) -> dict[str, float]:
-    """The latency histogram's cumulative bucket counts by bound (s, "+Inf" as inf) and the frames dropped and
-    windows skipped so far, from /metrics (parsed by prometheus_client's own parser)."""
+#: The counters read beside the histogram.
+COUNTERS = ("meniscope_frames_dropped_total", "meniscope_windows_skipped_total")
+
+
+def scrape(service: Service) -> tuple[dict[str, float], dict[str, float]]:
+    """From /metrics (parsed by prometheus_client's own parser): the latency histogram's cumulative bucket
+    counts by bound (its ``le`` label, s, and "+Inf"), and :data:`COUNTERS` so far."""
     from prometheus_client.parser import text_string_to_metric_families
 
-    out: dict[str, float] = {}
+    buckets: dict[str, float] = {}
+    counters: dict[str, float] = {}
     for family in text_string_to_metric_families(service.get("/metrics")):
         for sample in family.samples:
             if sample.name == f"{LATENCY}_bucket":
-                out[sample.labels["le"]] = sample.value
-            elif sample.name in ("meniscope_frames_dropped_total", "meniscope_windows_skipped_total"):
-                out[sample.name] = sample.value
-    return out
+                buckets[sample.labels["le"]] = sample.value
+            elif sample.name in COUNTERS:
+                counters[sample.name] = sample.value
+    return buckets, counters
 
 
 def measure(seconds: float) -> dict:
@@ -164,15 +169,15 @@ def measure(seconds: float) -> dict:
             clients.stop()
         finally:
             service.stop()
-    grown = {k: after[k] - before.get(k, 0.0) for k in after}
-    published = grown["+Inf"]
-    bounds = sorted((float(k), v) for k, v in grown.items() if not k.startswith("meniscope") and k != "+Inf")
+    grown = {k: after[0][k] - before[0].get(k, 0.0) for k in after[0]}
+    published = grown.pop("+Inf")
+    bounds = sorted((float(k), v) for k, v in grown.items())
     within = {f"{b * 1e3:g}": v / max(published, 1) for b, v in bounds}
     p99_under = next((f"{b * 1e3:g}" for b, v in bounds if v >= 0.99 * published), None)
     return {"seconds": elapsed, "load_average": [load0, load1], "windows_published": published,
             "received": received, "within_ms": within, "p99_under_ms": p99_under,
-            "frames_dropped": grown.get("meniscope_frames_dropped_total", 0.0),
-            "windows_skipped": grown.get("meniscope_windows_skipped_total", 0.0)}
+            **{key: after[1].get(name, 0.0) - before[1].get(name, 0.0)
+               for key, name in zip(("frames_dropped", "windows_skipped"), COUNTERS)}}
 
 
 def markdown(runs: list[dict]) -> str:

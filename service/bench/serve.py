@@ -7,9 +7,10 @@ with one bounded in time) one run of ``--seconds`` through the real supervisor, 
 workers and publishers (SQLite history in a temporary folder, ZeroMQ on a free port, metrics; only
 HTTP is left out): frames read and inferred per second, the fraction dropped, windows closed,
 published and left unfitted, and how long after a window closed (the frame that closed it was
-read) its result was published (sent on ZeroMQ and to the WebSocket clients; p50, p99, and the share of
-closed windows published within 10 ms, which counts a window left unfitted as late). No "as fast as it reads" run: acquisition would spin
-reading frames only to drop them, and measure that rather than the pipeline.
+read) its result was published (sent on ZeroMQ and to the WebSocket clients; p50, p99, and the share
+of closed windows published within 10 ms, which counts a window left unfitted as late). No "as fast
+as it reads" run: acquisition would spin reading frames only to drop them, and measure that rather
+than the pipeline.
 
 Then, since wall-clock rates on a shared machine say more about the neighbours than about us, the
 CPU time (``time.thread_time``) each stage costs per frame, run one after another on one thread:

@@ -1,4 +1,4 @@
-"""The live pipeline: source -> bounded queue -> batched inference -> activity and segmentation -> fits.
+"""The live pipeline: source -> frame activity -> bounded queue -> batched inference -> segmentation -> fits.
 
 Two threads and a process pool. The acquisition thread reads the source, cuts each batch down to
 the scene's region of interest at once (a sensor larger than the ROI costs no queue memory or copies
@@ -55,6 +55,7 @@ class Acquired:
         return len(self.batch)
 
     def select(self, which: slice) -> "Acquired":
+        """The frames ``which`` picks, with what was measured of them."""
         return Acquired(self.batch.select(which), self.arrival[which], self.activity[which], self.brightness[which])
 
     @classmethod

@@ -2,7 +2,8 @@
 
 One row per published window: an id that only grows (what REST's ``since`` and the published
 messages carry), the time it was stored, the source and frame rate, and the :class:`WindowResult`
-as JSON. One writer (the publishers, which give each window its id before sending it and store it after) and any number of readers (REST requests, each with a short-lived connection of its own),
+as JSON. One writer (the publishers, which give each window its id before sending it and store it
+after) and any number of readers (REST requests, each with a short-lived connection of its own),
 which WAL lets run side by side.
 """
 from __future__ import annotations

@@ -32,8 +32,8 @@ class Publishers:
         self.history, self.metrics, self.zmq, self.hub = history, metrics, zmq, hub
         self.dropped = 0
         self._sending = threading.Lock()  # one window at a time gets its id and goes out (several fit workers)
-        self._queue: queue.Queue[tuple[FittedWindow, StoredWindow, float] | TraceSnippet | None] = queue.Queue(
-            QUEUE_ITEMS)
+        # for the publishing thread: a sent window with its publish latency (s), or a trace snippet
+        self._queue: queue.Queue[tuple[StoredWindow, float] | TraceSnippet | None] = queue.Queue(QUEUE_ITEMS)
         self._thread = threading.Thread(target=self._run, name="meniscope-publish", daemon=True)
 
     def start(self) -> "Publishers":
@@ -52,7 +52,7 @@ class Publishers:
         except Exception:  # noqa: BLE001 - one bad window must not stop the fit results
             log.exception("publishing failed")
             return
-        self._offer((fitted, stored, sent))
+        self._offer((stored, sent - fitted.closed_at))
 
     def on_trace(self, trace: TraceSnippet) -> None:
         if self.hub.clients:
@@ -61,7 +61,7 @@ class Publishers:
     def on_inference(self, seconds: float, frames: int) -> None:
         self.metrics.inference_call(seconds)
 
-    def _offer(self, item: tuple[FittedWindow, StoredWindow, float] | TraceSnippet) -> None:
+    def _offer(self, item: tuple[StoredWindow, float] | TraceSnippet) -> None:
         try:
             self._queue.put_nowait(item)
         except queue.Full:
@@ -83,8 +83,8 @@ class Publishers:
                 if isinstance(item, TraceSnippet):
                     self.hub.broadcast(trace_message(item))
                 else:
-                    fitted, stored, sent = item
+                    stored, latency = item
                     self.history.add(stored.result, stored.source, stored.fps, stored.stored, stored.id)
-                    self.metrics.window(stored.result, sent - fitted.closed_at)
+                    self.metrics.window(stored.result, latency)
             except Exception:  # noqa: BLE001 - one bad item must not stop publishing
                 log.exception("publishing failed")
