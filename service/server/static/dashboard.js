@@ -23,14 +23,14 @@ function range(values) {
   return [lo - pad, hi + pad];
 }
 
-// About n steps of 1, 2 or 5 x 10^k covering [lo, hi]: the tick values and the step.
+// Ticks on [lo, hi] at a step of 1, 2 or 5 x 10^k: the coarsest step that still gives max(2, n - 1) of them.
 function ticks(lo, hi, n) {
-  const raw = (hi - lo) / n || Math.abs(hi) || 1;
-  const magnitude = 10 ** Math.floor(Math.log10(raw));
-  const step = [1, 2, 5, 10].map((m) => m * magnitude).find((s) => s >= raw * 0.999);
-  const values = [];
-  for (let k = Math.ceil(lo / step - 1e-9); k * step <= hi + step * 1e-9; k++) values.push(k * step);
-  return { values, step };
+  const magnitude = 10 ** Math.floor(Math.log10((hi - lo) / n || Math.abs(hi) || 1));
+  for (const m of [10, 5, 2, 1, 0.5]) {
+    const step = m * magnitude, values = [];
+    for (let k = Math.ceil(lo / step - 1e-9); k * step <= hi + step * 1e-9; k++) values.push(k * step);
+    if (values.length >= Math.max(2, n - 1) || m === 0.5) return { values, step };
+  }
 }
 
 // A tick label: as many decimals as the step needs, never an exponent, with its unit.
