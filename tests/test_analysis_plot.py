@@ -6,7 +6,6 @@ from pathlib import Path
 import matplotlib.colors as mcolors
 import matplotlib.image as mimage
 import numpy as np
-import pytest
 
 from service.analysis.plot import STATUS_COLOURS, plot_report
 from service.analysis.results import ModeEstimate, Report, Source, Status, WindowResult

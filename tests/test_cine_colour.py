@@ -39,7 +39,7 @@ def mosaic_of(rgb: np.ndarray, pattern: str) -> np.ndarray:
 
 
 def write_colour(path: Path, frames: np.ndarray, bits: int, packed: bool, pattern: str) -> Path:
-    n, height, width = frames.shape
+    _, height, width = frames.shape
     with CineWriter(path, width, height, 19000.0, bits, packed=packed, cfa=pattern,
                     white_balance=WHITE_BALANCE) as writer:
         writer.write(frames)
@@ -125,9 +125,9 @@ def test_raw_cfa_without_a_known_pattern_is_one_clear_error(tmp_path: Path) -> N
 
 
 @pytest.mark.parametrize(("kwargs", "problem"), [
-    (dict(bit_depth=10), "cannot be stored in words"),
-    (dict(bit_depth=16, packed=True), "cannot be stored packed"),
-    (dict(bit_depth=12, cfa="cmyk"), "CFA pattern 'cmyk'"),
+    ({"bit_depth": 10}, "cannot be stored in words"),
+    ({"bit_depth": 16, "packed": True}, "cannot be stored packed"),
+    ({"bit_depth": 12, "cfa": "cmyk"}, "CFA pattern 'cmyk'"),
 ])
 def test_the_writer_refuses_layouts_phantom_has_not(tmp_path: Path, kwargs: dict, problem: str) -> None:
     with pytest.raises(MeniscopeError, match=problem):

@@ -64,4 +64,4 @@ def test_the_frame_format_document_names_every_header_field() -> None:
                        StreamFormat(6, 4, np.dtype(np.uint16), 12, 1000.0), 1)[0]
     fields = set(json.loads(bytes(header))) | set(json.loads(bytes(irregular)))
     document = (ROOT / "docs" / "zmq-frames.md").read_text()
-    assert fields <= set(re.findall(r"^\| `(\w+)` \|", document, re.M)) and '"end": true' in document
+    assert fields <= set(re.findall(r"^\| `(\w+)` \|", document, re.MULTILINE)) and '"end": true' in document

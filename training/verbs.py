@@ -12,13 +12,12 @@ from __future__ import annotations
 import argparse
 import functools
 import os
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 from service.cli import add_scene_option
 from service.errors import MeniscopeError
 from service.scene import Scene
-
 
 #: Top-level modules of the train extra -> the extra (the scale extra's Dask is checked where --scheduler is read).
 EXTRA_OF = {"torch": "train", "onnx": "train"}
