@@ -37,14 +37,14 @@ def plot_report(report: Report, centre_mm: np.ndarray, path: Path, truth_mm: np.
     for w in windows:
         frames = np.arange(w.start_frame + w.transient_frames, w.end_frame)
         curve = model_curve(w, (frames - w.start_frame) / fps)
-        modes = ", ".join(f"{m.frequency_hz:.0f} Hz / {m.decay_rate_per_s:.0f} s⁻¹" for m in w.modes[:1])
+        modes = "".join(f"\n{m.frequency_hz:.0f} Hz\n{m.decay_rate_per_s:.0f} s⁻¹" for m in w.modes[:1])
         colour = STATUS_COLOURS.get(w.status, OTHER_STATUS)
         ax.plot(frames / fps * 1e3, curve, "-", lw=1.4, color=colour)
         if w.status in SHADED:
             ax.axvspan(w.start_frame / fps * 1e3, w.end_frame / fps * 1e3, color=colour, alpha=0.12, lw=0)
         if w.end_frame - w.start_frame < 0.5 * end / len(windows):
             continue  # a sliver before the first ejection: no room for a label
-        ax.annotate(f"{w.status}\n{modes}", (w.start_frame / fps * 1e3, 1.0), xycoords=("data", "axes fraction"),
+        ax.annotate(f"{w.status}{modes}", (w.start_frame / fps * 1e3, 1.0), xycoords=("data", "axes fraction"),
                     va="top", fontsize=7, color=colour)
     for e in report.ejections:
         if e < end:
@@ -56,7 +56,7 @@ def plot_report(report: Report, centre_mm: np.ndarray, path: Path, truth_mm: np.
     statuses = dict.fromkeys(w.status for w in windows)  # those drawn, in order of appearance
     handles = ax.get_legend_handles_labels()[0] + [
         Line2D([], [], lw=1.4, color=STATUS_COLOURS.get(s, OTHER_STATUS), label=f"fit: {s}") for s in statuses]
-    ax.legend(handles=handles, loc="lower right", fontsize=8)
+    ax.legend(handles=handles, loc="upper left", bbox_to_anchor=(1.0, 1.0), fontsize=8)  # beside the plot, off the data
     try:
         fig.savefig(path, dpi=110)
     except OSError as exc:
