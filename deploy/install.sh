@@ -63,6 +63,10 @@ mkdir -p "$bin"
 ln -sf "$venv/bin/meniscope" "$bin/meniscope"
 echo "install.sh: meniscope installed in $venv; the command is $bin/meniscope"
 case ":$PATH:" in
-  *":$bin:"*) ;;
+  *":$bin:"*)
+    first=$(command -v meniscope || true)
+    if [ "$first" != "$bin/meniscope" ]; then
+      echo "install.sh: another meniscope comes first on your PATH ($first); run $bin/meniscope" >&2
+    fi ;;
   *) echo "install.sh: $bin is not on your PATH: add it (export PATH=\"$bin:\$PATH\") or run $bin/meniscope" >&2 ;;
 esac
