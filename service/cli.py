@@ -1,4 +1,4 @@
-"""The ``meniscope`` command: one dispatcher over the verbs of shared/spec/cli.md.
+"""The meniscope command: one dispatcher over the verbs listed below (README.md, "Command line").
 
 Each module of ``service.verbs`` exposes ``register(subparsers)`` and is found by itself; ``training`` adds its verbs
 through the ``meniscope.verbs`` entry-point group, so the runtime never imports it.

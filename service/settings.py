@@ -196,6 +196,19 @@ def settings_error(exc: ValidationError, where: Path | str | None = None) -> Men
     return MeniscopeError(where or "settings", f"{name}: {msg}" if err["loc"] else msg)
 
 
+def recording_folder(source: str) -> Path | None:
+    """The folder of the recording a source names, as a bare path or a ``file://`` URI; None for other schemes.
+
+    ``meniscope serve --source`` makes it the recordings folder unless one is set, so that both spellings
+    the README gives (``/data/run.cine``, ``file:///data/run.cine?speed=1&loop=true``) work alike.
+    """
+    parts = urlsplit(source) if "://" in source else None
+    if parts is not None and parts.scheme.lower() != "file":
+        return None
+    raw = unquote(parts.path) if parts is not None else source
+    return Path(raw).expanduser().resolve().parent
+
+
 def resolve_source(uri: str, recordings: Path) -> str:
     """``uri`` with a file source made absolute inside ``recordings``; refuses one that would leave it.
 

@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
-# Install everything the tests need (system and Python packages), then run them all.
+# Install everything the tests need (system packages, and the Python ones into the virtual
+# environment deploy/install.sh makes), then run them all with that environment's Python.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash deploy/install.sh --dev
-exec "${PYTHON:-python3}" -m pytest "$@"
+exec "${MENISCOPE_VENV:-$PWD/.venv}/bin/python" -m pytest "$@"

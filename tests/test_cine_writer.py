@@ -122,7 +122,7 @@ def test_bad_batches_are_refused(tmp_path: Path, frames: np.ndarray, times, prob
 @pytest.mark.parametrize(
     ("args", "problem"),
     [
-        (dict(bit_depth=10), "bit depth 10 is not one of 8, 12, 16"),
+        (dict(bit_depth=10), "bit depth 10 cannot be stored in words"),
         (dict(fps=0.0), "frame rate 0.0"),
         (dict(fps=float("nan")), "frame rate nan"),
         (dict(width=0), "width 0 px"),

@@ -1,7 +1,9 @@
 """The dashboard in a real headless Chromium (Debian chromium + chromium-driver): it loads, receives
-live data over the WebSocket, and draws the trace, the latest window, the trends and both pictures."""
+live data over the WebSocket, and draws the trace, the latest window, the trends and both pictures,
+each plot with a time axis and y ticks in their units; the page has a favicon."""
 from __future__ import annotations
 
+import re
 import shutil
 from pathlib import Path
 
@@ -18,6 +20,8 @@ pytestmark = pytest.mark.skipif(CHROMEDRIVER is None or shutil.which("chromium")
 
 #: Canvases that must show something other than their black background.
 CANVASES = ("trace", "window", "trend-frequency", "trend-decay", "trend-settling")
+#: The unit of each plot's y ticks.
+Y_UNITS = {"trace": "mm", "window": "mm", "trend-frequency": "Hz", "trend-decay": "1/s", "trend-settling": "ms"}
 LIT_PIXELS = """
 const c = document.getElementById(arguments[0]);
 const d = c.getContext('2d').getImageData(0, 0, c.width, c.height).data;
@@ -57,3 +61,16 @@ def test_the_dashboard_loads_receives_live_data_and_draws(browser, tmp_path: Pat
                 f"const i = document.getElementById('{image}'); return i.complete && i.naturalWidth === 96"),
                 120, f"the {image} picture")
         assert browser.find_element("id", "window-caption").text.startswith("#")  # "#<id>: <status> ..."
+        # every plot: a time axis with its unit, y ticks each with its unit (no exponents)
+        drawn = browser.execute_script("return window.meniscope.axes")
+        assert set(drawn) == set(CANVASES)
+        for canvas, unit in Y_UNITS.items():
+            axis = drawn[canvas]
+            assert axis["title"] and len(axis["x"]) >= 2 and 0.0 in map(float, axis["x"]), (canvas, axis)
+            assert len(axis["y"]) >= 2 and all(re.fullmatch(rf"-?\d+(\.\d+)? {re.escape(unit)}", t) for t in axis["y"]), axis
+        assert "mm" in browser.find_element("id", "coefficients").text
+        # the favicon: an SVG the page links, served as one
+        icon = browser.execute_script("return document.querySelector('link[rel=icon]').href")
+        assert icon.endswith("/static/favicon.svg")
+        assert browser.execute_script(
+            "const r = await fetch(arguments[0]); return r.ok && r.headers.get('content-type')", icon) == "image/svg+xml"

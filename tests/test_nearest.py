@@ -106,3 +106,37 @@ def test_the_regularised_fit_of_identical_candidates_is_a_flat_line() -> None:
     """All candidates equal (a window of blank frames): a zero-width range must not break the search."""
     fit = fit_window(np.full((20, 10), 0.0123), FPS)
     assert fit.offset_mm == pytest.approx(0.0123) and fit.amplitude_mm < 1e-9
+
+
+@pytest.fixture(scope="module")
+def rendered_database(scene: Scene, tmp_path_factory: pytest.TempPathFactory):
+    """A small database folder as `meniscope database` writes it, for the embedded scene."""
+    from training.dataset import DatasetConfig, generate
+
+    folder = tmp_path_factory.mktemp("nearest") / "db"
+    generate(DatasetConfig(scene=scene, samples=32, seed=1, chunk_size=32, supersample=1), folder, workers=1)
+    return folder
+
+
+def test_a_database_rendered_for_another_scene_is_refused_as_models_are(scene: Scene, rendered_database) -> None:
+    """Same ROI size, light moved: the renders would be searched without complaint, so the scene's sha256 decides."""
+    from service.inverse.methods import open_database
+
+    assert len(open_database(rendered_database, scene)) == 32
+    moved = Scene.from_dict({**scene.model_dump(mode="json"),
+                             "light": {**scene.light.model_dump(), "azimuth_deg": scene.light.azimuth_deg + 20}})
+    assert (moved.camera.width_px, moved.camera.height_px) == (scene.camera.width_px, scene.camera.height_px)
+    with pytest.raises(MeniscopeError, match=f"rendered for scene {scene.sha256[:12]}, not this one "
+                                             rf"\({moved.sha256[:12]}\)"):
+        open_database(rendered_database, moved)
+
+
+def test_a_database_without_its_manifest_cannot_prove_its_scene(scene: Scene, rendered_database, tmp_path) -> None:
+    from service.inverse.methods import open_database
+
+    bare = tmp_path / "bare"
+    bare.mkdir()
+    for name in ("frames.npy", "coeffs.npy", "centre.npy"):
+        (bare / name).write_bytes((rendered_database / name).read_bytes())
+    with pytest.raises(MeniscopeError, match="manifest.json: missing: not a render database"):
+        open_database(bare, scene)

@@ -73,3 +73,17 @@ def test_a_source_option_overrides_a_bad_source_in_the_config(tmp_path: Path, mo
     settings = serve_settings(args)
     assert settings.source == str(DEMO_AVI)
     assert settings.recordings_folder == DEMO_AVI.parent.resolve()  # a recording named at the console: its folder
+
+
+@pytest.mark.parametrize("spelling", ["{path}", "file://{path}?speed=1&loop=true"])
+def test_a_recording_named_by_path_or_file_uri_makes_its_folder_allowed(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, spelling: str
+) -> None:
+    """Both spellings of the README's table (`/data/run.cine`, `file:///data/run.cine?speed=1&loop=true`)."""
+    for name in [n for n in os.environ if n.startswith("MENISCOPE_")]:
+        monkeypatch.delenv(name)
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    source = spelling.format(path=DEMO_AVI.resolve())
+    settings = serve_settings(build_parser().parse_args(["serve", "--source", source]))
+    assert settings.recordings_folder == DEMO_AVI.parent.resolve()
+    assert settings.source == source

@@ -31,13 +31,13 @@ from tqdm import tqdm
 from service.camera_effects import BitDepth, EffectRanges, apply_effects, pixel_dtype
 from service.errors import MeniscopeError
 from service.inverse.manifest import sha256_file
+from service.inverse.nearest import DATASET_SCHEMA as SCHEMA
 from service.jsonfile import read_schema_json
 from service.physics import CoefficientRanges, centre_displacement
 from service.render import Renderer
 from service.scene import Scene
 from training.engine import Engine, open_engine
 
-SCHEMA = "meniscope.dataset/1"
 #: Bumped whenever the same config would produce different files.
 GENERATOR_VERSION = 1
 FILES = ("frames.npy", "coeffs.npy", "centre.npy")

@@ -10,12 +10,38 @@ and never hold a database; ``meniscope validate --database DIR`` and the nearest
 from __future__ import annotations
 
 import argparse
+import functools
 import os
+from collections.abc import Callable
 from pathlib import Path
 
 from service.cli import add_scene_option
 from service.errors import MeniscopeError
 from service.scene import Scene
+
+#: Top-level modules of the train extra -> the extra (the scale extra's Dask is checked where --scheduler is read).
+EXTRA_OF = {"torch": "train", "onnx": "train"}
+
+
+def _needs_extras(run: Callable[[argparse.Namespace], int]) -> Callable[[argparse.Namespace], int]:
+    """``run``, with a module of a missing extra reported as one line saying how to install it.
+
+    The verbs are listed after a runtime-only install too (training/ is in the package), so their
+    libraries load only when one runs, and a missing one must say which extra brings it.
+    """
+    @functools.wraps(run)
+    def checked(args: argparse.Namespace) -> int:
+        try:
+            return run(args)
+        except ModuleNotFoundError as exc:
+            module = (exc.name or "").split(".")[0]
+            if module not in EXTRA_OF:
+                raise
+            extra = EXTRA_OF[module]
+            raise MeniscopeError(None, f"needs {module} (meniscope's {extra} extra), not installed here: in the "
+                                 f"checkout run `bash deploy/install.sh --dev`, or `pip install -e '.[{extra}]'` with "
+                                 "meniscope's environment's pip") from None
+    return checked
 
 
 def _render_options(p: argparse.ArgumentParser, seed: int) -> None:
@@ -92,6 +118,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run_quantize)
 
 
+@_needs_extras
 def run_train(args: argparse.Namespace) -> int:
     from dataclasses import replace
 
@@ -124,6 +151,7 @@ def run_train(args: argparse.Namespace) -> int:
     return 0
 
 
+@_needs_extras
 def run_quantize(args: argparse.Namespace) -> int:
     from training.quantize import quantize_models  # onnx loads only when the verb runs
 
@@ -138,6 +166,7 @@ def run_quantize(args: argparse.Namespace) -> int:
     return 0
 
 
+@_needs_extras
 def run(args: argparse.Namespace) -> int:
     from pydantic import ValidationError
 

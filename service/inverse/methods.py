@@ -48,9 +48,14 @@ def open_method(name: str, scene: Scene, models: Path, database: Path | None = N
 
 
 def open_database(folder: Path, scene: Scene) -> NearestDatabase:
-    """The render database in ``folder``, refused unless its renders are the scene's ROI (the frames searched)."""
+    """The render database in ``folder``, refused unless its renders are the scene's ROI (the frames searched)
+    and were made for this scene (its sha256, as a model folder's manifest is checked)."""
     db = NearestDatabase.load(folder)
     if db.shape != (scene.camera.height_px, scene.camera.width_px):
         raise MeniscopeError(folder, f"renders of {db.shape[1]}x{db.shape[0]} px do not match the scene's ROI "
                                      f"{scene.camera.width_px}x{scene.camera.height_px}")
+    made_for = NearestDatabase.scene_sha256(folder)
+    if made_for != scene.sha256:
+        raise MeniscopeError(folder, f"rendered for scene {made_for[:12]}, not this one ({scene.sha256[:12]}): "
+                                     "build a database for this scene with `meniscope database --scene ...`")
     return db

@@ -11,7 +11,8 @@ then zero mean and unit standard deviation per frame), so gain and offset do not
   recall@k against ``exact`` is measured by :func:`recall_at_k`.
 
 A database is a folder: ``frames.npy`` (uint8/uint16, as ``meniscope dataset`` writes), ``coeffs.npy``
-(N, 4) and ``centre.npy`` (N,); it is loaded and indexed once per process.
+(N, 4) and ``centre.npy`` (N,), with ``manifest.json`` naming the scene's sha256; it is loaded and
+indexed once per process.
 """
 from __future__ import annotations
 
@@ -23,7 +24,10 @@ import numpy as np
 
 from service.errors import MeniscopeError
 from service.inverse.base import InverseMethod, InverseOutput
+from service.jsonfile import read_schema_json
 
+#: The schema of a dataset folder's manifest.json (``meniscope dataset`` and ``database`` write it last).
+DATASET_SCHEMA = "meniscope.dataset/1"
 #: Pixels of the pooled frames compared (the networks' input size): 24 x 24 for the 96 x 96 ROI.
 POOLED_PX = 24
 #: Principal components the approximate search compares.
@@ -94,6 +98,17 @@ class NearestDatabase:
 
     def __len__(self) -> int:
         return len(self.coeffs)
+
+    @staticmethod
+    def scene_sha256(folder: str | Path) -> str:
+        """The sha256 of the scene a database folder's renders were made for, from its manifest."""
+        path = Path(folder) / "manifest.json"
+        manifest = read_schema_json(path, DATASET_SCHEMA, "not a render database from `meniscope database` "
+                                    "(or `dataset`), or its rendering did not finish: its scene cannot be checked")
+        sha = manifest.get("scene_sha256")
+        if not isinstance(sha, str):
+            raise MeniscopeError(path, "names no scene_sha256: the scene its renders were made for is unknown")
+        return sha
 
     def search(self, frames: np.ndarray, k: int = 10, exact: bool = True, batch: int = 256) -> Neighbours:
         """The k nearest database entries of each of N frames (N, H, W) as stored."""

@@ -12,9 +12,19 @@ from pathlib import Path
 from types import TracebackType
 from typing import Any, ClassVar
 
+import cv2
 import numpy as np
 
 from service.errors import MeniscopeError, require_folder_of
+
+#: Bayer pattern (display order) -> OpenCV's demosaicing to grey; OpenCV names the patterns by their
+#: sensor layout in its 4.x aliases (the older names counted from the second row and column).
+BAYER_TO_GREY = {
+    "rggb": cv2.COLOR_BayerRGGB2GRAY,
+    "grbg": cv2.COLOR_BayerGRBG2GRAY,
+    "gbrg": cv2.COLOR_BayerGBRG2GRAY,
+    "bggr": cv2.COLOR_BayerBGGR2GRAY,
+}
 
 #: Largest frame side any writer accepts (16-bit fields in the .cine SETUP; FFmpeg's own limit is larger).
 MAX_SIDE = 65535
@@ -42,6 +52,9 @@ class Recording(ABC):
         per-frame times (``timestamps_source == "file"``), else ``(i - trigger_frame) / fps``.
     trigger_frame : int
         Index of the trigger frame; may lie outside ``0..N-1`` when the file holds only part of a take.
+    cfa : str or None
+        A colour camera's raw mosaic: its 2 x 2 Bayer pattern in display order ("rggb", "gbrg",
+        "grbg", "bggr"); None for grey frames.
     header : dict
         Further header fields, JSON-safe (camera, software version, decimation, ...).
     """
@@ -61,6 +74,7 @@ class Recording(ABC):
         timestamps: np.ndarray | None,
         trigger_frame: int,
         header: dict[str, Any],
+        cfa: str | None = None,
     ) -> None:
         if not (math.isfinite(fps) and fps > 0):
             raise MeniscopeError(path, f"frame rate {fps} is not a positive number")
@@ -77,6 +91,7 @@ class Recording(ABC):
             timestamps = (np.arange(self.frame_count) - self.trigger_frame) / self.fps
         self.timestamps = np.asarray(timestamps, dtype=np.float64)
         self.timestamps.setflags(write=False)
+        self.cfa = cfa
         self.header = header
         self.closed = False
 
@@ -108,6 +123,19 @@ class Recording(ABC):
             return np.empty((0, self.height, self.width), self.dtype)
         return self._read(frames.start, len(frames))
 
+    def read_grey(self, start: int, count: int) -> np.ndarray:
+        """Frames as the inverse models see them: :meth:`read`'s, with a raw mosaic demosaiced to grey.
+
+        OpenCV's bilinear Bayer demosaicing to grey (0.299 R + 0.587 G + 0.114 B, in the stored
+        units; the recorded white balance is a viewing setting and is not applied), so a colour
+        camera's frames keep the shape, type and range of a grey camera's.
+        """
+        frames = self.read(start, count)
+        if self.cfa is None:
+            return frames
+        code = BAYER_TO_GREY[self.cfa]
+        return np.stack([cv2.cvtColor(frame, code) for frame in frames]) if len(frames) else frames
+
     def __getitem__(self, index: int) -> np.ndarray:
         """One frame, shape (height, width); negative indices count from the end."""
         i = operator.index(index)
@@ -131,6 +159,7 @@ class Recording(ABC):
             "height": self.height,
             "bit_depth": self.bit_depth,
             "dtype": self.dtype.name,
+            "cfa": self.cfa,
             "trigger_frame": self.trigger_frame,
             "timestamps": {
                 "source": self.timestamps_source,
@@ -172,6 +201,9 @@ class RecordingWriter(ABC):
     trigger; without them frame ``i`` (counted over the whole file) is at ``(i - trigger_frame) / fps``.
     """
 
+    #: The bit depths the format stores.
+    BIT_DEPTHS: ClassVar[tuple[int, ...]] = (8, 12, 16)
+
     def __init__(self, path: Path, width: int, height: int, fps: float, bit_depth: int, trigger_frame: int) -> None:
         self.path = Path(path)
         require_folder_of(self.path)
@@ -180,8 +212,8 @@ class RecordingWriter(ABC):
                 raise MeniscopeError(self.path, f"{name} {side} px is outside 1..{MAX_SIDE}")
         if not (math.isfinite(fps) and fps > 0):
             raise MeniscopeError(self.path, f"frame rate {fps} is not a positive number")
-        if bit_depth not in (8, 12, 16):
-            raise MeniscopeError(self.path, f"bit depth {bit_depth} is not one of 8, 12, 16")
+        if bit_depth not in self.BIT_DEPTHS:
+            raise MeniscopeError(self.path, f"bit depth {bit_depth} is not one of {', '.join(map(str, self.BIT_DEPTHS))}")
         self.width, self.height = int(width), int(height)
         self.fps = float(fps)
         self.bit_depth = int(bit_depth)

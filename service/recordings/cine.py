@@ -20,7 +20,10 @@ top row first: 4 pixels in 5 bytes, 2 pixels in 3 bytes. TIME64 is fixed point 3
 
 What the reader returns, and what it does not do:
 
-- the stored words with the rows put in display order, as PIMS returns them; SETUP's bFlipV/bFlipH,
+- the stored words with the rows put in display order, as PIMS returns them; for a colour camera's
+  raw CFA images (Compression 2) that is the Bayer mosaic, its pattern in ``cfa`` ("rggb", ...) and the
+  recorded white balance in ``header["white_balance"]``; :meth:`~Recording.read_grey` demosaics it
+  (OpenCV) for inference; SETUP's bFlipV/bFlipH,
   gain, gamma and tone curve are viewing settings of Phantom's software: reported, never applied;
 - packed 10-bit images as their stored 10-bit codes. Phantom's software maps these codes through a
   companding table to 12-bit linear values (pycine's ``linLUT``); that mapping is not applied;
@@ -67,16 +70,22 @@ SETUP_FIELDS: dict[str, tuple[int, str]] = {
     "Serial": (743, "<I"),
     "bFlipH": (756, "<i"),
     "bFlipV": (760, "<i"),
+    "bEnableColor": (788, "<i"),
     "FrameRate": (768, "<I"),
     "Shutter": (772, "<I"),  # microseconds
     "CameraVersion": (792, "<I"),
     "FirmwareVersion": (796, "<I"),
     "SoftwareVersion": (800, "<I"),
+    "CFA": (808, "<I"),
+    "WBGainR": (852, "<f"),  # WBGain[0]: the red and blue gains set at recording
+    "WBGainB": (856, "<f"),
     "RealBPP": (896, "<I"),
     "ShutterNs": (1568, "<I"),
     "Description": (1596, "4096s"),
     "BlackLevel": (5732, "<i"),
     "WhiteLevel": (5736, "<i"),
+    "fWBTemp": (7288, "<f"),
+    "fWBCc": (7292, "<f"),
     "CreatedBy": (9856, "256s"),
     "RecBPP": (10112, "<I"),
     "CameraModel": (10128, "256s"),
@@ -90,11 +99,17 @@ TAGGED_BLOCK = struct.Struct("<IHH")  # BlockSize (with these 8 bytes), Type, Re
 TIME64_ONE_SECOND = 2**32
 ANNOTATION = struct.Struct("<II")  # the shortest annotation: AnnotationSize = 8, ImageSize
 
-CC_RGB = 0  # CINEFILEHEADER.Compression: uncompressed images (grey here)
+CC_RGB = 0  # CINEFILEHEADER.Compression: uncompressed images (grey, or interpolated colour)
+CC_UNINT = 2  # CINEFILEHEADER.Compression: uninterpolated colour, the sensor's raw CFA (Bayer) mosaic
+#: SETUP.CFA's low byte -> the mosaic's 2 x 2 pattern in display order (top row first). Codes 1 and 2
+#: name two patterns each ("gbrg/rggb", "bggr/grbg": the same sensor with its rows counted from the
+#: top or from the bottom); the first is the display order's, as for codes 3 ("gb/rg") and 4 ("rg/gb").
+#: The high byte flags grey heads on older cameras and is ignored.
+CFA_PATTERNS = {1: "gbrg", 2: "bggr", 3: "gbrg", 4: "rggb"}
 BI_RGB = 0  # BITMAPINFOHEADER.biCompression: unpacked 8- or 16-bit words
 #: biCompression of the packed formats -> (name, stored bits per pixel).
 PACKED = {256: ("packed 10-bit", 10), 1024: ("packed 12-bit", 12)}
-_COMPRESSION_NAMES = {1: "JPEG", 2: "uninterpolated colour (raw CFA)"}
+_COMPRESSION_NAMES = {1: "JPEG"}
 
 
 def unpack_10bit(raw: np.ndarray) -> np.ndarray:
@@ -139,7 +154,7 @@ _UNPACK = {10: unpack_10bit, 12: unpack_12bit}
 
 
 class CineRecording(Recording):
-    """A Phantom .cine file, memory-mapped: 8-bit, 16-bit, packed 10-bit and packed 12-bit grey images."""
+    """A Phantom .cine file, memory-mapped: 8-bit, 16-bit, packed 10-bit and packed 12-bit images, grey or raw CFA."""
 
     format = "cine"
 
@@ -156,9 +171,9 @@ class CineRecording(Recording):
             raise MeniscopeError(path, "not a Phantom cine file (it does not start with 'CI')")
         if version != VERSION:
             raise MeniscopeError(path, f"cine header version {version} is not supported (only version 1)")
-        if compression != CC_RGB:
+        if compression not in (CC_RGB, CC_UNINT):
             kind = _COMPRESSION_NAMES.get(compression, "unknown")
-            raise MeniscopeError(path, f"cine compression {compression} ({kind}) is not supported: grey images only")
+            raise MeniscopeError(path, f"cine compression {compression} ({kind}) is not supported: grey and raw CFA images only")
         _, width, height, _, bit_count, bi_compression, *_ = _unpack(path, data, off_bitmap, BITMAP_INFO, "bitmap header")
         if width < 1 or height < 1:
             raise MeniscopeError(path, f"corrupt header: frame size {width} x {height} px")
@@ -166,6 +181,7 @@ class CineRecording(Recording):
         if width * height * stored_bits % 8:
             raise MeniscopeError(path, f"{storage} images of {width} x {height} px do not fill whole bytes")
         setup, setup_length = _setup(path, data, off_setup)
+        cfa = _cfa_pattern(path, setup, compression)
 
         self._data = data
         self._frame_bytes = width * height * stored_bits // 8
@@ -185,6 +201,7 @@ class CineRecording(Recording):
             dtype=np.dtype(np.uint8 if stored_bits == 8 else np.uint16),
             timestamps=times,
             trigger_frame=-first_no,
+            cfa=cfa,
             header={
                 "camera_model": setup.get("CameraModel") or None,
                 "camera_version": setup.get("CameraVersion"),
@@ -205,6 +222,7 @@ class CineRecording(Recording):
                 "flip_vertical_setting": bool(setup.get("bFlipV", 0)),
                 "flip_horizontal_setting": bool(setup.get("bFlipH", 0)),
                 "setup_length": setup_length,
+                **({"cfa_code": setup["CFA"], "white_balance": _white_balance(setup)} if cfa else {}),
             },
         )
 
@@ -244,8 +262,28 @@ def _pixel_storage(path: Path, bit_count: int, compression: int) -> tuple[str, i
     if compression == BI_RGB and bit_count in (8, 16):
         return f"{bit_count}-bit", bit_count
     if compression == BI_RGB and bit_count in (24, 48):
-        raise MeniscopeError(path, f"colour cine ({bit_count} bits per pixel) is not supported: grey images only")
+        raise MeniscopeError(path, f"interpolated colour cine ({bit_count} bits per pixel) is not supported: grey or raw CFA images only")
     raise MeniscopeError(path, f"unsupported pixel format: biBitCount {bit_count}, biCompression {compression}")
+
+
+def _cfa_pattern(path: Path, setup: dict[str, Any], compression: int) -> str | None:
+    """The raw mosaic's Bayer pattern (display order), or None for grey images; refuses what is neither."""
+    code = setup.get("CFA", 0) & 0xFF
+    if compression == CC_UNINT:
+        if code not in CFA_PATTERNS:
+            raise MeniscopeError(path, f"raw CFA images with an unknown colour filter array (SETUP.CFA {code})")
+        return CFA_PATTERNS[code]
+    return None  # CC_RGB: grey (8/16-bit and packed); interpolated colour is refused by its bit count
+
+
+def _white_balance(setup: dict[str, Any]) -> dict[str, float | None]:
+    """The white balance recorded with a colour cine: red and blue gains, colour temperature (K), tint."""
+    def number(name: str) -> float | None:  # 0 (or absent, or not a number): not set
+        value = setup.get(name)
+        return float(value) if value is not None and math.isfinite(value) and value > 0 else None
+
+    return {"red_gain": number("WBGainR"), "blue_gain": number("WBGainB"),
+            "temperature_k": number("fWBTemp"), "colour_compensation": number("fWBCc")}
 
 
 def _setup(path: Path, data: np.ndarray, offset: int) -> tuple[dict[str, Any], int]:

@@ -1,5 +1,6 @@
-"""The scene's region of interest read out of a recording, as stored: what every inverse method takes;
-whole (evenly spaced runs, for training) or streamed in chunks (any length, for analysis)."""
+"""The scene's region of interest read out of a recording, as stored (a colour camera's mosaic demosaiced
+to grey first: :meth:`Recording.read_grey`): what every inverse method takes; whole (evenly spaced runs,
+for training) or streamed in chunks (any length, for analysis)."""
 from __future__ import annotations
 
 import math
@@ -36,7 +37,7 @@ def read_roi_frames(path: str | Path, scene: Scene, limit: int | None = None, ru
         out = np.empty((take, cam.height_px, cam.width_px), rec.dtype)  # (N, H, W)
         done = 0
         for start, count in tqdm(zip(starts, counts), total=runs, desc=f"read {path.name}", unit="run", disable=None):
-            out[done : done + count] = rec.read(int(start), int(count))[:, y : y + cam.height_px, x : x + cam.width_px]
+            out[done : done + count] = rec.read_grey(int(start), int(count))[:, y : y + cam.height_px, x : x + cam.width_px]
             done += count
         facts = {"path": str(path), "frames_total": total, "frames_used": take, "fps": rec.fps,
                  "width": rec.width, "height": rec.height, "bit_depth": rec.bit_depth}
@@ -58,5 +59,5 @@ def roi_frames(recording: Recording, scene: Scene, start: int, count: int) -> np
     """The ROI of ``count`` frames from ``start``, (count, H, W) as stored (the ROI checked by the caller)."""
     cam = scene.camera
     x, y = cam.roi
-    frames = recording.read(start, count)
+    frames = recording.read_grey(start, count)
     return np.ascontiguousarray(frames[:, y : y + cam.height_px, x : x + cam.width_px])

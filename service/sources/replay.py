@@ -90,7 +90,7 @@ class ReplaySource(FrameSource):
         while count > 0:
             pos = start % n
             take = min(count, n - pos)
-            pieces.append(self._recording.read(pos, take))
+            pieces.append(self._recording.read_grey(pos, take))
             start, count = start + take, count - take
         return pieces[0] if len(pieces) == 1 else np.concatenate(pieces)
 

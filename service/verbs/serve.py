@@ -21,8 +21,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "MENISCOPE_* environment variables, then these options.",
     )
     p.add_argument("--source", help="source URI or recording path (default: the demo recording; URI schemes in "
-                                    "docs/service.md); a recording named here makes its folder the recordings "
-                                    "folder, unless recordings_dir is set")
+                                    "docs/service.md); a recording named here, as a path or a file:// URI, makes its "
+                                    "folder the recordings folder, unless recordings_dir is set")
     p.add_argument("--config", type=Path, help="settings file, TOML or JSON")
     p.add_argument("--host", help="address to bind (default 127.0.0.1: this machine only)")
     p.add_argument("--port", type=int, help="HTTP port (default 8000)")
@@ -33,11 +33,9 @@ def serve_settings(args: argparse.Namespace) -> ServiceSettings:
     """The settings ``args`` ask for, loaded and validated once with the options on top (an option mends a
     bad value of the config file); a recording named by ``--source`` makes its folder the recordings
     folder unless ``recordings_dir`` is set (the person at the console may name any recording)."""
-    from service.settings import load_settings
+    from service.settings import load_settings, recording_folder
 
-    folder = None
-    if args.source is not None and "://" not in args.source:
-        folder = Path(args.source).expanduser().resolve().parent
+    folder = None if args.source is None else recording_folder(args.source)
     return load_settings(args.config, {"recordings_dir": folder}, source=args.source, host=args.host,
                          port=args.port)
 
