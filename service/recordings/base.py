@@ -18,6 +18,9 @@ from service.errors import MeniscopeError, require_folder_of
 
 #: Largest frame side any writer accepts (16-bit fields in the .cine SETUP; FFmpeg's own limit is larger).
 MAX_SIDE = 65535
+#: Frame rates a recording may claim, frames per second: beyond them a header is corrupt (the fastest
+#: Phantom records a few million frames/s), and times computed from them would not be finite.
+FPS_RANGE = (1e-3, 1e8)
 
 
 class Recording(ABC):
@@ -62,8 +65,12 @@ class Recording(ABC):
         trigger_frame: int,
         header: dict[str, Any],
     ) -> None:
-        if not (math.isfinite(fps) and fps > 0):
-            raise MeniscopeError(path, f"frame rate {fps} is not a positive number")
+        low, high = FPS_RANGE
+        if not (math.isfinite(fps) and low <= fps <= high):
+            raise MeniscopeError(path, f"corrupt header: frame rate {fps} is outside {low:g}..{high:g} frames/s")
+        if not 0 <= frame_count <= Path(path).stat().st_size:  # every frame takes at least one byte
+            raise MeniscopeError(path, f"corrupt header: {frame_count} frames cannot fit in a file of "
+                                       f"{Path(path).stat().st_size} bytes")
         self.path = Path(path)
         self.frame_count = int(frame_count)
         self.fps = float(fps)
