@@ -103,7 +103,7 @@ class Supervisor:
         silent_s = time.monotonic() - max(self.stats.last_frame_at, self._running_at)
         limit = max(SOURCE_SILENT_S, 4.0 / source.fps) if source.is_open else SOURCE_SILENT_S
         if silent_s > limit:
-            return "stalled", f"no frames from the source for {silent_s:.1f} s"
+            return "stalled", f"no frames from {source.uri} for {silent_s:.1f} s"
         latest = self.stats.latest
         if latest is not None and latest.pixels.size and source.is_open:
             span = int(latest.pixels.max()) - int(latest.pixels.min())

@@ -1,0 +1,144 @@
+"""`meniscope serve` against hostile or unlucky clients, files and disks (issue 18): each defect as found, fixed.
+
+One demo service serves the request-only checks; the checks that change the service or its data run
+their own.
+"""
+from __future__ import annotations
+
+import re
+import sqlite3
+import threading
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+from websockets.exceptions import InvalidStatus
+from websockets.sync.client import connect
+
+from service.recordings import open_writer
+from service.server.app import create_app
+from tests.servicekit import request, running_app, running_service, service_settings, wait_for
+
+TOKEN = {"Authorization": "Bearer s3cret"}
+
+
+def demo(demo_cine: Path, speed: float = 0.25) -> str:
+    return f"file://{demo_cine}?speed={speed}&loop=1"
+
+
+@pytest.fixture(scope="module")
+def base(tmp_path_factory: pytest.TempPathFactory, demo_cine: Path) -> Iterator[str]:
+    """A running demo service with a token, ready."""
+    settings = service_settings(tmp_path_factory.mktemp("hardening"), demo_cine.parent, demo(demo_cine),
+                                token="s3cret")
+    with running_service(settings) as url:
+        wait_for(lambda: request("GET", url + "/readyz").status == 200, 60, "readiness")
+        yield url
+
+
+@pytest.mark.parametrize("path", ["/api/v1/windows?since=9223372036854775808", "/api/v1/windows/9223372036854775808",
+                                  "/api/v1/windows?limit=10000", "/api/v1/windows/-1"])
+def test_out_of_range_numbers_are_422_with_the_schemas_list(base: str, path: str) -> None:
+    reply = request("GET", base + path)
+    assert reply.status == 422 and isinstance(reply.json()["detail"], list)
+
+
+@pytest.mark.parametrize("source", ["gopher://printer/1", "", "x" * 100_000, "missing.cine",
+                                    "zmq+tcp://127.0.0.1:5555?colour=blue"])
+def test_a_source_that_cannot_open_is_refused_and_the_running_one_kept(base: str, source: str) -> None:
+    before = request("GET", base + "/api/v1/config").json()["source"]
+    reply = request("PUT", base + "/api/v1/config", {"source": source}, TOKEN)
+    assert reply.status in (413, 422), reply.body[:200]
+    if reply.status == 422:
+        assert isinstance(reply.json()["detail"], list) and reply.json()["detail"][0]["loc"][:2] == ["body", "source"]
+    assert request("GET", base + "/api/v1/config").json()["source"] == before
+    assert request("GET", base + "/readyz").status == 200
+
+
+def test_a_foreign_host_header_is_refused(base: str) -> None:
+    """DNS rebinding: a page of evil.example reaching 127.0.0.1 under its own name."""
+    reply = request("PUT", base + "/api/v1/config", {"method": "network"}, {**TOKEN, "Host": "evil.example"})
+    assert reply.status == 400 and "allowed_hosts" in reply.json()["detail"]
+    assert request("GET", base + "/healthz", headers={"Host": "localhost:1234"}).status == 200
+
+
+def test_the_token_is_needed_whenever_one_is_set(base: str) -> None:
+    assert request("PUT", base + "/api/v1/config", {"method": "network"}).status == 401
+
+
+def test_a_websocket_from_another_origin_is_refused_and_the_services_own_accepted(base: str) -> None:
+    ws_url = base.replace("http", "ws") + "/ws"
+    with pytest.raises(InvalidStatus) as refused:
+        connect(ws_url, origin="http://evil.example")  # type: ignore[arg-type]
+    assert refused.value.response.status_code == 403
+    with connect(ws_url, origin=base) as ws:  # type: ignore[arg-type]
+        assert ws.recv(timeout=10)
+
+
+def test_docs_load_nothing_from_another_site(base: str) -> None:
+    page = request("GET", base + "/docs").body.decode()
+    urls = re.findall(r"""(?:src|href)=['"]([^'"]+)""", page) + re.findall(r"""url:\s*['"]([^'"]+)""", page)
+    assert urls and all(u.startswith("/") for u in urls), urls
+    for url in urls:
+        assert request("GET", base + url).status == 200, url
+
+
+def test_errors_are_documented(base: str) -> None:
+    paths = request("GET", base + "/openapi.json").json()["paths"]
+    assert {"401", "403", "422"} <= set(paths["/api/v1/config"]["put"]["responses"])
+    assert "404" in paths["/api/v1/windows/{window_id}"]["get"]["responses"]
+    assert "503" in paths["/readyz"]["get"]["responses"]
+
+
+class FailingWrites:
+    """The history's writer, refusing every write while ``failing`` (a read-only data folder, a full disk)."""
+
+    def __init__(self, conn: sqlite3.Connection) -> None:
+        self.conn, self.failing = conn, threading.Event()
+
+    def execute(self, sql: str, *args: Any) -> sqlite3.Cursor:
+        if self.failing.is_set() and not sql.lstrip().upper().startswith("SELECT"):
+            raise sqlite3.OperationalError("attempt to write a readonly database")
+        return self.conn.execute(sql, *args)
+
+    def close(self) -> None:
+        self.conn.close()
+
+
+def test_windows_sent_while_the_history_fails_are_counted_and_stored_when_it_returns(tmp_path: Path, demo_cine: Path,
+                                                                         caplog: pytest.LogCaptureFixture) -> None:
+    app = create_app(service_settings(tmp_path / "data", demo_cine.parent, demo(demo_cine)))
+    with running_app(app) as url:
+        wait_for(lambda: request("GET", url + "/readyz").status == 200, 60, "readiness")
+        history = app.state.service.history
+        writes = history._writer = FailingWrites(history._writer)
+        writes.failing.set()
+        status = wait_for(lambda: (s := request("GET", url + "/api/v1/status").json())["history"]["backlog"] >= 5 and s,
+                          30, "windows waiting for the history")
+        ready = request("GET", url + "/readyz")
+        assert ready.status == 503 and ready.json()["state"] == "degraded" and "readonly" in ready.json()["reason"]
+        assert status["history"]["failures"] >= 5 and status["history"]["error"]
+        metrics = request("GET", url + "/metrics").body.decode()
+        assert "meniscope_history_up 0.0" in metrics
+        writes.failing.clear()
+        wait_for(lambda: request("GET", url + "/readyz").status == 200, 30, "readiness once the history takes writes")
+        status = request("GET", url + "/api/v1/status").json()
+        ids = [w["id"] for w in request("GET", url + "/api/v1/windows?since=0&limit=1000").json()["windows"]]
+    assert status["history"]["lost"] == 0
+    assert ids == list(range(ids[0], ids[0] + len(ids))) and len(ids) >= 5  # every window sent is stored, no gap
+    logged = [r for r in caplog.records if r.name == "service.server.publishers"]
+    assert len(logged) == 2, [r.getMessage() for r in logged]  # once when it failed, once when it came back
+
+
+def test_a_dark_camera_is_no_signal_not_a_healthy_meniscus(tmp_path: Path) -> None:
+    recordings = tmp_path / "recordings"
+    recordings.mkdir()
+    with open_writer(recordings / "dark.cine", 96, 96, 19000.0, bit_depth=8) as writer:
+        writer.write(np.zeros((2000, 96, 96), np.uint8))
+    with running_service(service_settings(tmp_path / "data", recordings, demo(recordings / "dark.cine"))) as url:
+        reply = wait_for(lambda: (r := request("GET", url + "/readyz")).json()["state"] == "no_signal" and r, 60,
+                         "no signal")
+        assert reply.status == 503 and "flat" in reply.json()["reason"]
+        assert "meniscope_signal 0.0" in request("GET", url + "/metrics").body.decode()
