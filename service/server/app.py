@@ -11,9 +11,12 @@ import asyncio
 from contextlib import asynccontextmanager
 from typing import AsyncIterator
 
-from fastapi import FastAPI
+from fastapi import FastAPI, Request
+from fastapi.exception_handlers import http_exception_handler
 from fastapi.openapi.docs import get_swagger_ui_html
-from fastapi.responses import HTMLResponse
+from fastapi.responses import HTMLResponse, Response
+from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.routing import Match
 from fastapi.staticfiles import StaticFiles
 from swagger_ui_bundle import swagger_ui_path
 
@@ -52,6 +55,18 @@ def create_app(settings: ServiceSettings) -> FastAPI:
                                    swagger_css_url="/docs-assets/swagger-ui.css",
                                    swagger_favicon_url="/docs-assets/favicon-32x32.png")
 
+    app.add_exception_handler(StarletteHTTPException, _http_error)
     app.add_middleware(Guard, hosts=settings.allowed_hosts or default_hosts(settings.host),
                        origins=settings.allowed_origins)
     return app
+
+
+async def _http_error(request: Request, exc: Exception) -> Response:
+    """FastAPI's error answer, with a 405's ``Allow`` listing every method of the path (Starlette names only
+    those of the first route that matched it: GET of /api/v1/config, not PUT)."""
+    assert isinstance(exc, StarletteHTTPException)
+    if exc.status_code == 405:
+        methods = sorted({m for route in request.app.routes if route.matches(request.scope)[0] == Match.PARTIAL
+                          for m in getattr(route, "methods", None) or ()})
+        exc = StarletteHTTPException(405, exc.detail, {"Allow": ", ".join(methods)})
+    return await http_exception_handler(request, exc)
