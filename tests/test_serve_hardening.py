@@ -5,7 +5,10 @@ their own.
 """
 from __future__ import annotations
 
+import asyncio
+import logging
 import re
+import signal
 import sqlite3
 import threading
 from collections.abc import Iterator
@@ -17,9 +20,18 @@ import pytest
 from websockets.exceptions import InvalidStatus
 from websockets.sync.client import connect
 
+from service.analysis.results import WindowResult
+from service.pipeline.runtime import FittedWindow
 from service.recordings import open_writer
 from service.server.app import create_app
-from tests.servicekit import request, running_app, running_service, service_settings, wait_for
+from service.server.components import Service
+from service.server.history import History
+from service.server.hub import Hub
+from service.server.metrics import Metrics
+from service.server.publishers import Publishers
+from service.server.zmq_publisher import ZmqPublisher
+from tests.servicekit import free_port, request, running_app, running_service, service_settings, wait_for
+from tests.test_serve_cli import _answers, serve
 
 TOKEN = {"Authorization": "Bearer s3cret"}
 
@@ -142,3 +154,37 @@ def test_a_dark_camera_is_no_signal_not_a_healthy_meniscus(tmp_path: Path) -> No
                          "no signal")
         assert reply.status == 503 and "flat" in reply.json()["reason"]
         assert "meniscope_signal 0.0" in request("GET", url + "/metrics").body.decode()
+
+
+def test_a_fit_that_comes_back_after_shutdown_is_counted_not_sent_on_a_closed_socket(
+        tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    """What SIGTERM met: the fit workers finish the fit they are on after the pipeline stopped; its result came
+    back after ZeroMQ had closed (`publishing failed ... ZMQError: Socket operation on non-socket`)."""
+    service = Service(service_settings(tmp_path / "data", tmp_path, None))
+    loop = asyncio.new_event_loop()
+    try:
+        service.history = History(tmp_path / "history.sqlite", 1.0, 100)
+        service.zmq = ZmqPublisher("tcp://127.0.0.1:*")
+        service.metrics = Metrics(service.stats, service.health, lambda: (0, 0))
+        service.publishers = Publishers(service.history, service.metrics, service.zmq, Hub(loop, 1)).start()
+        service.stop()
+        result = WindowResult(index=0, start_frame=0, end_frame=10, status="failed", reason="late")
+        service.publishers.on_window(FittedWindow(result, "demo", np.zeros(10), 19000.0, *[0.0] * 5))
+    finally:
+        loop.close()
+    assert service.publishers.dropped == 1
+    assert not [r for r in caplog.records if r.levelno >= logging.WARNING], caplog.text
+
+
+def test_sigterm_stops_in_order_without_an_error(tmp_path: Path) -> None:
+    """The pipeline stops, the publishers drain, then ZeroMQ closes: no `publishing failed ... Socket operation on
+    non-socket` from a fit that came back after the socket closed."""
+    port = free_port()
+    proc = serve(tmp_path, "--port", str(port))
+    try:
+        wait_for(lambda: _answers(proc, f"http://127.0.0.1:{port}/api/v1/windows?limit=1"), 120, "a window")
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=60)
+    # uvicorn shuts down gracefully, then re-raises the signal: the status says SIGTERM ended it
+    assert proc.returncode in (0, -signal.SIGTERM) and "Traceback" not in err and "failed" not in err, err[-2000:]
