@@ -10,6 +10,7 @@ import logging
 import re
 import signal
 import sqlite3
+import subprocess
 import threading
 from collections.abc import Iterator
 from pathlib import Path
@@ -30,7 +31,8 @@ from service.server.hub import Hub
 from service.server.metrics import Metrics
 from service.server.publishers import Publishers
 from service.server.zmq_publisher import ZmqPublisher
-from tests.servicekit import free_port, request, running_app, running_service, service_settings, wait_for
+from tests.servicekit import (MENISCOPE, checkout_env, free_port, request, running_app, running_service,
+                              service_settings, wait_for)
 from tests.test_serve_cli import _answers, serve
 
 TOKEN = {"Authorization": "Bearer s3cret"}
@@ -188,3 +190,26 @@ def test_sigterm_stops_in_order_without_an_error(tmp_path: Path) -> None:
         _, err = proc.communicate(timeout=60)
     # uvicorn shuts down gracefully, then re-raises the signal: the status says SIGTERM ended it
     assert proc.returncode in (0, -signal.SIGTERM) and "Traceback" not in err and "failed" not in err, err[-2000:]
+
+
+def test_a_zeromq_sender_that_dies_makes_the_service_unready_until_frames_flow_again(tmp_path: Path,
+                                                                                      demo_cine: Path) -> None:
+    """A sender killed with SIGKILL sends no end message: only the silence tells that it is dead (the service
+    stayed ready for as long as anyone watched)."""
+    port = free_port()
+    sender_command = [*MENISCOPE, "publish-frames", str(demo_cine), "--bind", f"tcp://127.0.0.1:{port}",
+                      "--speed", "0.25", "--loop"]
+    sender = subprocess.Popen(sender_command, env=checkout_env(), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        with running_service(service_settings(tmp_path / "data", tmp_path, f"zmq+tcp://127.0.0.1:{port}")) as url:
+            wait_for(lambda: request("GET", url + "/readyz").status == 200, 60, "readiness on the sender's frames")
+            sender.kill()
+            reply = wait_for(lambda: (r := request("GET", url + "/readyz")).status == 503 and r, 10, "not ready")
+            assert reply.json()["state"] == "stalled" and str(port) in reply.json()["reason"]
+            sender.wait()
+            sender = subprocess.Popen(sender_command, env=checkout_env(), stdout=subprocess.DEVNULL,
+                                      stderr=subprocess.DEVNULL)
+            wait_for(lambda: request("GET", url + "/readyz").status == 200, 60, "readiness once frames flow again")
+    finally:
+        sender.kill()
+        sender.wait()
