@@ -26,6 +26,7 @@ from service.pipeline.runtime import FittedWindow
 from service.recordings import open_writer
 from service.server.app import create_app
 from service.server.components import Service
+from service.server.guard import default_hosts, host_name
 from service.server.history import History
 from service.server.hub import Hub
 from service.server.metrics import Metrics
@@ -213,3 +214,14 @@ def test_a_zeromq_sender_that_dies_makes_the_service_unready_until_frames_flow_a
     finally:
         sender.kill()
         sender.wait()
+
+
+@pytest.mark.parametrize("bind, host, allowed", [
+    ("127.0.0.1", "127.0.0.1:8000", True), ("127.0.0.1", "localhost", True), ("127.0.0.1", "[::1]:8000", True),
+    ("127.0.0.1", "evil.example", False), ("127.0.0.1", "127.0.0.1.evil.example:8000", False),
+    ("192.168.3.7", "192.168.3.7:8000", True), ("192.168.3.7", "evil.example", False),
+    ("0.0.0.0", "printer-7.factory.lan:8000", True),
+])
+def test_the_hosts_a_service_answers_to_follow_its_bind_address(bind: str, host: str, allowed: bool) -> None:
+    hosts = default_hosts(bind)
+    assert ("*" in hosts or host_name(host) in hosts) == allowed

@@ -28,8 +28,9 @@ LOOPBACK_NAMES = ("localhost", "127.0.0.1", "::1")
 
 
 def default_hosts(bind: str) -> list[str]:
-    """The Host names a service bound to ``bind`` answers to: loopback names on loopback, the machine's own
-    names and the address beside it; every name ("*") when bound to all interfaces."""
+    """The Host names a service bound to ``bind`` answers to: loopback names on loopback, the machine's name
+    and the address beside it (no DNS lookup: an edge PC may have no resolver); every name ("*") when bound
+    to all interfaces."""
     try:
         address = ipaddress.ip_address(bind)
     except ValueError:
@@ -38,7 +39,7 @@ def default_hosts(bind: str) -> list[str]:
         return [*LOOPBACK_NAMES, bind]
     if address is not None and address.is_unspecified:
         return ["*"]
-    return [bind, *LOOPBACK_NAMES, socket.gethostname(), socket.getfqdn()]
+    return [bind, *LOOPBACK_NAMES, socket.gethostname()]
 
 
 def host_name(value: str) -> str:
