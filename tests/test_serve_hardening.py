@@ -9,6 +9,7 @@ import asyncio
 import logging
 import re
 import signal
+import socket
 import sqlite3
 import subprocess
 import threading
@@ -225,3 +226,16 @@ def test_a_zeromq_sender_that_dies_makes_the_service_unready_until_frames_flow_a
 def test_the_hosts_a_service_answers_to_follow_its_bind_address(bind: str, host: str, allowed: bool) -> None:
     hosts = default_hosts(bind)
     assert ("*" in hosts or host_name(host) in hosts) == allowed
+
+
+def test_a_body_over_64_kb_is_refused_before_it_is_read_whole(base: str) -> None:
+    """1 MB and 50 MB sources used to be taken in and kept; a chunked body (no length given) is bounded too."""
+    big = {"source": "x" * 1_000_000}
+    assert request("PUT", base + "/api/v1/config", big, TOKEN).status == 413
+    host, port = base.removeprefix("http://").split(":")
+    with socket.create_connection((host, int(port)), timeout=10) as s:
+        s.sendall(f"PUT /api/v1/config HTTP/1.1\r\nHost: {host}\r\nAuthorization: Bearer s3cret\r\n"
+                  "Content-Type: application/json\r\nTransfer-Encoding: chunked\r\n\r\n".encode())
+        chunk = b'{"source": "' + b"x" * 70_000 + b'"}'
+        s.sendall(f"{len(chunk):x}\r\n".encode() + chunk + b"\r\n0\r\n\r\n")
+        assert s.recv(100).startswith(b"HTTP/1.1 413")

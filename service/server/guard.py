@@ -72,6 +72,10 @@ class Guard:
             problem = (403, f"origin {headers.get('origin')!r} may not open the WebSocket (setting allowed_origins)")
         elif scope["type"] == "http" and _too_long(headers.get("content-length")):
             problem = (413, f"request body over {MAX_BODY} bytes")
+        elif scope["type"] == "http" and "content-length" not in headers and scope["method"] in ("POST", "PUT", "PATCH"):
+            receive = await _bounded_body(receive)  # chunked: read up to the limit before the app sees it
+            if receive is None:
+                problem = (413, f"request body over {MAX_BODY} bytes")
         if problem is None:
             return await self.app(scope, receive, send)
         status, detail = problem
@@ -88,6 +92,26 @@ class Guard:
             return True  # not a browser
         origin = origin.lower().rstrip("/")
         return origin in self.origins or urlsplit(origin).netloc == host.lower()
+
+
+async def _bounded_body(receive: Receive) -> Receive | None:
+    """A body of unknown length read in full while it stays within :data:`MAX_BODY`; a receive that hands it
+    over again, or None when it is longer."""
+    messages: list[Message] = []
+    size, more = 0, True
+    while more:
+        message = await receive()
+        messages.append(message)
+        if message["type"] != "http.request":
+            break
+        size += len(message.get("body", b""))
+        if size > MAX_BODY:
+            return None
+        more = message.get("more_body", False)
+
+    async def replay() -> Message:
+        return messages.pop(0) if messages else await receive()
+    return replay
 
 
 def _too_long(length: str | None) -> bool:
