@@ -68,9 +68,9 @@ class Recording(ABC):
         low, high = FPS_RANGE
         if not (math.isfinite(fps) and low <= fps <= high):
             raise MeniscopeError(path, f"corrupt header: frame rate {fps} is outside {low:g}..{high:g} frames/s")
-        if not 0 <= frame_count <= Path(path).stat().st_size:  # every frame takes at least one byte
-            raise MeniscopeError(path, f"corrupt header: {frame_count} frames cannot fit in a file of "
-                                       f"{Path(path).stat().st_size} bytes")
+        size = Path(path).stat().st_size
+        if not 0 <= frame_count <= size:  # every frame takes at least one byte
+            raise MeniscopeError(path, f"corrupt header: {frame_count} frames cannot fit in a file of {size} bytes")
         self.path = Path(path)
         self.frame_count = int(frame_count)
         self.fps = float(fps)
