@@ -147,8 +147,9 @@ class Supervisor:
                 self._set("ended", "the source ended its stream: change the source to go on", settings)
                 self._wake.wait()
         self._set("stopped", "the service is stopping", self.settings)
-        if self._fits is not None:
+        if self._fits is not None:  # drain: the fits in flight come back before the publishers close
             self._fits.close()
+            self._fits.join(5.0)
 
     def _run_once(self, settings: ServiceSettings) -> bool:
         """Open everything, run until stopped or ended; True when the stream ended by itself."""
