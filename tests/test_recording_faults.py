@@ -114,3 +114,17 @@ def test_every_truncation_of_an_avi_is_reported(tmp_path: Path) -> None:
         with pytest.raises(MeniscopeError):
             with open_recording(cut) as rec:
                 rec.read(0, len(rec))
+
+
+def test_a_damaged_avi_frame_that_ffmpeg_conceals_is_reported(tmp_path: Path) -> None:
+    """One byte flipped inside the second frame's FFV1 data: FFmpeg logs "slice CRC mismatch" and OpenCV
+    returned the garbage frame as good."""
+    path = avi(tmp_path / "rec.avi", frames=10)
+    data = bytearray(path.read_bytes())
+    first = data.index(b"00dc", data.index(b"movi"))
+    second = data.index(b"00dc", first + 8)
+    data[second + 8 + 40] ^= 0xFF
+    path.write_bytes(data)
+    with pytest.raises(MeniscopeError, match="concealed .*slice CRC mismatch"):
+        with open_recording(path) as rec:
+            rec.read(0, len(rec))

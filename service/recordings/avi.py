@@ -30,6 +30,7 @@ import numpy as np
 from service.errors import MeniscopeError
 from service.recordings.avi_riff import scan
 from service.recordings.base import Recording, RecordingWriter
+from service.recordings.ffmpeg_log import decoder_errors
 
 FOURCC = "FFV1"
 #: The rate handed to OpenCV; the header is patched to the real one on close (see the module notes).
@@ -93,16 +94,21 @@ class AviRecording(Recording):
             self._capture.set(cv2.CAP_PROP_POS_FRAMES, start)
         self._next = -1  # unknown until the batch is complete
         frames = []  # decoded before any array of the claimed size is made
-        for k in range(count):
-            ok, frame = self._capture.read()
-            if not ok:
-                raise MeniscopeError(self.path, f"frame {start + k} cannot be decoded: the file is truncated or corrupt")
-            if frame.shape != (self.height, self.width):
-                raise MeniscopeError(
-                    self.path, f"frame {start + k} decodes to shape {frame.shape}: only 8-bit grey AVI of the "
-                               f"header's {self.width} x {self.height} px is supported"
-                )
-            frames.append(frame)
+        with decoder_errors() as errors:
+            for k in range(count):
+                ok, frame = self._capture.read()
+                if not ok:
+                    raise MeniscopeError(self.path, f"frame {start + k} cannot be decoded: the file is truncated or "
+                                                    "corrupt")
+                if frame.shape != (self.height, self.width):
+                    raise MeniscopeError(
+                        self.path, f"frame {start + k} decodes to shape {frame.shape}: only 8-bit grey AVI of the "
+                                   f"header's {self.width} x {self.height} px is supported"
+                    )
+                frames.append(frame)
+        if errors:
+            raise MeniscopeError(self.path, f"reading frames {start}..{start + count - 1}, FFmpeg reported damage it "
+                                            f"concealed (in one of them or the next): {errors[0]}")
         self._next = start + count
         return np.stack(frames)
 
