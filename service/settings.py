@@ -44,7 +44,8 @@ class ServiceSettings(BaseSettings):
                                       frozen=True)
 
     # --- acquisition and inference
-    source: str | None = Field(None, description="frame source URI or recording path; none: the demo recording")
+    source: str | None = Field(None, max_length=4096,
+                               description="frame source URI or recording path; none: the demo recording")
     recordings_dir: Path | None = Field(None, description="file sources must lie here (default DATA_DIR/recordings)")
     scene: Path = DEFAULT_SCENE
     models: Path = DEFAULT_MODELS
@@ -72,7 +73,12 @@ class ServiceSettings(BaseSettings):
     # --- publishing
     host: str = "127.0.0.1"
     port: Annotated[int, Field(ge=0, le=65535)] = 8000
-    token: SecretStr | None = Field(None, description="bearer token changing endpoints need when not on loopback")
+    token: SecretStr | None = Field(None, description="bearer token every changing request needs once set (and "
+                                                      "set it before a service bound beyond loopback can be changed)")
+    allowed_hosts: list[str] | None = Field(
+        None, description="Host header names accepted (DNS rebinding guard); none: the names of the bound address, "
+                          "every name when bound to all interfaces")
+    allowed_origins: list[str] = Field([], description="browser origins besides the service's own that may open /ws")
     zmq_publish: str | None = Field("tcp://127.0.0.1:5556", description="ZeroMQ PUB endpoint; empty: none")
     data_dir: Path = Field(default_factory=default_data_dir)
     retention_days: Positive = 7.0

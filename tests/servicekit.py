@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any, Iterator
 
 import uvicorn
+from fastapi import FastAPI
 
 from service.bench.live import free_port  # noqa: F401 - the tests' free port is the benchmark's
 from service.server.app import create_app
@@ -45,7 +46,15 @@ def meniscope(*args: str | Path) -> subprocess.CompletedProcess:
 @contextmanager
 def running_service(settings: ServiceSettings) -> Iterator[str]:
     """Serve ``settings`` on 127.0.0.1 (a free port); yields the base URL, e.g. ``http://127.0.0.1:41234``."""
-    server = uvicorn.Server(uvicorn.Config(create_app(settings), host="127.0.0.1", port=0, log_level="warning",
+    with running_app(create_app(settings)) as base:
+        yield base
+
+
+@contextmanager
+def running_app(app: FastAPI) -> Iterator[str]:
+    """Serve ``app`` (from :func:`create_app`: the test may reach into ``app.state.service``) as
+    :func:`running_service` does."""
+    server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=0, log_level="warning",
                                            ws="websockets-sansio"))
     thread = threading.Thread(target=server.run, daemon=True)
     thread.start()

@@ -90,7 +90,7 @@ def test_truncated_or_foreign_files_give_one_line(tmp_path: Path) -> None:
         with open_recording(cut) as rec:
             rec.read(0, len(rec))
     cut.write_bytes(data[:100])
-    with pytest.raises(MeniscopeError, match="cannot open"):
+    with pytest.raises(MeniscopeError, match="truncated or corrupt"):
         open_recording(cut)
     cut.write_bytes(b"CI" + data[2:])
     with pytest.raises(MeniscopeError, match="not an AVI file"):

@@ -124,3 +124,28 @@ def test_the_runtime_install_has_no_torch() -> None:
     project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
     assert not [d for d in project["dependencies"] if re.match(r"(torch|onnx)\b(?!runtime)", d)]
     assert any(d.startswith("torch") for d in project["optional-dependencies"]["train"])
+
+
+def test_the_images_settings_bind_zeromq_where_compose_publishes_it(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The image's environment loaded as the service loads it: ZeroMQ on all interfaces like HTTP (bound to
+    127.0.0.1 inside the container, compose's published 5556 reached nothing), on a port compose publishes."""
+    from urllib.parse import urlsplit
+
+    from service.server.zmq_publisher import ZmqPublisher
+    from service.settings import load_settings
+
+    env = dict(re.findall(r"(MENISCOPE_\w+)=(\S+)", " ".join(a for op, a in _stages()[-1] if op == "ENV")))
+    for name in [k for k in os.environ if k.startswith("MENISCOPE_")]:
+        monkeypatch.delenv(name)
+    for name, value in env.items():
+        monkeypatch.setenv(name, value)
+    settings = load_settings(None, host="0.0.0.0")
+    zmq = urlsplit(settings.zmq_publish or "")
+    assert zmq.hostname == settings.host == "0.0.0.0"
+    published = yaml.safe_load(COMPOSE.read_text())["services"]["meniscope"]["ports"]
+    assert f"{zmq.port}:{zmq.port}" in published
+    publisher = ZmqPublisher(settings.zmq_publish.replace(f":{zmq.port}", ":*"))  # the bind itself, on a free port
+    try:
+        assert publisher.endpoint.startswith("tcp://0.0.0.0:")
+    finally:
+        publisher.close()

@@ -22,6 +22,7 @@ import threading
 import time
 import urllib.error
 import urllib.request
+from collections.abc import Callable
 from pathlib import Path
 
 from service.errors import MeniscopeError
@@ -48,11 +49,13 @@ def free_port() -> int:
 class Service:
     """``meniscope serve`` in a child process on free ports with a data folder of its own, until :meth:`stop`."""
 
-    def __init__(self, data_dir: Path) -> None:
+    def __init__(self, data_dir: Path, extra_env: dict[str, str] | None = None, log: Path | None = None) -> None:
+        """``extra_env``: further MENISCOPE_ settings (source, ...); ``log``: its output, appended (default
+        ``DATA_DIR/serve.log``; bench faults keeps it out of a data folder it makes unwritable)."""
         self.port, self.zmq_port = free_port(), free_port()
         env = dict(os.environ, MENISCOPE_DATA_DIR=str(data_dir),
-                   MENISCOPE_ZMQ_PUBLISH=f"tcp://127.0.0.1:{self.zmq_port}")
-        self._log = (data_dir / "serve.log").open("w+")
+                   MENISCOPE_ZMQ_PUBLISH=f"tcp://127.0.0.1:{self.zmq_port}", **(extra_env or {}))
+        self._log = (log or data_dir / "serve.log").open("a+")
         self._process = subprocess.Popen([sys.executable, "-m", "service.cli", "serve", "--port", str(self.port)],
                                          env=env, stdout=self._log, stderr=subprocess.STDOUT)
 
@@ -78,6 +81,16 @@ class Service:
         self._log.seek(0)
         lines = self._log.read().strip().splitlines()
         return lines[-1] if lines else "no output"
+
+    def kill(self) -> None:
+        """SIGKILL, as a crash or the OOM killer ends it: no shutdown of any kind."""
+        self._process.kill()
+        self._process.wait()
+        self._log.close()
+
+    @property
+    def alive(self) -> bool:
+        return self._process.poll() is None
 
     def stop(self) -> None:
         self._process.terminate()
@@ -111,26 +124,30 @@ class Clients:
                     pass
 
     def _zmq(self, service: Service) -> None:
-        import zmq
-
-        sub = zmq.Context.instance().socket(zmq.SUB)
-        sub.setsockopt(zmq.RCVTIMEO, 500)
-        sub.connect(f"tcp://127.0.0.1:{service.zmq_port}")
-        sub.subscribe(b"")
-        try:
-            while not self._stop.is_set():
-                try:
-                    sub.recv_multipart()
-                    self.received["zeromq"] += 1
-                except zmq.Again:
-                    pass
-        finally:
-            sub.close(linger=0)
+        subscribe(service.zmq_port, self._stop, lambda parts: self.received.update(zeromq=self.received["zeromq"] + 1))
 
     def stop(self) -> None:
         self._stop.set()
         for t in self._threads:
             t.join(5)
+
+
+def subscribe(port: int, stop: threading.Event, on_message: Callable[[list[bytes]], None]) -> None:
+    """Every message the service's ZeroMQ publisher on ``port`` sends, to ``on_message``, until ``stop`` is set."""
+    import zmq
+
+    sub = zmq.Context.instance().socket(zmq.SUB)
+    sub.setsockopt(zmq.RCVTIMEO, 500)
+    sub.connect(f"tcp://127.0.0.1:{port}")
+    sub.subscribe(b"")
+    try:
+        while not stop.is_set():
+            try:
+                on_message(sub.recv_multipart())
+            except zmq.Again:
+                pass
+    finally:
+        sub.close(linger=0)
 
 
 #: The counters read beside the histogram.

@@ -50,6 +50,14 @@ def _serve(conn: Connection, settings: FitSettings, nice: int) -> None:
     """A worker process: fit each (window, values, fps, brightness) the pipe brings until None, answering each
     with (result, started, finished) (monotonic s) or, if the fit raised, the error as text."""
     os.nice(nice)
+    try:
+        _fit_until_told(conn, settings)
+    except (EOFError, OSError):  # the service went away (killed, or stopped without waiting): nothing to answer
+        return
+
+
+def _fit_until_told(conn: Connection, settings: FitSettings) -> None:
+    """The loop of :func:`_serve`, until None comes or the pipe breaks."""
     while (job := conn.recv()) is not None:
         started = time.monotonic()
         window, values, fps, brightness = job
@@ -165,6 +173,15 @@ class FitPool:
                 on_fitted(closed, _failed(closed, f"the fit raised {answer}"), math.nan, math.nan)
             else:
                 on_fitted(closed, *answer)
+
+    def join(self, timeout: float) -> None:
+        """Wait up to ``timeout`` s in all for the workers to exit after :meth:`close` (their last results
+        delivered while this process still listens; one that does not exit is terminated)."""
+        deadline = time.monotonic() + timeout
+        for worker in self._all:
+            worker.process.join(max(0.0, deadline - time.monotonic()))
+            if worker.process.is_alive():
+                worker.process.terminate()
 
     def close(self) -> None:
         """Stop the workers: each finishes the fit it is on (its result still delivered) and exits; windows still

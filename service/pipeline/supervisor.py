@@ -5,6 +5,11 @@ A missing or corrupt model, an unreadable source or a camera that disappears is 
 after 1, 2, 4, ... s (at most ``retry_max_s``), so the service keeps answering and recovers by itself
 once the cause is gone. A replay without loop that ends leaves it not ready until the settings change;
 any other source that ends its stream is reconnected like one that failed.
+
+Ready means frames flow and carry a picture: a running source that has delivered nothing for
+:data:`SOURCE_SILENT_S` (a ZeroMQ sender that died) is ``stalled``, and one whose latest frame is flat
+(a dark or capped camera, a saturated sensor: its ROI spans under :data:`FLAT_FRACTION` of full scale)
+is ``no_signal``; both are not ready, and ready again as soon as that changes.
 """
 from __future__ import annotations
 
@@ -27,7 +32,11 @@ from service.sources import FrameSource, open_source
 
 log = logging.getLogger(__name__)
 
-State = Literal["starting", "running", "retrying", "ended", "stopped"]
+State = Literal["starting", "running", "stalled", "no_signal", "degraded", "retrying", "ended", "stopped"]
+#: A running source that has sent nothing for this long (s) is stalled (or 4 frame periods of a slow one).
+SOURCE_SILENT_S = 2.0
+#: A frame whose ROI pixels span less than this fraction of full scale shows nothing (dark, capped, saturated).
+FLAT_FRACTION = 0.02
 
 
 @dataclass(frozen=True)
@@ -44,6 +53,11 @@ class Health:
     def ready(self) -> bool:
         return self.state == "running"
 
+    def degraded(self, reason: str) -> "Health":
+        """This health, not ready because of ``reason`` (the history cannot be written)."""
+        return Health("degraded", reason if self.reason is None else f"{self.reason}; {reason}", self.since,
+                      self.attempts, self.source) if self.ready else self
+
 
 class Supervisor:
     """Runs :class:`Pipeline` for the current settings in a thread of its own until :meth:`stop`."""
@@ -55,6 +69,7 @@ class Supervisor:
         self._source: FrameSource | None = None
         self._fits: FitPool | None = None
         self._attempts = 0  # failed attempts in a row
+        self._running_at = 0.0  # monotonic time (s) the current run started
         self._wake = threading.Event()  # interrupts a wait between attempts
         self._run_stop = threading.Event()  # stops the pipeline now running
         self._closing = threading.Event()
@@ -78,7 +93,25 @@ class Supervisor:
 
     def health(self) -> Health:
         h, source = self._health, self._source
-        return Health(h.state, h.reason, h.since, h.attempts, source.describe() if source is not None else h.source)
+        state, reason = h.state, h.reason
+        if state == "running" and source is not None:
+            state, reason = self._flow(source)
+        return Health(state, reason, h.since, h.attempts, source.describe() if source is not None else h.source)
+
+    def _flow(self, source: FrameSource) -> tuple[State, str | None]:
+        """What a running pipeline delivers now: frames with a picture, no frames, or flat frames."""
+        silent_s = time.monotonic() - max(self.stats.last_frame_at, self._running_at)
+        limit = max(SOURCE_SILENT_S, 4.0 / source.fps) if source.is_open else SOURCE_SILENT_S
+        if silent_s > limit:
+            return "stalled", f"no frames from {source.uri} for {silent_s:.1f} s"
+        latest = self.stats.latest
+        if latest is not None and latest.pixels.size and source.is_open:
+            span = int(latest.pixels.max()) - int(latest.pixels.min())
+            full = 2 ** source.bit_depth - 1
+            if span < FLAT_FRACTION * full:
+                return "no_signal", (f"no signal: frame {latest.index} is flat (its pixels span {span} of {full}: a dark "
+                                     "or capped camera, or a saturated one)")
+        return "running", None
 
     def _fit_pool(self, settings: ServiceSettings) -> FitPool:
         """The fit workers for ``settings`` (started once, again only when the fit settings change)."""
@@ -114,8 +147,9 @@ class Supervisor:
                 self._set("ended", "the source ended its stream: change the source to go on", settings)
                 self._wake.wait()
         self._set("stopped", "the service is stopping", self.settings)
-        if self._fits is not None:
+        if self._fits is not None:  # drain: the fits in flight come back before the publishers close
             self._fits.close()
+            self._fits.join(5.0)
 
     def _run_once(self, settings: ServiceSettings) -> bool:
         """Open everything, run until stopped or ended; True when the stream ended by itself."""
@@ -129,6 +163,7 @@ class Supervisor:
         with open_source(uri, **scene_of_sim) as source:  # a simulated camera renders the scene of the models
             pipeline = Pipeline(settings, scene, source, method, fits, self.sink, self.stats)
             self._source, self._attempts = source, 0  # it ran: a later failure starts the backoff afresh
+            self._running_at, self.stats.latest = time.monotonic(), None
             self._set("running", None, settings)
             # what is loaded by now (modules, model, app) lives as long as the service: out of the cyclic
             # collector's full passes, which scanned it all and stalled every thread for up to 93 ms

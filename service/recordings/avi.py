@@ -13,7 +13,9 @@ XVID lossy. Three quirks shape this module:
 - AVI keeps a constant rate and has no trigger: times are ``i / fps`` and the trigger frame is 0.
 
 Reading asks OpenCV for frames unconverted: grey video comes back as stored, YUV video (MJPG, H.264,
-...) as its luma plane, and RGB video is refused.
+...) as its luma plane, and RGB video is refused. OpenCV trusts the headers, so the reader first holds
+them against the stream (:mod:`service.recordings.avi_riff`): a frame count or frame size that the
+stream does not bear out is refused, never read as garbage or as a huge allocation.
 """
 from __future__ import annotations
 
@@ -26,12 +28,14 @@ import cv2
 import numpy as np
 
 from service.errors import MeniscopeError
+from service.recordings.avi_riff import scan
 from service.recordings.base import Recording, RecordingWriter
+from service.recordings.ffmpeg_log import decoder_errors
 
 FOURCC = "FFV1"
 #: The rate handed to OpenCV; the header is patched to the real one on close (see the module notes).
 NOMINAL_FPS = 25.0
-RIFF_MAGIC, AVI_MAGIC = b"RIFF", b"AVI "
+RIFF_MAGIC = b"RIFF"
 CHUNK = struct.Struct("<4sI")  # chunk id, size of the data that follows
 
 
@@ -42,22 +46,37 @@ class AviRecording(Recording):
 
     def __init__(self, path: Path) -> None:
         path = Path(path)
-        try:
-            with open(path, "rb") as f:
-                magic = f.read(12)
-        except OSError as exc:
-            raise MeniscopeError(path, f"cannot read: {exc.strerror or exc}") from None
-        if magic[:4] != RIFF_MAGIC or magic[8:12] != AVI_MAGIC:
-            raise MeniscopeError(path, "not an AVI file (it does not start with 'RIFF....AVI ')")
+        layout = scan(path)
+        if layout.header_frames != layout.stream_frames:
+            raise MeniscopeError(path, f"corrupt header: the stream header says {layout.header_frames} frames, the "
+                                       f"stream holds {layout.stream_frames}")
         self._capture = capture = _capture(path)
         self._next = 0  # index of the frame the next capture.read() returns
+        count = max(int(capture.get(cv2.CAP_PROP_FRAME_COUNT)), 0)
+        width, height = int(capture.get(cv2.CAP_PROP_FRAME_WIDTH)), int(capture.get(cv2.CAP_PROP_FRAME_HEIGHT))
+        problem = (f"FFmpeg counts {count} frames, the stream holds {layout.stream_frames}"
+                   if count != layout.stream_frames else
+                   f"the main header says {layout.main_size[0]} x {layout.main_size[1]} px, the stream header "
+                   f"{layout.width} x {layout.height}" if layout.main_size != (layout.width, layout.height) else
+                   f"FFmpeg decodes {width} x {height} px, the stream header says {layout.width} x {layout.height}"
+                   if (width, height) != (layout.width, layout.height) else None)
+        try:
+            if problem is not None:
+                raise MeniscopeError(path, f"corrupt or unsupported AVI: {problem}")
+            self._open(path, capture, count, width, height)
+        except MeniscopeError:
+            capture.release()
+            raise
+
+    def _open(self, path: Path, capture: cv2.VideoCapture, count: int, width: int, height: int) -> None:
+        """The common facts from the checked capture; frame 0 decoded now, not mid-analysis (colour, undecodable)."""
         fourcc = int(capture.get(cv2.CAP_PROP_FOURCC))
         super().__init__(
             path,
-            frame_count=max(int(capture.get(cv2.CAP_PROP_FRAME_COUNT)), 0),
+            frame_count=count,
             fps=capture.get(cv2.CAP_PROP_FPS),
-            width=int(capture.get(cv2.CAP_PROP_FRAME_WIDTH)),
-            height=int(capture.get(cv2.CAP_PROP_FRAME_HEIGHT)),
+            width=width,
+            height=height,
             bit_depth=8,
             dtype=np.dtype(np.uint8),
             timestamps=None,
@@ -65,7 +84,7 @@ class AviRecording(Recording):
             header={"codec": fourcc.to_bytes(4, "little").decode("latin-1").strip("\0 ") or None},
         )
         if self.frame_count:
-            self._read(0, 1)  # fails now, not mid-analysis, on colour or undecodable video
+            self._read(0, 1)
 
     def _read(self, start: int, count: int) -> np.ndarray:
         if start == 0 and self._next != 0:  # OpenCV cannot seek back to the start of a one-frame file
@@ -74,18 +93,24 @@ class AviRecording(Recording):
         elif start != self._next:
             self._capture.set(cv2.CAP_PROP_POS_FRAMES, start)
         self._next = -1  # unknown until the batch is complete
-        frames = np.empty((count, self.height, self.width), np.uint8)
-        for k in range(count):
-            ok, frame = self._capture.read()
-            if not ok:
-                raise MeniscopeError(self.path, f"frame {start + k} cannot be decoded: the file is truncated or corrupt")
-            if frame.shape != frames.shape[1:]:
-                raise MeniscopeError(
-                    self.path, f"frame {start + k} decodes to shape {frame.shape}: only 8-bit grey AVI is supported"
-                )
-            frames[k] = frame
+        frames = []  # decoded before any array of the claimed size is made
+        with decoder_errors() as errors:
+            for k in range(count):
+                ok, frame = self._capture.read()
+                if not ok:
+                    raise MeniscopeError(self.path, f"frame {start + k} cannot be decoded: the file is truncated or "
+                                                    "corrupt")
+                if frame.shape != (self.height, self.width):
+                    raise MeniscopeError(
+                        self.path, f"frame {start + k} decodes to shape {frame.shape}: only 8-bit grey AVI of the "
+                                   f"header's {self.width} x {self.height} px is supported"
+                    )
+                frames.append(frame)
+        if errors:
+            raise MeniscopeError(self.path, f"reading frames {start}..{start + count - 1}, FFmpeg reported damage it "
+                                            f"concealed (in one of them or the next): {errors[0]}")
         self._next = start + count
-        return frames
+        return np.stack(frames)
 
     def _release(self) -> None:
         self._capture.release()

@@ -28,6 +28,9 @@ BAYER_TO_GREY = {
 
 #: Largest frame side any writer accepts (16-bit fields in the .cine SETUP; FFmpeg's own limit is larger).
 MAX_SIDE = 65535
+#: Frame rates a recording may claim, frames per second: beyond them a header is corrupt (the fastest
+#: Phantom records a few million frames/s), and times computed from them would not be finite.
+FPS_RANGE = (1e-3, 1e8)
 
 
 class Recording(ABC):
@@ -76,8 +79,12 @@ class Recording(ABC):
         header: dict[str, Any],
         cfa: str | None = None,
     ) -> None:
-        if not (math.isfinite(fps) and fps > 0):
-            raise MeniscopeError(path, f"frame rate {fps} is not a positive number")
+        low, high = FPS_RANGE
+        if not (math.isfinite(fps) and low <= fps <= high):
+            raise MeniscopeError(path, f"corrupt header: frame rate {fps} is outside {low:g}..{high:g} frames/s")
+        size = Path(path).stat().st_size
+        if not 0 <= frame_count <= size:  # every frame takes at least one byte
+            raise MeniscopeError(path, f"corrupt header: {frame_count} frames cannot fit in a file of {size} bytes")
         self.path = Path(path)
         self.frame_count = int(frame_count)
         self.fps = float(fps)

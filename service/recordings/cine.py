@@ -1,4 +1,4 @@
-"""Phantom .cine reader: memory-mapped random access to the pixel words exactly as stored, rows top first.
+"""Phantom .cine reader: random access to the pixel words exactly as stored, rows top first.
 
 File layout (little-endian; Vision Research, "Cine File Format"). Every structure is found through an
 offset, so writers may order them differently::
@@ -36,11 +36,14 @@ What the reader returns, and what it does not do:
   acquisition rate alone (``header["acquisition_fps"]`` here).
 
 Every offset and size in the header is checked against the file size before use, so a truncated or
-corrupt file gives one :class:`MeniscopeError` line, never a large allocation.
+corrupt file gives one :class:`MeniscopeError` line, never a large allocation. The headers are read
+through a memory map that is dropped once the file is open; images are read with ``pread``, so a file
+that shrinks while it is read (overwritten by ``cp``) is an error naming it, never a SIGBUS.
 """
 from __future__ import annotations
 
 import math
+import os
 import struct
 from datetime import datetime, timedelta, timezone
 from pathlib import Path
@@ -183,13 +186,16 @@ class CineRecording(Recording):
         setup, setup_length = _setup(path, data, off_setup)
         cfa = _cfa_pattern(path, setup, compression)
 
-        self._data = data
         self._frame_bytes = width * height * stored_bits // 8
         self._stored_bits = stored_bits
         self._starts = _image_starts(path, data, off_offsets, count, self._frame_bytes)
         times = _time_stamps(path, data, off_setup + setup_length, off_offsets, count, trigger)
         acquisition_fps = _acquisition_fps(path, setup)
         decimation = _decimation(path, setup)
+        try:
+            self._fd = os.open(path, os.O_RDONLY)
+        except OSError as exc:
+            raise MeniscopeError(path, f"cannot read: {exc.strerror or exc}") from None
         real_bpp = setup.get("RealBPP", 0)
         super().__init__(
             path,
@@ -234,16 +240,25 @@ class CineRecording(Recording):
         return np.ascontiguousarray(words[:, ::-1], dtype=self.dtype)  # bottom row first on disk
 
     def _stored_bytes(self, starts: np.ndarray) -> np.ndarray:
-        """The stored bytes of the images at ``starts``: one strided view of the map when evenly spaced."""
+        """The stored bytes of the images at ``starts``: one read and a strided view when evenly spaced."""
         step = int(starts[1] - starts[0]) if len(starts) > 1 else self._frame_bytes
         if len(starts) == 1 or (np.diff(starts) == step).all():
-            return np.ndarray((len(starts), self._frame_bytes), np.uint8, buffer=self._data, offset=int(starts[0]),
-                              strides=(step, 1))
-        return np.stack([self._data[s : s + self._frame_bytes] for s in starts.tolist()])
+            span = self._pread(int(starts[0]), (len(starts) - 1) * step + self._frame_bytes)
+            return np.ndarray((len(starts), self._frame_bytes), np.uint8, buffer=span, strides=(step, 1))
+        return np.stack([self._pread(s, self._frame_bytes) for s in starts.tolist()])
+
+    def _pread(self, offset: int, size: int) -> np.ndarray:
+        """``size`` bytes at ``offset``, or an error when the file no longer holds them (it shrank since opening)."""
+        try:
+            data = os.pread(self._fd, size, offset)
+        except OSError as exc:
+            raise MeniscopeError(self.path, f"cannot read: {exc.strerror or exc}") from None
+        if len(data) != size:
+            raise MeniscopeError(self.path, f"the file shrank while open: bytes {offset}..{offset + size - 1} are gone")
+        return np.frombuffer(data, np.uint8)
 
     def _release(self) -> None:
-        """Drop the memory map; it is unmapped once no view of it is left."""
-        self._data = np.empty(0, np.uint8)
+        os.close(self._fd)
 
 
 def _unpack(path: Path, data: np.ndarray, offset: int, layout: struct.Struct, what: str) -> tuple:

@@ -1,26 +1,50 @@
 """REST routes: health and readiness, status, window history, configuration, latest frame, metrics, WebSocket.
 
-Reading needs nothing; changing (PUT /api/v1/config) needs ``Authorization: Bearer <token>`` when a
+Reading needs nothing; changing (PUT /api/v1/config) needs ``Authorization: Bearer <token>`` whenever a
 token is set, and a token must be set before anything can be changed on a service that is reachable
-from other machines (bound beyond loopback).
+from other machines (bound beyond loopback). Every error answers ``{"detail": ...}`` as documented in
+the OpenAPI schema (422: the list of problems, as for any request that fails validation).
 """
 from __future__ import annotations
 
+import dataclasses
 import secrets
 import time
 from typing import Annotated, Any
 
-from fastapi import APIRouter, Depends, HTTPException, Query, Request, Response, WebSocket
+from fastapi import APIRouter, Depends, HTTPException, Path, Query, Request, Response, WebSocket
+from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
-from pydantic import BaseModel, ConfigDict, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
+from service.analysis.results import WindowResult
 from service.errors import MeniscopeError
 from service.pipeline.runtime import LatestFrame
 from service.server.components import Service
-from service.settings import Method, ServiceSettings, settings_error
+from service.settings import Method, ServiceSettings, resolve_source
+from service.sources import probe_source
 
-router = APIRouter()
+#: Largest window id (SQLite's integers are signed 64-bit).
+MAX_ID = 2**63 - 1
+#: Most windows one history page returns (about 1 kB each).
+MAX_PAGE = 1000
+
+
+class Problem(BaseModel):
+    """An error's body."""
+
+    detail: str
+
+
+def _documented(*codes: int) -> dict[int | str, dict[str, Any]]:
+    descriptions = {400: "Host header not one the service answers to", 401: "missing or wrong bearer token",
+                    403: "changing settings needs a token on this service", 404: "not found",
+                    413: "request body too large", 503: "not available now (see detail)"}
+    return {code: {"model": Problem, "description": descriptions[code]} for code in (400, 413, *codes)}
+
+
+router = APIRouter(responses=_documented())
 
 
 def _service(request: Request) -> Service:
@@ -49,7 +73,7 @@ def healthz() -> dict[str, str]:
     return {"status": "ok"}
 
 
-@router.get("/readyz", tags=["health"])
+@router.get("/readyz", tags=["health"], responses=_documented(503))
 def readyz(service: Svc) -> JSONResponse:
     """200 while frames flow through a loaded model; 503 with the reason otherwise."""
     health = service.health()
@@ -69,22 +93,40 @@ def status(service: Svc) -> dict[str, Any]:
                    "gaps": s.frame_gaps, "lost_upstream": s.frames_lost_upstream},
         "windows": {"closed": s.windows_closed, "skipped": s.windows_skipped,
                     "unpublished": service.publishers.dropped if service.publishers else 0},
+        "history": dataclasses.asdict(service.history_health()),
         "model": {"dir": str(settings.models), "method": settings.method},
         "zmq_publish": service.zmq.endpoint if service.zmq else None,
         "uptime_s": round(time.time() - service.started, 3),
     }
 
 
-@router.get("/api/v1/windows", tags=["windows"])
-def windows(service: Svc, since: Annotated[int | None, Query(ge=0, description="only ids above this")] = None,
-            limit: Annotated[int, Query(ge=1, le=10_000)] = 100) -> dict[str, Any]:
-    """Stored window results: after id ``since`` (oldest first), or else the newest ``limit``."""
-    rows = service.history.latest(limit) if since is None else service.history.since(since, limit)
-    return {"windows": [row.to_json() for row in rows], "last_id": rows[-1].id if rows else since}
+class StoredWindowBody(BaseModel):
+    """A stored window result: its id, when it was stored (s since the epoch), source, frame rate."""
+
+    id: int
+    stored: float
+    source: str
+    fps: float
+    window: WindowResult
 
 
-@router.get("/api/v1/windows/{window_id}", tags=["windows"])
-def window(window_id: int, service: Svc) -> dict[str, Any]:
+class WindowsPage(BaseModel):
+    windows: list[StoredWindowBody]
+    last_id: int | None = Field(description="the last id of this page (``since`` again when empty)")
+
+
+@router.get("/api/v1/windows", tags=["windows"], response_model=WindowsPage, response_class=Response)
+def windows(service: Svc, since: Annotated[int | None, Query(ge=0, le=MAX_ID, description="only ids above this")] = None,
+            limit: Annotated[int, Query(ge=1, le=MAX_PAGE)] = 100) -> Response:
+    """Stored window results: after id ``since`` (oldest first), or else the newest ``limit``. Sent as stored,
+    without parsing them again: a large page costs the web side little."""
+    page = service.history.page_json(since, limit)
+    return Response(page, media_type="application/json")
+
+
+@router.get("/api/v1/windows/{window_id}", tags=["windows"], response_model=StoredWindowBody,
+            responses=_documented(404))
+def window(window_id: Annotated[int, Path(ge=0, le=MAX_ID)], service: Svc) -> dict[str, Any]:
     row = service.history.get(window_id)
     if row is None:
         raise HTTPException(404, f"no window {window_id} (never stored, or past retention)")
@@ -95,7 +137,8 @@ class ConfigChange(BaseModel):
     """What PUT /api/v1/config may change."""
 
     model_config = ConfigDict(extra="forbid")
-    source: str | None = None
+    source: str | None = Field(None, min_length=1, max_length=4096,
+                               description="source URI or recording path (docs/service.md)")
     method: Method | None = None
 
 
@@ -104,27 +147,37 @@ def get_config(service: Svc) -> dict[str, Any]:
     return service.settings.public()
 
 
-@router.put("/api/v1/config", tags=["config"], dependencies=[Depends(require_token)])
+@router.put("/api/v1/config", tags=["config"], dependencies=[Depends(require_token)],
+            responses=_documented(401, 403))
 def put_config(change: ConfigChange, service: Svc) -> dict[str, Any]:
-    """Change the source and/or the inverse method; the pipeline restarts with them."""
+    """Change the source and/or the inverse method; the pipeline restarts with them. A new source is checked
+    first (its scheme, options and, for a recording, the file itself): one that cannot open is refused with 422
+    and the running one kept. A camera or socket is opened only by the pipeline: when it then fails, the
+    service says why in /readyz and retries it, as for any source."""
     current: ServiceSettings = service.settings
     updates = change.model_dump(exclude_unset=True)
     try:
         settings = ServiceSettings(**{**dict(current), **updates})
+        if change.source is not None and change.source != current.source:
+            probe_source(resolve_source(change.source, settings.recordings_folder))
     except ValidationError as exc:
-        raise HTTPException(422, str(settings_error(exc, "config"))) from None
+        raise RequestValidationError([{**err, "loc": ("body", *err["loc"])} for err in exc.errors(
+            include_url=False, include_context=False, include_input=False)]) from None
+    except MeniscopeError as exc:
+        raise RequestValidationError([{"loc": ("body", "source"), "msg": str(exc), "type": "value_error"}]) from None
     service.reconfigure(settings)
     return settings.public()
 
 
-@router.get("/api/v1/frames/latest.png", tags=["frames"], response_class=Response)
+@router.get("/api/v1/frames/latest.png", tags=["frames"], response_class=Response, responses=_documented(404))
 def latest_frame(service: Svc) -> Response:
     """The last inferred frame's ROI, stretched to its brightest pixel."""
     return Response(service.frame_views().camera(_latest(service)), media_type="image/png",
                     headers={"Cache-Control": "no-store"})
 
 
-@router.get("/api/v1/frames/latest/render.png", tags=["frames"], response_class=Response)
+@router.get("/api/v1/frames/latest/render.png", tags=["frames"], response_class=Response,
+            responses=_documented(404, 503))
 def latest_render(service: Svc) -> Response:
     """The scene rendered from the last frame's inferred coefficients, stretched the same way."""
     try:
@@ -136,7 +189,7 @@ def latest_render(service: Svc) -> Response:
     return Response(image, media_type="image/png", headers={"Cache-Control": "no-store"})
 
 
-@router.get("/api/v1/frames/latest", tags=["frames"])
+@router.get("/api/v1/frames/latest", tags=["frames"], responses=_documented(404))
 def latest_coefficients(service: Svc) -> dict[str, Any]:
     frame = _latest(service)
     d, p, a, b = frame.coefficients

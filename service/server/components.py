@@ -15,7 +15,7 @@ from service.scene import Scene
 from service.server.frames import FrameViews
 from service.server.history import History
 from service.server.hub import Hub
-from service.server.metrics import Metrics
+from service.server.metrics import HistoryHealth, Metrics
 from service.server.publishers import Publishers
 from service.server.zmq_publisher import ZmqPublisher
 from service.settings import ServiceSettings
@@ -49,25 +49,35 @@ class Service:
         return self.views
 
     def health(self) -> Health:
+        """The pipeline's health, degraded while the history cannot be written."""
         if self.supervisor is None:
             return Health("starting", "the service is starting", self.started, 0)
-        return self.supervisor.health()
+        health = self.supervisor.health()
+        error = self.publishers.history_error if self.publishers is not None else None
+        return health if error is None else health.degraded(error)
+
+    def history_health(self) -> HistoryHealth:
+        p = self.publishers
+        if p is None:
+            return HistoryHealth()
+        return HistoryHealth(p.history_error, p.history_failures, p.backlog, p.history_lost)
 
     def start(self, loop: asyncio.AbstractEventLoop) -> None:
         s = self.settings
         self.history = History(s.data_dir / HISTORY_FILE, s.retention_days, s.retention_windows)
         self.zmq = ZmqPublisher(s.zmq_publish) if s.zmq_publish else None
         self.hub = Hub(loop, s.client_queue)
-        self.metrics = Metrics(self.stats, self.health, self.websocket_counts)
+        self.metrics = Metrics(self.stats, self.health, self.websocket_counts, self.history_health)
         self.publishers = Publishers(self.history, self.metrics, self.zmq, self.hub).start()
         self.supervisor = Supervisor(s, self.publishers, self.stats).start()
 
     def stop(self) -> None:
+        """In order: the pipeline stops, the publishers drain and close ZeroMQ, the history closes."""
         if self.supervisor is not None:
             self.supervisor.stop()
         if self.publishers is not None:
             self.publishers.stop()
-        if self.zmq is not None:
+        elif self.zmq is not None:
             self.zmq.close()
         if self.history is not None:
             self.history.close()

@@ -83,7 +83,8 @@ class History:
         """Store one result under ``window_id`` (from :meth:`new_id`; a new one if None); its id."""
         window_id = self.new_id() if window_id is None else window_id
         self._writer.execute(
-            "INSERT INTO windows (id, stored, source, fps, result) VALUES (?, ?, ?, ?, ?)",
+            # OR REPLACE: a window written again after a failed attempt is stored once
+            "INSERT OR REPLACE INTO windows (id, stored, source, fps, result) VALUES (?, ?, ?, ?, ?)",
             (window_id, time.time() if stored is None else stored, source, fps, result.model_dump_json()),
         )
         self._inserts += 1
@@ -102,15 +103,30 @@ class History:
 
     def since(self, after: int = 0, limit: int = 100) -> list[StoredWindow]:
         """Windows with id above ``after``, oldest first, at most ``limit``."""
-        with self._reader() as conn:
-            rows = conn.execute("SELECT * FROM windows WHERE id > ? ORDER BY id LIMIT ?", (after, limit)).fetchall()
-        return [_stored(row) for row in rows]
+        return [_stored(row) for row in self._rows(after, limit)]
 
     def latest(self, limit: int = 100) -> list[StoredWindow]:
         """The newest ``limit`` windows, oldest first."""
+        return [_stored(row) for row in self._rows(None, limit)]
+
+    def page_json(self, after: int | None, limit: int) -> bytes:
+        """``{"windows": [...], "last_id": ...}`` for :meth:`since` (``after`` given) or :meth:`latest`, made from
+        the stored JSON as it is: no result is parsed and dumped again (10,000 windows: 0.9 s of interpreter time
+        that the frame path waited for)."""
+        rows = self._rows(after, limit)
+        items = ",".join(
+            f'{{"id":{row["id"]},"stored":{json.dumps(row["stored"])},"source":{json.dumps(row["source"])},'
+            f'"fps":{json.dumps(row["fps"])},"window":{row["result"]}}}' for row in rows)
+        last = rows[-1]["id"] if rows else after
+        return f'{{"windows":[{items}],"last_id":{json.dumps(last)}}}'.encode()
+
+    def _rows(self, after: int | None, limit: int) -> list[sqlite3.Row]:
+        """Rows with id above ``after`` (oldest first), or the newest ``limit`` when ``after`` is None."""
         with self._reader() as conn:
-            rows = conn.execute("SELECT * FROM windows ORDER BY id DESC LIMIT ?", (limit,)).fetchall()
-        return [_stored(row) for row in reversed(rows)]
+            if after is not None:
+                return conn.execute("SELECT * FROM windows WHERE id > ? ORDER BY id LIMIT ?", (after, limit)).fetchall()
+            return conn.execute("SELECT * FROM (SELECT * FROM windows ORDER BY id DESC LIMIT ?) ORDER BY id",
+                                (limit,)).fetchall()
 
     def get(self, window_id: int) -> StoredWindow | None:
         with self._reader() as conn:

@@ -8,6 +8,7 @@ no per-window labels. Each app has a registry of its own, so tests need no globa
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 from typing import Callable, Iterator, get_args
 
 from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, disable_created_metrics
@@ -16,11 +17,9 @@ from prometheus_client.registry import Collector
 
 from service.analysis.results import Status, WindowResult
 from service.pipeline.runtime import PipelineStats
-from service.pipeline.supervisor import Health
+from service.pipeline.supervisor import SOURCE_SILENT_S, Health
 
 STATUSES = get_args(Status)
-#: A running source that has sent nothing for this long (s) counts as down.
-SOURCE_SILENT_S = 2.0
 
 disable_created_metrics()  # no *_created series: nothing here reads them, and they double every counter
 
@@ -29,13 +28,17 @@ class _PipelineCollector(Collector):
     """Counters and gauges of the pipeline's statistics and health, as they are at scrape time."""
 
     def __init__(self, stats: PipelineStats, health: Callable[[], Health],
-                 websocket: Callable[[], tuple[int, int]]) -> None:
+                 websocket: Callable[[], tuple[int, int]], history: Callable[[], HistoryHealth] | None) -> None:
         self.stats, self.health, self.websocket = stats, health, websocket
+        self.history = history or (lambda: HistoryHealth())
 
     def collect(self) -> Iterator[Metric]:
-        s, ready = self.stats, float(self.health().ready)
-        flowing = ready * (time.monotonic() - s.last_frame_at < SOURCE_SILENT_S)
+        s, health = self.stats, self.health()
+        ready = float(health.ready)
+        flowing = float(health.state in ("running", "no_signal", "degraded")
+                        and time.monotonic() - s.last_frame_at < SOURCE_SILENT_S)
         clients, skipped = self.websocket()
+        history = self.history()
         for name, value, text in (
             ("frames_acquired", s.frames_acquired, "Frames read from the source."),
             ("frames_inferred", s.frames_inferred, "Frames run through the inverse model."),
@@ -44,6 +47,8 @@ class _PipelineCollector(Collector):
             ("frames_lost_upstream", s.frames_lost_upstream, "Frames missing inside those jumps."),
             ("windows_skipped", s.windows_skipped, "Windows closed while every fit worker was busy and as many windows waited (not fitted)."),
             ("websocket_messages_skipped", skipped, "Messages lagging WebSocket clients did not get."),
+            ("history_write_failures", history.failures, "Failed attempts to store windows in the history."),
+            ("history_windows_lost", history.lost, "Windows sent but never stored (the history backlog overflowed)."),
         ):
             yield CounterMetricFamily(f"meniscope_{name}", text, value=value)
         for name, value, text in (
@@ -52,17 +57,32 @@ class _PipelineCollector(Collector):
             ("input_frames_per_second", s.fps_in, "Frames per second read from the source (last second)."),
             ("output_frames_per_second", s.fps_out, "Frames per second inferred (last second)."),
             ("websocket_clients", clients, "Connected WebSocket clients."),
+            ("signal", float(flowing and health.state != "no_signal"),
+             "1 while the frames arriving show a picture, 0 while they are flat (dark, capped, saturated) or absent."),
+            ("history_up", float(history.error is None), "1 while windows are stored in the history, else 0."),
+            ("history_backlog_windows", history.backlog, "Sent windows waiting to be stored in the history."),
         ):
             yield GaugeMetricFamily(f"meniscope_{name}", text, value=value)
+
+
+@dataclass(frozen=True)
+class HistoryHealth:
+    """Whether windows are being stored: the error if not, failed writes, windows waiting and lost."""
+
+    error: str | None = None
+    failures: int = 0
+    backlog: int = 0
+    lost: int = 0
 
 
 class Metrics:
     """The service's registry: pipeline statistics plus what :meth:`window` and :meth:`inference` record."""
 
     def __init__(self, stats: PipelineStats, health: Callable[[], Health],
-                 websocket: Callable[[], tuple[int, int]]) -> None:
+                 websocket: Callable[[], tuple[int, int]],
+                 history: Callable[[], HistoryHealth] | None = None) -> None:
         self.registry = r = CollectorRegistry()
-        r.register(_PipelineCollector(stats, health, websocket))
+        r.register(_PipelineCollector(stats, health, websocket, history))
         self.windows = Counter("meniscope_windows", "Windows published, by fit status.", ["status"], registry=r)
         for status in STATUSES:
             self.windows.labels(status)

@@ -5,6 +5,11 @@ id by the history, sent on ZeroMQ and handed to the WebSocket clients, a thread 
 lock hand-over sooner than through a queue. Storing it in SQLite and counting it, and the trace
 snippets, go through a bounded queue to one publishing thread; if that thread ever fell a whole queue
 behind, further items would be dropped and counted rather than pile up.
+
+When the history cannot be written (data folder read-only, disk full), windows that were sent but not
+stored wait in a bounded backlog and are written, oldest first, once the database takes writes again
+(tried on every window and every second); the failure is counted, shown in readiness, and logged once
+when it starts and once when it ends, not once per window.
 """
 from __future__ import annotations
 
@@ -12,6 +17,8 @@ import logging
 import queue
 import threading
 import time
+from collections import deque
+
 from service.pipeline.runtime import FittedWindow, TraceSnippet
 from service.server.history import History, StoredWindow
 from service.server.hub import Hub
@@ -23,6 +30,10 @@ log = logging.getLogger(__name__)
 
 #: Items (windows and trace snippets) waiting for the publishing thread, at most.
 QUEUE_ITEMS = 1024
+#: Sent windows kept for the history while it cannot be written (about 1 kB each: 15 min at 100 windows/s).
+BACKLOG_WINDOWS = 100_000
+#: Seconds between attempts to write the backlog when no window comes to trigger one.
+RETRY_S = 1.0
 
 
 class Publishers:
@@ -31,6 +42,11 @@ class Publishers:
     def __init__(self, history: History, metrics: Metrics, zmq: ZmqPublisher | None, hub: Hub) -> None:
         self.history, self.metrics, self.zmq, self.hub = history, metrics, zmq, hub
         self.dropped = 0
+        self.history_error: str | None = None  # why the history is not being written, None while it is
+        self.history_failures = 0  # failed attempts to write it
+        self.history_lost = 0  # windows pushed out of a full backlog: sent, never stored
+        self._backlog: deque[StoredWindow] = deque()
+        self._closed = False  # set by stop(): a fit that comes back later is counted, not sent on closed sockets
         self._sending = threading.Lock()  # one window at a time gets its id and goes out (several fit workers)
         # for the publishing thread: a sent window with its publish latency (s), or a trace snippet
         self._queue: queue.Queue[tuple[StoredWindow, float] | TraceSnippet | None] = queue.Queue(QUEUE_ITEMS)
@@ -41,13 +57,27 @@ class Publishers:
         return self
 
     def stop(self) -> None:
+        """Publish what is queued, write what the history can take, and close ZeroMQ: call after the pipeline has
+        stopped (a fit still out is then counted as unpublished, never sent on a closed socket)."""
+        with self._sending:
+            self._closed = True
         self._queue.put(None)
         self._thread.join(5.0)
+        if self.zmq is not None:
+            self.zmq.close()
+
+    @property
+    def backlog(self) -> int:
+        """Sent windows waiting to be stored."""
+        return len(self._backlog)
 
     # --- PipelineSink: hand over, never wait
     def on_window(self, fitted: FittedWindow) -> None:
         try:
             with self._sending:
+                if self._closed:
+                    self.dropped += 1
+                    return
                 stored, sent = self._send(fitted)
         except Exception:  # noqa: BLE001 - one bad window must not stop the fit results
             log.exception("publishing failed")
@@ -78,13 +108,43 @@ class Publishers:
 
     # --- the publishing thread
     def _run(self) -> None:
-        while (item := self._queue.get()) is not None:
+        while True:
+            try:
+                item = self._queue.get(timeout=RETRY_S)
+            except queue.Empty:
+                self._store()
+                continue
+            if item is None:
+                break
             try:
                 if isinstance(item, TraceSnippet):
                     self.hub.broadcast(trace_message(item))
                 else:
                     stored, latency = item
-                    self.history.add(stored.result, stored.source, stored.fps, stored.stored, stored.id)
                     self.metrics.window(stored.result, latency)
+                    self._backlog.append(stored)
+                    if len(self._backlog) > BACKLOG_WINDOWS:
+                        self._backlog.popleft()
+                        self.history_lost += 1
+                    self._store()
             except Exception:  # noqa: BLE001 - one bad item must not stop publishing
                 log.exception("publishing failed")
+        self._store()
+
+    def _store(self) -> None:
+        """Write the backlog, oldest first, until it is empty or the history refuses a write."""
+        while self._backlog:
+            stored = self._backlog[0]
+            try:
+                self.history.add(stored.result, stored.source, stored.fps, stored.stored, stored.id)
+            except Exception as exc:  # noqa: BLE001 - sqlite3 and OS errors alike: keep the window, try later
+                self.history_failures += 1
+                if self.history_error is None:
+                    log.warning("history: cannot store windows (%s); keeping up to %d in memory until it can",
+                                exc, BACKLOG_WINDOWS)
+                self.history_error = f"cannot store windows in the history: {exc}"
+                return
+            self._backlog.popleft()
+        if self.history_error is not None:
+            log.warning("history: storing windows again (%d sent windows lost while it failed)", self.history_lost)
+            self.history_error = None

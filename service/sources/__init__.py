@@ -4,7 +4,8 @@
 delivers :class:`FrameBatch` es through :class:`FrameSource` and passes tests/test_sources_conformance.py.
 """
 from service.sources.aravis import AravisSource
-from service.sources.base import Frame, FrameBatch, FrameSource, SourceOptions, SourceStats, StreamFormat, open_source
+from service.sources.base import (Frame, FrameBatch, FrameSource, SourceOptions, SourceStats, StreamFormat, open_source,
+                                  probe_source)
 from service.sources.replay import ReplaySource
 from service.sources.simulated import SimulatedSource
 from service.sources.v4l2 import V4l2Source
@@ -24,4 +25,5 @@ __all__ = [
     "V4l2Source",
     "ZmqSource",
     "open_source",
+    "probe_source",
 ]

@@ -284,15 +284,8 @@ class FrameSource(ABC):
         }
 
 
-def open_source(uri: str, **options: Any) -> FrameSource:
-    """Open the source a URI names; options come from the URI's query string and/or keywords (keywords win).
-
-    ``file:///path/rec.cine`` or a plain path: replay of a recording; ``v4l2:///dev/video0`` or
-    ``v4l2://0``: a V4L2 camera; ``aravis://`` (the first camera) or ``aravis://<device-id>``: a GigE
-    Vision / USB3 Vision camera; ``zmq+tcp://host:port``: frames published by ``meniscope
-    publish-frames`` or another process; ``sim://``: frames rendered live from the physics model.
-    The returned source is open; use it as a context manager or call ``close()``.
-    """
+def _adapter(uri: str) -> tuple[type[FrameSource], SplitResult, dict[str, str]]:
+    """The adapter class a URI names, its parts and its query options."""
     if "://" not in uri:  # a plain path: no query string, '?' may be part of the file name
         parts, query = SplitResult("file", "", quote(uri), "", ""), {}
     else:
@@ -304,5 +297,26 @@ def open_source(uri: str, **options: Any) -> FrameSource:
             uri, f"unknown source scheme {parts.scheme!r}: use a path or one of {', '.join(s + '://' for s in ADAPTERS)}"
         )
     module, name = target.split(":")
-    adapter: type[FrameSource] = getattr(importlib.import_module(module), name)
+    return getattr(importlib.import_module(module), name), parts, query
+
+
+def probe_source(uri: str) -> None:
+    """Check that ``uri`` names a source that can open, without taking a device: its scheme and options, and for
+    a recording the file itself (opened and closed). A camera or socket is checked only when it opens."""
+    adapter, parts, query = _adapter(uri)
+    source = adapter.from_uri(uri, parts, query)
+    if source.kind == "replay":
+        source.open().close()
+
+
+def open_source(uri: str, **options: Any) -> FrameSource:
+    """Open the source a URI names; options come from the URI's query string and/or keywords (keywords win).
+
+    ``file:///path/rec.cine`` or a plain path: replay of a recording; ``v4l2:///dev/video0`` or
+    ``v4l2://0``: a V4L2 camera; ``aravis://`` (the first camera) or ``aravis://<device-id>``: a GigE
+    Vision / USB3 Vision camera; ``zmq+tcp://host:port``: frames published by ``meniscope
+    publish-frames`` or another process; ``sim://``: frames rendered live from the physics model.
+    The returned source is open; use it as a context manager or call ``close()``.
+    """
+    adapter, parts, query = _adapter(uri)
     return adapter.from_uri(uri, parts, {**query, **options}).open()

@@ -6,6 +6,7 @@ passes and the timestamps continue, each pass one recorded duration plus one fra
 """
 from __future__ import annotations
 
+import os
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -39,6 +40,7 @@ class ReplaySource(FrameSource):
         self._period = 0.0
         self._next = 0
         self._pacer = Pacer(speed)
+        self._identity: tuple[int, int, int, int] | None = None  # the file's (device, inode, size, mtime) when opened
 
     @classmethod
     def from_uri(cls, uri: str, parts: SplitResult, options: Mapping[str, Any]) -> "ReplaySource":
@@ -49,6 +51,7 @@ class ReplaySource(FrameSource):
 
     def _open(self) -> StreamFormat:
         rec = open_recording(self.path)
+        self._identity = self._file_identity()
         n = len(rec)
         if n == 0:
             rec.close()
@@ -61,7 +64,17 @@ class ReplaySource(FrameSource):
         self._pacer.start(float(times[0]))
         return StreamFormat(rec.width, rec.height, rec.dtype, rec.bit_depth, rec.fps)
 
+    def _file_identity(self) -> tuple[int, int, int, int]:
+        try:
+            st = os.stat(self.path)
+        except OSError as exc:
+            raise MeniscopeError(self.path, f"the recording is gone while replayed: {exc.strerror or exc}") from None
+        return st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns
+
     def _read(self, max_frames: int) -> FrameBatch | None:
+        if self._file_identity() != self._identity:
+            raise MeniscopeError(self.path, "the recording changed on disk while replayed (truncated, overwritten or "
+                                            "replaced): it will be opened afresh")
         n = len(self._times)
         start = self._next
         if not self.loop:
