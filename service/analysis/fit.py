@@ -50,6 +50,14 @@ _LM_EVALUATIONS = 20
 _PENCIL = 20
 #: Pencil pole pairs turning fewer cycles over the window stand in for the offset or a trend.
 _PENCIL_MIN_CYCLES = 0.25
+#: A sample this many robust standard deviations off the one-mode fit is an outlier (a spike): 6 sd is ~1 in 5e8
+#: Gaussian samples ...
+_OUTLIER = 6.0
+#: ... when at most this share of the window's samples is (more is the model missing something, not spikes).
+_MAX_OUTLIERS = 0.1
+#: A mode is added only when it lowers the BIC by more than this: "positive" evidence on Kass & Raftery's (1995)
+#: scale; below it, noise alone (a spike left out, a lucky run) adds a mode under the noise ~1 window in 20.
+_EVIDENCE = 2.0
 _IRLS_STEPS = 100  # at most; the order-0 cost settles to 1e-6 (relative) in ~5-10 rounds
 #: The fit's matrices are small: a multi-threaded BLAS only fights the other threads for the cores
 #: (7x slower per window on a loaded 2-core machine), so each fit runs its BLAS on one thread.
@@ -99,10 +107,17 @@ class _Window:
         w, g = np.clip(w, 1e-3, np.pi - 1e-3), np.clip(g, 1e-4, _MAX_DECAY)
         return kernels.linear_start(self.n, self.y, w, g)
 
+    def without(self, samples: np.ndarray) -> "_Window":
+        """This window with the ``samples`` (mask over its finite ones) left out."""
+        return _Window(self.n[~samples], self.y[~samples], self.settings)
+
     def bic(self, cost: float, k: int) -> float:
-        """n ln(cost / n) + k ln n, with residuals under ``_EXACT`` counted as exact."""
+        """n ln(cost / n) + k ln n + 2 k (k + 1) / (n - k - 1), with residuals under ``_EXACT`` counted as exact.
+
+        The last term is AICc's small-sample correction: negligible at 190 samples (1.2 for two modes), it stops
+        a 20-sample window from taking a second mode that its few residual degrees of freedom cannot refute."""
         n = self.n.size
-        return float(n * np.log(cost / n + _EXACT**2) + k * np.log(n))
+        return float(n * np.log(cost / n + _EXACT**2) + k * np.log(n) + 2 * k * (k + 1) / max(n - k - 1, 1))
 
     def linear_fit(self, design: np.ndarray) -> tuple[np.ndarray, float]:
         """Coefficients of ``design`` (N, k) and their robust cost (:func:`kernels.linear_fit`)."""
@@ -173,20 +188,25 @@ def _unresolved(params: np.ndarray, half: np.ndarray, span: float) -> str | None
                             f"cycles in the window (fewer than {_MIN_CYCLES}): a slow swing, not a frequency")
         elif g > _MAX_DECAY:
             problems.append(f"mode at {w / (2 * np.pi):.3g} cycles/frame dies within a frame (decay {g:.3g}/frame)")
-        elif w - halves[k, 2] <= 0:
+        elif (w - halves[k, 2]) * span / (2 * np.pi) < _MIN_CYCLES:
             problems.append(
-                f"mode at {w / (2 * np.pi):.3g} cycles/frame: its frequency CI reaches 0 "
-                "(no full oscillation resolved in the window)"
+                f"mode at {w / (2 * np.pi):.3g} cycles/frame: its frequency CI reaches below {_MIN_CYCLES} cycles "
+                "in the window (it may be a slow swing, not a frequency)"
             )
     return "; ".join(problems) or None
 
 
+def _evidence(fit: _OrderFit) -> float:
+    """BIC with each mode asked to gain ``_EVIDENCE`` more: the ordering :func:`_choose` picks by."""
+    return fit.bic + _EVIDENCE * fit.order
+
+
 def _choose(fits: list[_OrderFit]) -> tuple[_OrderFit, str | None]:
     """The BIC choice among resolved fits and order 0; an unresolved fit only when it beats them all."""
-    best = min(fits, key=lambda f: f.bic)
+    best = min(fits, key=_evidence)
     if best.problem is None:
         return best, None
-    resolved = min((f for f in fits if f.problem is None), key=lambda f: f.bic)
+    resolved = min((f for f in fits if f.problem is None), key=_evidence)
     if resolved.order > 0:
         return resolved, f"the {best.order}-mode fit was better but unresolved ({best.problem})"
     return best, best.problem
@@ -257,8 +277,33 @@ def _fit_window(values: ArrayLike, fps: float, settings: FitSettings, index: int
     window = _Window(n, (raw - centre) / spread, settings)
     use_frames = settings.poles == "frames" and brightness is not None
     poles = _brightness_poles(brightness, x.size, skip, settings) if use_frames else None
-    chosen, problem = (window.pinned(poles), None) if poles is not None else _choose(_order_fits(window, x.size, settings))
+    if poles is not None:
+        chosen, problem = window.pinned(poles), None
+    else:
+        fits = _order_fits(window, x.size, settings)
+        outliers = _outliers(window, fits)
+        if outliers.any():  # fitted again without them: a spike drags the start and the order choice
+            window = window.without(outliers)
+            fits = _order_fits(window, x.size, settings)
+        chosen, problem = _choose(fits)
+        if outliers.any():
+            problem = "; ".join([p for p in [problem] if p] + [f"{int(outliers.sum())} samples left out as outliers "
+                                                               f"(over {_OUTLIER:g} sd off the fit)"])
     return _result(chosen, problem, window, centre, spread, fps, settings, common)
+
+
+def _outliers(window: _Window, fits: list[_OrderFit]) -> np.ndarray:
+    """Samples (mask over the window's finite ones) whose residual from the chosen fit (offset and drift alone
+    where its modes are not resolved: one may be a spike at the start, dying within a frame) is over ``_OUTLIER``
+    robust standard deviations, when they are few (at most ``_MAX_OUTLIERS`` of them): spikes, not the signal."""
+    none = np.zeros(window.n.size, dtype=bool)
+    chosen, _ = _choose(fits)
+    reference = chosen if chosen.problem is None else fits[0]
+    model, _ = kernels.columns(window.n, reference.params)
+    residual = window.y - model
+    sigma = robust_sigma(residual)
+    flagged = np.abs(residual) > _OUTLIER * sigma
+    return flagged if sigma > 0 and flagged.sum() <= _MAX_OUTLIERS * window.n.size else none
 
 
 def _after_transient(x: np.ndarray, skip: int) -> np.ndarray:
@@ -330,7 +375,7 @@ def _result(
     numbers = dict(
         offset_mm=centre + spread * fit.params[0],
         drift_mm_per_s=spread * fit.params[1] * fps,
-        r2=1.0 - ss_res / ss_tot,
+        r2=1.0 - ss_res / ss_tot if ss_tot > 0 else float("nan"),  # nan: all samples left equal (null, reason says)
         noise_mm=spread * robust_sigma(window.y - model),
     )
     if fit.order == 0:
