@@ -55,6 +55,8 @@ _PENCIL_MIN_CYCLES = 0.25
 _OUTLIER = 6.0
 #: ... when at most this share of the window's samples is (more is the model missing something, not spikes).
 _MAX_OUTLIERS = 0.1
+#: Beyond that share, an outlier must stand this many times above the next sample (see :func:`_outliers`).
+_SPIKE_GAP = 3.0
 #: A mode is added only when it lowers the BIC by more than this: "positive" evidence on Kass & Raftery's (1995)
 #: scale; below it, noise alone (a spike left out, a lucky run) adds a mode under the noise ~1 window in 20.
 _EVIDENCE = 2.0
@@ -295,15 +297,20 @@ def _fit_window(values: ArrayLike, fps: float, settings: FitSettings, index: int
 def _outliers(window: _Window, fits: list[_OrderFit]) -> np.ndarray:
     """Samples (mask over the window's finite ones) whose residual from the chosen fit (offset and drift alone
     where its modes are not resolved: one may be a spike at the start, dying within a frame) is over ``_OUTLIER``
-    robust standard deviations, when they are few (at most ``_MAX_OUTLIERS`` of them): spikes, not the signal."""
-    none = np.zeros(window.n.size, dtype=bool)
+    robust standard deviations: spikes, not the signal. When more than ``_MAX_OUTLIERS`` of the samples are that
+    far off (an oscillation the fit missed, spikes or not), only those standing ``_SPIKE_GAP`` times above all the
+    rest are: a spike of 20x the amplitude stands apart from any oscillation the window holds."""
     chosen, _ = _choose(fits)
     reference = chosen if chosen.problem is None else fits[0]
     model, _ = kernels.columns(window.n, reference.params)
-    residual = window.y - model
-    sigma = robust_sigma(residual)
-    flagged = np.abs(residual) > _OUTLIER * sigma
-    return flagged if sigma > 0 and flagged.sum() <= _MAX_OUTLIERS * window.n.size else none
+    size = np.abs(window.y - model)
+    sigma = robust_sigma(size)
+    flagged = size > _OUTLIER * sigma
+    if sigma == 0 or flagged.sum() <= _MAX_OUTLIERS * window.n.size:
+        return flagged & (sigma > 0)
+    top = np.sort(size)[::-1][: int(_MAX_OUTLIERS * window.n.size) + 1]  # descending
+    gaps = np.flatnonzero(top[:-1] > _SPIKE_GAP * top[1:])
+    return size >= top[gaps[-1]] if gaps.size else np.zeros(window.n.size, dtype=bool)
 
 
 def _after_transient(x: np.ndarray, skip: int) -> np.ndarray:
@@ -324,9 +331,24 @@ def _order_fits(window: _Window, length: int, settings: FitSettings) -> list[_Or
     fits = [window.fit_baseline()]
     orders = [m for m in range(1, settings.max_modes + 1) if window.n.size >= min_samples(m)]
     if orders:
-        pencil_modes = _pencil_modes(window.n, window.y, length, 2 * orders[-1] + 2)
-        fits += [window.fit(m, window.starts(m, pencil_modes)) for m in orders]
+        poles = 2 * orders[-1] + 2
+        starts = [_pencil_modes(window.n, window.y, length, poles)]
+        run = _strongest_run(window.n, window.y, 3 * poles)
+        if run is not None:  # gaps: their linear filling misleads the pencil, which a gap-free stretch does not
+            starts.append(_pencil_modes(window.n[run] - window.n[run[0]], window.y[run], run.size, poles))
+        fits += [min((window.fit(m, window.starts(m, modes)) for modes in starts), key=lambda f: f.cost)
+                 for m in orders]
     return fits
+
+
+def _strongest_run(n: np.ndarray, y: np.ndarray, shortest: int) -> np.ndarray | None:
+    """Indices of the gap-free stretch of consecutive samples with the most variance about its mean (at least
+    ``shortest`` samples), when the samples ``n`` have gaps; None without gaps or such a stretch."""
+    breaks = np.flatnonzero(np.diff(n) != 1) + 1
+    if breaks.size == 0:
+        return None
+    runs = [r for r in np.split(np.arange(n.size), breaks) if r.size >= shortest]
+    return max(runs, key=lambda r: float(np.var(y[r]) * r.size), default=None)
 
 
 def _has_harmonic(fit: _OrderFit) -> bool:
