@@ -60,6 +60,9 @@ _SPIKE_GAP = 3.0
 #: A mode is added only when it lowers the BIC by more than this: "positive" evidence on Kass & Raftery's (1995)
 #: scale; below it, noise alone (a spike left out, a lucky run) adds a mode under the noise ~1 window in 20.
 _EVIDENCE = 2.0
+#: A fit without drift is tried with one where the drift's step from there is over this many standard errors:
+#: ~sqrt(ln n) at 190 samples, where BIC starts to prefer keeping it (a z of 2 already, to be safe).
+_DRIFT_TEST = 2.0
 _IRLS_STEPS = 100  # at most; the order-0 cost settles to 1e-6 (relative) in ~5-10 rounds
 #: The fit's matrices are small: a multi-threaded BLAS only fights the other threads for the cores
 #: (7x slower per window on a loaded 2-core machine), so each fit runs its BLAS on one thread.
@@ -89,6 +92,7 @@ class _OrderFit:
     bic: float
     problem: str | None  # why its modes are not resolved, None when they are
     poles_from: Literal["series", "frames"] = "series"
+    drift: bool = True  # whether the drift v was fitted (else it is 0)
 
 
 class _Window:
@@ -127,19 +131,44 @@ class _Window:
         return params, float(cost)
 
     def fit_baseline(self) -> _OrderFit:
-        """Order 0: offset and drift alone."""
-        return self._judge(0, self.linear_fit(np.stack([np.ones_like(self.n), self.n], axis=1))[0])
-
-    def drift_evident(self, baseline: _OrderFit) -> bool:
-        """Whether the criterion prefers offset and drift to a constant offset."""
-        _, cost = self.linear_fit(np.ones((self.n.size, 1)))
-        return baseline.bic < self.bic(cost, 1)
+        """Order 0: the offset alone, or offset and drift where the criterion prefers them."""
+        offset, _ = self.linear_fit(np.ones((self.n.size, 1)))
+        line, _ = self.linear_fit(np.stack([np.ones_like(self.n), self.n], axis=1))
+        return min(self._judge(0, np.r_[offset, 0.0], drift=False), self._judge(0, line), key=lambda f: f.bic)
 
     def fit(self, order: int, start: np.ndarray) -> _OrderFit:
-        """Refine ``start`` by LM (:func:`kernels.levenberg_marquardt`), then judge it."""
-        params = kernels.levenberg_marquardt(self.n, self.y, self.scale, self.robust, start, _LM_TOLERANCE,
-                                             _LM_EVALUATIONS * (start.size + 1))
-        return self._judge(order, _canonical(params))
+        """Refine ``start`` by LM (:func:`kernels.levenberg_marquardt`) without a drift, then judge it; where a
+        drift looks evident from there (its Gauss-Newton step over ``_DRIFT_TEST`` standard errors), or a mode
+        is unresolved (it may be a slow swing standing in for the drift), the fit with one too, and the criterion
+        picks: a drift the data do not need costs the modes' decay and frequency their precision (it trades
+        against a slow decay and a fraction of a cycle)."""
+        flat = start.copy()
+        flat[0] += flat[1] * self.n.mean()
+        flat[1] = 0.0
+        free = np.ones(start.size, dtype=np.bool_)
+        free[1] = False
+        without = self._judge(order, _canonical(self._refine(flat, free)), drift=False)
+        if without.problem is None and self._drift_z(without.params) < _DRIFT_TEST:
+            return without
+        with_drift = self._judge(order, _canonical(self._refine(start, np.ones(start.size, np.bool_))))
+        return min(without, with_drift, key=lambda f: f.bic)
+
+    def _refine(self, start: np.ndarray, free: np.ndarray) -> np.ndarray:
+        """The LM optimum from ``start`` over the ``free`` parameters."""
+        return kernels.levenberg_marquardt(self.n, self.y, self.scale, self.robust, start, _LM_TOLERANCE,
+                                           _LM_EVALUATIONS * (start.size + 1), free)
+
+    def _drift_z(self, params: np.ndarray) -> float:
+        """The drift's Gauss-Newton step from ``params`` (drift 0) in standard errors: how evident a drift is."""
+        r, j = kernels.weighted_jacobian(self.n, self.y, self.scale, self.robust, params)
+        dof = self.n.size - params.size
+        normal = j.T @ j
+        try:
+            step = np.linalg.solve(normal, -(j.T @ r))
+            variance = np.linalg.inv(normal)[1, 1] * (r @ r) / max(dof, 1)
+        except np.linalg.LinAlgError:
+            return np.inf
+        return float(abs(step[1]) / np.sqrt(variance)) if variance > 0 else np.inf
 
     def pinned(self, poles: _OrderFit) -> _OrderFit:
         """This window fitted with another series' poles (each mode's w and g, and their intervals): offset,
@@ -155,15 +184,20 @@ class _Window:
         half[linear] = stdtrit(max(n - k, 1), 0.5 + self.settings.confidence / 2) * np.sqrt(variance)
         return _OrderFit(poles.order, params, half, cost, self.bic(cost, k), None, "frames")
 
-    def _judge(self, order: int, params: np.ndarray) -> _OrderFit:
-        """Cost, BIC, CI half-widths and (for modes) whether they are resolved."""
+    def _judge(self, order: int, params: np.ndarray, drift: bool = True) -> _OrderFit:
+        """Cost, BIC, CI half-widths and (for modes) whether they are resolved; without ``drift`` its parameter
+        (held at 0) is neither counted nor given an interval."""
         r, j = kernels.weighted_jacobian(self.n, self.y, self.scale, self.robust, params)
-        n, k = self.n.size, params.size
+        fitted = np.ones(params.size, dtype=bool)
+        fitted[1] = drift
+        n, k = self.n.size, int(fitted.sum())
         cost = float(r @ r)
         bic = self.bic(cost, k)
-        variance = kernels.covariance_diagonal(j) * cost / (n - k)
-        half = stdtrit(n - k, 0.5 + self.settings.confidence / 2) * np.sqrt(variance)
-        return _OrderFit(order, params, half, cost, bic, _unresolved(params, half, self.n[-1] - self.n[0] + 1))
+        half = np.zeros(params.size)
+        variance = kernels.covariance_diagonal(np.ascontiguousarray(j[:, fitted])) * cost / (n - k)
+        half[fitted] = stdtrit(n - k, 0.5 + self.settings.confidence / 2) * np.sqrt(variance)
+        return _OrderFit(order, params, half, cost, bic, _unresolved(params, half, self.n[-1] - self.n[0] + 1),
+                         drift=drift)
 
 
 def _canonical(params: np.ndarray) -> np.ndarray:
@@ -437,7 +471,7 @@ def _without_modes(
     note = f" ({problem})" if problem else ""
     change = spread * abs(fit.params[1]) * (window.n[-1] - window.n[0])  # mm over the window
     tol = tolerance([], settings.settle_fraction, settings.settle_floor_mm)
-    if change > tol and window.drift_evident(fit):
+    if change > tol and fit.drift:
         return WindowResult(
             status="unresolved", **common, **numbers, residual_amplitude_mm=None,
             reason=f"no resolved oscillation, but the displacement trends by {change:.3g} mm over the window "
