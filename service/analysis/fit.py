@@ -136,19 +136,32 @@ class _Window:
         line, _ = self.linear_fit(np.stack([np.ones_like(self.n), self.n], axis=1))
         return min(self._judge(0, np.r_[offset, 0.0], drift=False), self._judge(0, line), key=lambda f: f.bic)
 
-    def fit(self, order: int, start: np.ndarray) -> _OrderFit:
-        """Refine ``start`` by LM (:func:`kernels.levenberg_marquardt`) without a drift, then judge it; where a
-        drift looks evident from there (its Gauss-Newton step over ``_DRIFT_TEST`` standard errors), or a mode
-        is unresolved (it may be a slow swing standing in for the drift), the fit with one too, and the criterion
-        picks: a drift the data do not need costs the modes' decay and frequency their precision (it trades
-        against a slow decay and a fraction of a cycle)."""
+    def fit(self, order: int, start: np.ndarray, drift_first: bool) -> _OrderFit:
+        """Refine ``start`` by LM (:func:`kernels.levenberg_marquardt`) with or without a drift, judged, and the
+        other where the first leaves it in doubt; the criterion picks. A drift the data do not need costs the
+        modes' decay and frequency their precision (it trades against a slow decay and a fraction of a cycle).
+
+        Without a drift first (the usual window), the drift is tried where its Gauss-Newton step from there is
+        over ``_DRIFT_TEST`` standard errors or a mode turns under one cycle (a slow swing standing in for a
+        drift); with one first (where offset and drift alone already show a drift), leaving it out is tried
+        where it is within ``_DRIFT_TEST`` standard errors of 0 or a mode turns under one cycle."""
+        free = np.ones(start.size, dtype=np.bool_)
+        if drift_first:
+            with_drift = self._judge(order, _canonical(self._refine(start, free)))
+            t = stdtrit(max(self.n.size - start.size, 1), 0.5 + self.settings.confidence / 2)
+            evident = abs(with_drift.params[1]) * t >= _DRIFT_TEST * with_drift.half_width[1]
+            if evident and not _slow_swing(with_drift.params, self.n[-1] - self.n[0] + 1):
+                return with_drift
+            start = with_drift.params
         flat = start.copy()
         flat[0] += flat[1] * self.n.mean()
         flat[1] = 0.0
-        free = np.ones(start.size, dtype=np.bool_)
         free[1] = False
         without = self._judge(order, _canonical(self._refine(flat, free)), drift=False)
-        if without.problem is None and self._drift_z(without.params) < _DRIFT_TEST:
+        if drift_first:
+            return min(without, with_drift, key=lambda f: f.bic)
+        slow = _slow_swing(without.params, self.n[-1] - self.n[0] + 1)
+        if not slow and kernels.step_z(self.n, self.y, self.scale, self.robust, without.params, 1) < _DRIFT_TEST:
             return without
         with_drift = self._judge(order, _canonical(self._refine(start, np.ones(start.size, np.bool_))))
         return min(without, with_drift, key=lambda f: f.bic)
@@ -157,18 +170,6 @@ class _Window:
         """The LM optimum from ``start`` over the ``free`` parameters."""
         return kernels.levenberg_marquardt(self.n, self.y, self.scale, self.robust, start, _LM_TOLERANCE,
                                            _LM_EVALUATIONS * (start.size + 1), free)
-
-    def _drift_z(self, params: np.ndarray) -> float:
-        """The drift's Gauss-Newton step from ``params`` (drift 0) in standard errors: how evident a drift is."""
-        r, j = kernels.weighted_jacobian(self.n, self.y, self.scale, self.robust, params)
-        dof = self.n.size - params.size
-        normal = j.T @ j
-        try:
-            step = np.linalg.solve(normal, -(j.T @ r))
-            variance = np.linalg.inv(normal)[1, 1] * (r @ r) / max(dof, 1)
-        except np.linalg.LinAlgError:
-            return np.inf
-        return float(abs(step[1]) / np.sqrt(variance)) if variance > 0 else np.inf
 
     def pinned(self, poles: _OrderFit) -> _OrderFit:
         """This window fitted with another series' poles (each mode's w and g, and their intervals): offset,
@@ -198,6 +199,11 @@ class _Window:
         half[fitted] = stdtrit(n - k, 0.5 + self.settings.confidence / 2) * np.sqrt(variance)
         return _OrderFit(order, params, half, cost, bic, _unresolved(params, half, self.n[-1] - self.n[0] + 1),
                          drift=drift)
+
+
+def _slow_swing(params: np.ndarray, span: float) -> bool:
+    """Whether a mode of ``params`` turns less than one cycle over ``span`` samples."""
+    return bool(np.any(params[_BASE + 2 :: _PER_MODE] * span < 2 * np.pi))
 
 
 def _canonical(params: np.ndarray) -> np.ndarray:
@@ -370,7 +376,7 @@ def _order_fits(window: _Window, length: int, settings: FitSettings) -> list[_Or
         run = _strongest_run(window.n, window.y, 3 * poles)
         if run is not None:  # gaps: their linear filling misleads the pencil, which a gap-free stretch does not
             starts.append(_pencil_modes(window.n[run] - window.n[run[0]], window.y[run], run.size, poles))
-        fits += [min((window.fit(m, window.starts(m, modes)) for modes in starts), key=lambda f: f.cost)
+        fits += [min((window.fit(m, window.starts(m, modes), fits[0].drift) for modes in starts), key=lambda f: f.cost)
                  for m in orders]
     return fits
 

@@ -205,3 +205,17 @@ def covariance_diagonal(jac: np.ndarray) -> np.ndarray:
         return np.full(k, np.inf)
     return np.sum((vt.T / sv) ** 2, axis=1) / norms**2
 
+
+
+@njit(**_JIT)
+def step_z(n: np.ndarray, y: np.ndarray, scale: float, robust: bool, params: np.ndarray, index: int) -> float:
+    """The Gauss-Newton step of parameter ``index`` from ``params``, in standard errors (residual variance over
+    N - k): how far the optimum would move it, were it free; inf where the normal matrix is singular."""
+    r, jac = weighted_jacobian(n, y, scale, robust, params)
+    normal = jac.T @ jac
+    if not np.all(np.isfinite(normal)) or np.linalg.cond(normal) > 1e14:
+        return np.inf
+    inverse = np.linalg.inv(normal)
+    step = -(inverse @ (jac.T @ r))[index]
+    variance = inverse[index, index] * (r @ r) / max(n.size - params.size, 1)
+    return abs(step) / np.sqrt(variance) if variance > 0 else np.inf
