@@ -26,7 +26,7 @@ from service.analysis import kernels, pencil
 from service.analysis.kernels import BASE as _BASE, PER_MODE as _PER_MODE
 from service.analysis.results import FitSettings, WindowResult
 from service.analysis.segment import Window, robust_sigma
-from service.analysis.settling import damping_ratio, quality_factor, settle, tolerance
+from service.analysis.settling import Settling, damping_ratio, quality_factor, settle, tolerance
 from service.physics import damped_mode
 
 _MIN_DOF = 3  # residual degrees of freedom a model order needs to be tried
@@ -343,8 +343,8 @@ def _outliers(window: _Window, fits: list[_OrderFit]) -> np.ndarray:
     chosen, _ = _choose(fits)
     reference = chosen if chosen.problem is None else fits[0]
     model, _ = kernels.columns(window.n, reference.params)
-    size = np.abs(window.y - model)
-    sigma = robust_sigma(size)
+    residual = window.y - model
+    size, sigma = np.abs(residual), robust_sigma(residual)
     flagged = size > _OUTLIER * sigma
     if sigma == 0 or flagged.sum() <= _MAX_OUTLIERS * window.n.size:
         return flagged & (sigma > 0)
@@ -463,10 +463,19 @@ def _result(
     duration = (common["end_frame"] - common["start_frame"]) / fps
     s = settle(amp, decay, duration, settings.settle_fraction, settings.settle_floor_mm)
     status = "unresolved" if fit.problem else "ok"
+    if not s.settled:
+        problem = "; ".join([p for p in [problem] if p] + [_still_running(s, common["ends_at_ejection"])])
     return WindowResult(
         status=status, reason=problem, **common, **numbers, modes=estimates, poles_from=fit.poles_from,
         settling_time_s=s.time_s, settled=s.settled, residual_amplitude_mm=s.residual_amplitude_mm,
     )
+
+
+def _still_running(s: Settling, at_ejection: bool) -> str:
+    """What a window whose oscillation had not settled when it ended says of it."""
+    end = "the next ejection" if at_ejection else "the end of the window"
+    return (f"still oscillating at {end}: residual amplitude {s.residual_amplitude_mm:.3g} mm over the settling "
+            f"tolerance {s.tolerance_mm:.3g} mm")
 
 
 def _without_modes(
@@ -483,9 +492,13 @@ def _without_modes(
             reason=f"no resolved oscillation, but the displacement trends by {change:.3g} mm over the window "
             f"(settling tolerance {tol:.3g} mm): a slow motion under one cycle, or drift{note}",
         )
+    model, _ = kernels.columns(window.n, fit.params)
+    residual = spread * np.sqrt(2 * np.mean((window.y - model) ** 2))
+    alone = "offset and drift" if fit.drift else "an offset"
     return WindowResult(
-        status="settled", **common, **numbers, settling_time_s=0.0, settled=True, residual_amplitude_mm=0.0,
-        reason=f"no oscillation above the noise: {settings.criterion} prefers offset and drift alone{note}",
+        status="settled", **common, **numbers, settling_time_s=0.0, settled=True, residual_amplitude_mm=residual,
+        reason=f"settled: no oscillation above the noise ({settings.criterion} prefers {alone} alone; what is left "
+        f"moves {residual:.3g} mm, the amplitude of a sinusoid of its power){note}",
     )
 
 
