@@ -63,6 +63,8 @@ _EVIDENCE = 2.0
 #: A fit without drift is tried with one where the drift's step from there is over this many standard errors:
 #: ~sqrt(ln n) at 190 samples, where BIC starts to prefer keeping it (a z of 2 already, to be safe).
 _DRIFT_TEST = 2.0
+#: Modes turning fewer cycles than this over the window are fitted both with and without a drift.
+_SWING_CYCLES = 1.5
 _IRLS_STEPS = 100  # at most; the order-0 cost settles to 1e-6 (relative) in ~5-10 rounds
 #: The fit's matrices are small: a multi-threaded BLAS only fights the other threads for the cores
 #: (7x slower per window on a loaded 2-core machine), so each fit runs its BLAS on one thread.
@@ -142,9 +144,9 @@ class _Window:
         modes' decay and frequency their precision (it trades against a slow decay and a fraction of a cycle).
 
         Without a drift first (the usual window), the drift is tried where its Gauss-Newton step from there is
-        over ``_DRIFT_TEST`` standard errors or a mode turns under one cycle (a slow swing standing in for a
-        drift); with one first (where offset and drift alone already show a drift), leaving it out is tried
-        where it is within ``_DRIFT_TEST`` standard errors of 0 or a mode turns under one cycle."""
+        over ``_DRIFT_TEST`` standard errors or a mode turns under ``_SWING_CYCLES`` (a slow swing standing in for
+        a drift); with one first (where offset and drift alone already show a drift), leaving it out is tried
+        where it is within ``_DRIFT_TEST`` standard errors of 0 or a mode turns under ``_SWING_CYCLES``."""
         free = np.ones(start.size, dtype=np.bool_)
         if drift_first:
             with_drift = self._judge(order, _canonical(self._refine(start, free)))
@@ -202,8 +204,9 @@ class _Window:
 
 
 def _slow_swing(params: np.ndarray, span: float) -> bool:
-    """Whether a mode of ``params`` turns less than one cycle over ``span`` samples."""
-    return bool(np.any(params[_BASE + 2 :: _PER_MODE] * span < 2 * np.pi))
+    """Whether a mode of ``params`` turns less than ``_SWING_CYCLES`` over ``span`` samples: with a drift beside
+    it, it may be a slower swing made into a cycle, or a swing standing in for a drift."""
+    return bool(np.any(params[_BASE + 2 :: _PER_MODE] * span < 2 * np.pi * _SWING_CYCLES))
 
 
 def _canonical(params: np.ndarray) -> np.ndarray:
@@ -244,11 +247,13 @@ def _evidence(fit: _OrderFit) -> float:
 
 
 def _choose(fits: list[_OrderFit]) -> tuple[_OrderFit, str | None]:
-    """The BIC choice among resolved fits and order 0; an unresolved fit only when it beats them all."""
+    """The BIC choice; where it is unresolved, the best resolved fit of fewer modes (order 0 at least): a fit of
+    more modes is no way out, for its extra mode resolves only by making one up (a slow swing turned into a
+    cycle beside a mode fitting the noise)."""
     best = min(fits, key=_evidence)
     if best.problem is None:
         return best, None
-    resolved = min((f for f in fits if f.problem is None), key=_evidence)
+    resolved = min((f for f in fits if f.problem is None and f.order < best.order), key=_evidence)
     if resolved.order > 0:
         return resolved, f"the {best.order}-mode fit was better but unresolved ({best.problem})"
     return best, best.problem
