@@ -3,13 +3,19 @@
     D(0, t) = c + v t + sum_k A_k exp(-g_k t) cos(2 pi f_k t + phi_k),   t from the window start
 
 Eq. 1 makes ``c = d + p R`` constant in a window; the drift ``v`` is there so that a slow bias of
-the upstream estimate is not mistaken for a slow mode (it is reported, and is ~0 on clean data).
-Per model order the matrix pencil gives the start, Levenberg-Marquardt (compiled:
+the upstream estimate is not mistaken for a slow mode, and is fitted only where the data show one
+(a drift they do not need trades against a slow decay and a fraction of a cycle: it cost the decay
+and frequency their precision). Per model order the matrix pencil gives the start (also from the
+strongest gap-free stretch where samples are missing), Levenberg-Marquardt (compiled:
 :mod:`service.analysis.kernels`) refines it under a soft-L1 loss whose scale is a robust noise
-estimate, so a few bad frames do not drag the fit. The order is chosen by BIC: it is consistent
-(with ~190 samples it does not add modes that noise alone explains, where AIC/AICc would more
-often), and its log(n) penalty is what makes "settled" mean "no oscillation above the noise".
-Confidence intervals come from the Gauss-Newton covariance at the optimum (Student t).
+estimate; samples over 6 robust sd off the chosen fit (spikes) are left out and the window is
+fitted again. The order is chosen by BIC (with AICc's small-sample term, a mode added only on a
+gain over 2): it is consistent (with ~190 samples it does not add modes that noise alone explains,
+where AIC/AICc would more often), and its log(n) penalty is what makes "settled" mean "no
+oscillation above the noise". Confidence intervals come from the Gauss-Newton covariance at the
+optimum (Student t); a mode whose frequency interval reaches under 0.8 cycles in the window is not
+resolved, so that a slow swing is never reported as a frequency. ``meniscope bench fit`` measures
+all of this against peers and the Cramer-Rao bound (docs/benchmarks.md).
 """
 from __future__ import annotations
 
