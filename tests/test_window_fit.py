@@ -19,7 +19,7 @@ from scipy.special import logsumexp
 from service.analysis import fit as fit_module, kernels
 from service.analysis.fit import fit_window, model_curve
 from service.analysis.pencil import energy
-from service.analysis.peer import available, harminv_modes
+from service.bench.peers import available, harminv_modes
 from service.analysis.results import FitSettings, Report, Source
 from service.analysis.settling import envelope, settle, settling_time, tolerance
 from service.physics import damped_mode

@@ -3,13 +3,19 @@
     D(0, t) = c + v t + sum_k A_k exp(-g_k t) cos(2 pi f_k t + phi_k),   t from the window start
 
 Eq. 1 makes ``c = d + p R`` constant in a window; the drift ``v`` is there so that a slow bias of
-the upstream estimate is not mistaken for a slow mode (it is reported, and is ~0 on clean data).
-Per model order the matrix pencil gives the start, Levenberg-Marquardt (compiled:
+the upstream estimate is not mistaken for a slow mode, and is fitted only where the data show one
+(a drift they do not need trades against a slow decay and a fraction of a cycle: it cost the decay
+and frequency their precision). Per model order the matrix pencil gives the start (also from the
+strongest gap-free stretch where samples are missing), Levenberg-Marquardt (compiled:
 :mod:`service.analysis.kernels`) refines it under a soft-L1 loss whose scale is a robust noise
-estimate, so a few bad frames do not drag the fit. The order is chosen by BIC: it is consistent
-(with ~190 samples it does not add modes that noise alone explains, where AIC/AICc would more
-often), and its log(n) penalty is what makes "settled" mean "no oscillation above the noise".
-Confidence intervals come from the Gauss-Newton covariance at the optimum (Student t).
+estimate; samples over 6 robust sd off the chosen fit (spikes) are left out and the window is
+fitted again. The order is chosen by BIC (with AICc's small-sample term, a mode added only on a
+gain over 2): it is consistent (with ~190 samples it does not add modes that noise alone explains,
+where AIC/AICc would more often), and its log(n) penalty is what makes "settled" mean "no
+oscillation above the noise". Confidence intervals come from the Gauss-Newton covariance at the
+optimum (Student t); a mode whose frequency interval reaches under 0.8 cycles in the window is not
+resolved, so that a slow swing is never reported as a frequency. ``meniscope bench fit`` measures
+all of this against peers and the Cramer-Rao bound (docs/benchmarks.md).
 """
 from __future__ import annotations
 
@@ -26,7 +32,7 @@ from service.analysis import kernels, pencil
 from service.analysis.kernels import BASE as _BASE, PER_MODE as _PER_MODE
 from service.analysis.results import FitSettings, WindowResult
 from service.analysis.segment import Window, robust_sigma
-from service.analysis.settling import damping_ratio, quality_factor, settle, tolerance
+from service.analysis.settling import Settling, damping_ratio, quality_factor, settle, tolerance
 from service.physics import damped_mode
 
 _MIN_DOF = 3  # residual degrees of freedom a model order needs to be tried
@@ -50,6 +56,21 @@ _LM_EVALUATIONS = 20
 _PENCIL = 20
 #: Pencil pole pairs turning fewer cycles over the window stand in for the offset or a trend.
 _PENCIL_MIN_CYCLES = 0.25
+#: A sample this many robust standard deviations off the one-mode fit is an outlier (a spike): 6 sd is ~1 in 5e8
+#: Gaussian samples ...
+_OUTLIER = 6.0
+#: ... when at most this share of the window's samples is (more is the model missing something, not spikes).
+_MAX_OUTLIERS = 0.1
+#: Beyond that share, an outlier must stand this many times above the next sample (see :func:`_outliers`).
+_SPIKE_GAP = 3.0
+#: A mode is added only when it lowers the BIC by more than this: "positive" evidence on Kass & Raftery's (1995)
+#: scale; below it, noise alone (a spike left out, a lucky run) adds a mode under the noise ~1 window in 20.
+_EVIDENCE = 2.0
+#: A fit without drift is tried with one where the drift's step from there is over this many standard errors:
+#: ~sqrt(ln n) at 190 samples, where BIC starts to prefer keeping it (a z of 2 already, to be safe).
+_DRIFT_TEST = 2.0
+#: Modes turning fewer cycles than this over the window are fitted both with and without a drift.
+_SWING_CYCLES = 1.5
 _IRLS_STEPS = 100  # at most; the order-0 cost settles to 1e-6 (relative) in ~5-10 rounds
 #: The fit's matrices are small: a multi-threaded BLAS only fights the other threads for the cores
 #: (7x slower per window on a loaded 2-core machine), so each fit runs its BLAS on one thread.
@@ -79,6 +100,7 @@ class _OrderFit:
     bic: float
     problem: str | None  # why its modes are not resolved, None when they are
     poles_from: Literal["series", "frames"] = "series"
+    drift: bool = True  # whether the drift v was fitted (else it is 0)
 
 
 class _Window:
@@ -99,10 +121,17 @@ class _Window:
         w, g = np.clip(w, 1e-3, np.pi - 1e-3), np.clip(g, 1e-4, _MAX_DECAY)
         return kernels.linear_start(self.n, self.y, w, g)
 
+    def without(self, samples: np.ndarray) -> "_Window":
+        """This window with the ``samples`` (mask over its finite ones) left out."""
+        return _Window(self.n[~samples], self.y[~samples], self.settings)
+
     def bic(self, cost: float, k: int) -> float:
-        """n ln(cost / n) + k ln n, with residuals under ``_EXACT`` counted as exact."""
+        """n ln(cost / n) + k ln n + 2 k (k + 1) / (n - k - 1), with residuals under ``_EXACT`` counted as exact.
+
+        The last term is AICc's small-sample correction: negligible at 190 samples (1.2 for two modes), it stops
+        a 20-sample window from taking a second mode that its few residual degrees of freedom cannot refute."""
         n = self.n.size
-        return float(n * np.log(cost / n + _EXACT**2) + k * np.log(n))
+        return float(n * np.log(cost / n + _EXACT**2) + k * np.log(n) + 2 * k * (k + 1) / max(n - k - 1, 1))
 
     def linear_fit(self, design: np.ndarray) -> tuple[np.ndarray, float]:
         """Coefficients of ``design`` (N, k) and their robust cost (:func:`kernels.linear_fit`)."""
@@ -110,19 +139,45 @@ class _Window:
         return params, float(cost)
 
     def fit_baseline(self) -> _OrderFit:
-        """Order 0: offset and drift alone."""
-        return self._judge(0, self.linear_fit(np.stack([np.ones_like(self.n), self.n], axis=1))[0])
+        """Order 0: the offset alone, or offset and drift where the criterion prefers them."""
+        offset, _ = self.linear_fit(np.ones((self.n.size, 1)))
+        line, _ = self.linear_fit(np.stack([np.ones_like(self.n), self.n], axis=1))
+        return min(self._judge(0, np.r_[offset, 0.0], drift=False), self._judge(0, line), key=lambda f: f.bic)
 
-    def drift_evident(self, baseline: _OrderFit) -> bool:
-        """Whether the criterion prefers offset and drift to a constant offset."""
-        _, cost = self.linear_fit(np.ones((self.n.size, 1)))
-        return baseline.bic < self.bic(cost, 1)
+    def fit(self, order: int, start: np.ndarray, drift_first: bool) -> _OrderFit:
+        """Refine ``start`` by LM (:func:`kernels.levenberg_marquardt`) with or without a drift, judged, and the
+        other where the first leaves it in doubt; the criterion picks. A drift the data do not need costs the
+        modes' decay and frequency their precision (it trades against a slow decay and a fraction of a cycle).
 
-    def fit(self, order: int, start: np.ndarray) -> _OrderFit:
-        """Refine ``start`` by LM (:func:`kernels.levenberg_marquardt`), then judge it."""
-        params = kernels.levenberg_marquardt(self.n, self.y, self.scale, self.robust, start, _LM_TOLERANCE,
-                                             _LM_EVALUATIONS * (start.size + 1))
-        return self._judge(order, _canonical(params))
+        Without a drift first (the usual window), the drift is tried where its Gauss-Newton step from there is
+        over ``_DRIFT_TEST`` standard errors or a mode turns under ``_SWING_CYCLES`` (a slow swing standing in for
+        a drift); with one first (where offset and drift alone already show a drift), leaving it out is tried
+        where it is within ``_DRIFT_TEST`` standard errors of 0 or a mode turns under ``_SWING_CYCLES``."""
+        free = np.ones(start.size, dtype=np.bool_)
+        if drift_first:
+            with_drift = self._judge(order, _canonical(self._refine(start, free)))
+            t = stdtrit(max(self.n.size - start.size, 1), 0.5 + self.settings.confidence / 2)
+            evident = abs(with_drift.params[1]) * t >= _DRIFT_TEST * with_drift.half_width[1]
+            if evident and not _slow_swing(with_drift.params, self.n[-1] - self.n[0] + 1):
+                return with_drift
+            start = with_drift.params
+        flat = start.copy()
+        flat[0] += flat[1] * self.n.mean()
+        flat[1] = 0.0
+        free[1] = False
+        without = self._judge(order, _canonical(self._refine(flat, free)), drift=False)
+        if drift_first:
+            return min(without, with_drift, key=lambda f: f.bic)
+        slow = _slow_swing(without.params, self.n[-1] - self.n[0] + 1)
+        if not slow and kernels.step_z(self.n, self.y, self.scale, self.robust, without.params, 1) < _DRIFT_TEST:
+            return without
+        with_drift = self._judge(order, _canonical(self._refine(start, np.ones(start.size, np.bool_))))
+        return min(without, with_drift, key=lambda f: f.bic)
+
+    def _refine(self, start: np.ndarray, free: np.ndarray) -> np.ndarray:
+        """The LM optimum from ``start`` over the ``free`` parameters."""
+        return kernels.levenberg_marquardt(self.n, self.y, self.scale, self.robust, start, _LM_TOLERANCE,
+                                           _LM_EVALUATIONS * (start.size + 1), free)
 
     def pinned(self, poles: _OrderFit) -> _OrderFit:
         """This window fitted with another series' poles (each mode's w and g, and their intervals): offset,
@@ -138,15 +193,26 @@ class _Window:
         half[linear] = stdtrit(max(n - k, 1), 0.5 + self.settings.confidence / 2) * np.sqrt(variance)
         return _OrderFit(poles.order, params, half, cost, self.bic(cost, k), None, "frames")
 
-    def _judge(self, order: int, params: np.ndarray) -> _OrderFit:
-        """Cost, BIC, CI half-widths and (for modes) whether they are resolved."""
+    def _judge(self, order: int, params: np.ndarray, drift: bool = True) -> _OrderFit:
+        """Cost, BIC, CI half-widths and (for modes) whether they are resolved; without ``drift`` its parameter
+        (held at 0) is neither counted nor given an interval."""
         r, j = kernels.weighted_jacobian(self.n, self.y, self.scale, self.robust, params)
-        n, k = self.n.size, params.size
+        fitted = np.ones(params.size, dtype=bool)
+        fitted[1] = drift
+        n, k = self.n.size, int(fitted.sum())
         cost = float(r @ r)
         bic = self.bic(cost, k)
-        variance = kernels.covariance_diagonal(j) * cost / (n - k)
-        half = stdtrit(n - k, 0.5 + self.settings.confidence / 2) * np.sqrt(variance)
-        return _OrderFit(order, params, half, cost, bic, _unresolved(params, half, self.n[-1] - self.n[0] + 1))
+        half = np.zeros(params.size)
+        variance = kernels.covariance_diagonal(np.ascontiguousarray(j[:, fitted])) * cost / (n - k)
+        half[fitted] = stdtrit(n - k, 0.5 + self.settings.confidence / 2) * np.sqrt(variance)
+        return _OrderFit(order, params, half, cost, bic, _unresolved(params, half, self.n[-1] - self.n[0] + 1),
+                         drift=drift)
+
+
+def _slow_swing(params: np.ndarray, span: float) -> bool:
+    """Whether a mode of ``params`` turns less than ``_SWING_CYCLES`` over ``span`` samples: with a drift beside
+    it, it may be a slower swing made into a cycle, or a swing standing in for a drift."""
+    return bool(np.any(params[_BASE + 2 :: _PER_MODE] * span < 2 * np.pi * _SWING_CYCLES))
 
 
 def _canonical(params: np.ndarray) -> np.ndarray:
@@ -173,20 +239,27 @@ def _unresolved(params: np.ndarray, half: np.ndarray, span: float) -> str | None
                             f"cycles in the window (fewer than {_MIN_CYCLES}): a slow swing, not a frequency")
         elif g > _MAX_DECAY:
             problems.append(f"mode at {w / (2 * np.pi):.3g} cycles/frame dies within a frame (decay {g:.3g}/frame)")
-        elif w - halves[k, 2] <= 0:
+        elif (w - halves[k, 2]) * span / (2 * np.pi) < _MIN_CYCLES:
             problems.append(
-                f"mode at {w / (2 * np.pi):.3g} cycles/frame: its frequency CI reaches 0 "
-                "(no full oscillation resolved in the window)"
+                f"mode at {w / (2 * np.pi):.3g} cycles/frame: its frequency CI reaches below {_MIN_CYCLES} cycles "
+                "in the window (it may be a slow swing, not a frequency)"
             )
     return "; ".join(problems) or None
 
 
+def _evidence(fit: _OrderFit) -> float:
+    """BIC with each mode asked to gain ``_EVIDENCE`` more: the ordering :func:`_choose` picks by."""
+    return fit.bic + _EVIDENCE * fit.order
+
+
 def _choose(fits: list[_OrderFit]) -> tuple[_OrderFit, str | None]:
-    """The BIC choice among resolved fits and order 0; an unresolved fit only when it beats them all."""
-    best = min(fits, key=lambda f: f.bic)
+    """The BIC choice; where it is unresolved, the best resolved fit of fewer modes (order 0 at least): a fit of
+    more modes is no way out, for its extra mode resolves only by making one up (a slow swing turned into a
+    cycle beside a mode fitting the noise)."""
+    best = min(fits, key=_evidence)
     if best.problem is None:
         return best, None
-    resolved = min((f for f in fits if f.problem is None), key=lambda f: f.bic)
+    resolved = min((f for f in fits if f.problem is None and f.order < best.order), key=_evidence)
     if resolved.order > 0:
         return resolved, f"the {best.order}-mode fit was better but unresolved ({best.problem})"
     return best, best.problem
@@ -257,8 +330,38 @@ def _fit_window(values: ArrayLike, fps: float, settings: FitSettings, index: int
     window = _Window(n, (raw - centre) / spread, settings)
     use_frames = settings.poles == "frames" and brightness is not None
     poles = _brightness_poles(brightness, x.size, skip, settings) if use_frames else None
-    chosen, problem = (window.pinned(poles), None) if poles is not None else _choose(_order_fits(window, x.size, settings))
+    if poles is not None:
+        chosen, problem = window.pinned(poles), None
+    else:
+        fits = _order_fits(window, x.size, settings)
+        outliers = _outliers(window, fits)
+        if outliers.any():  # fitted again without them: a spike drags the start and the order choice
+            window = window.without(outliers)
+            fits = _order_fits(window, x.size, settings)
+        chosen, problem = _choose(fits)
+        if outliers.any():
+            problem = "; ".join([p for p in [problem] if p] + [f"{int(outliers.sum())} samples left out as outliers "
+                                                               f"(over {_OUTLIER:g} sd off the fit)"])
     return _result(chosen, problem, window, centre, spread, fps, settings, common)
+
+
+def _outliers(window: _Window, fits: list[_OrderFit]) -> np.ndarray:
+    """Samples (mask over the window's finite ones) whose residual from the chosen fit (offset and drift alone
+    where its modes are not resolved: one may be a spike at the start, dying within a frame) is over ``_OUTLIER``
+    robust standard deviations: spikes, not the signal. When more than ``_MAX_OUTLIERS`` of the samples are that
+    far off (an oscillation the fit missed, spikes or not), only those standing ``_SPIKE_GAP`` times above all the
+    rest are: a spike of 20x the amplitude stands apart from any oscillation the window holds."""
+    chosen, _ = _choose(fits)
+    reference = chosen if chosen.problem is None else fits[0]
+    model, _ = kernels.columns(window.n, reference.params)
+    residual = window.y - model
+    size, sigma = np.abs(residual), robust_sigma(residual)
+    flagged = size > _OUTLIER * sigma
+    if sigma == 0 or flagged.sum() <= _MAX_OUTLIERS * window.n.size:
+        return flagged & (sigma > 0)
+    top = np.sort(size)[::-1][: int(_MAX_OUTLIERS * window.n.size) + 1]  # descending
+    gaps = np.flatnonzero(top[:-1] > _SPIKE_GAP * top[1:])
+    return size >= top[gaps[-1]] if gaps.size else np.zeros(window.n.size, dtype=bool)
 
 
 def _after_transient(x: np.ndarray, skip: int) -> np.ndarray:
@@ -279,9 +382,24 @@ def _order_fits(window: _Window, length: int, settings: FitSettings) -> list[_Or
     fits = [window.fit_baseline()]
     orders = [m for m in range(1, settings.max_modes + 1) if window.n.size >= min_samples(m)]
     if orders:
-        pencil_modes = _pencil_modes(window.n, window.y, length, 2 * orders[-1] + 2)
-        fits += [window.fit(m, window.starts(m, pencil_modes)) for m in orders]
+        poles = 2 * orders[-1] + 2
+        starts = [_pencil_modes(window.n, window.y, length, poles)]
+        run = _strongest_run(window.n, window.y, 3 * poles)
+        if run is not None:  # gaps: their linear filling misleads the pencil, which a gap-free stretch does not
+            starts.append(_pencil_modes(window.n[run] - window.n[run[0]], window.y[run], run.size, poles))
+        fits += [min((window.fit(m, window.starts(m, modes), fits[0].drift) for modes in starts), key=lambda f: f.cost)
+                 for m in orders]
     return fits
+
+
+def _strongest_run(n: np.ndarray, y: np.ndarray, shortest: int) -> np.ndarray | None:
+    """Indices of the gap-free stretch of consecutive samples with the most variance about its mean (at least
+    ``shortest`` samples), when the samples ``n`` have gaps; None without gaps or such a stretch."""
+    breaks = np.flatnonzero(np.diff(n) != 1) + 1
+    if breaks.size == 0:
+        return None
+    runs = [r for r in np.split(np.arange(n.size), breaks) if r.size >= shortest]
+    return max(runs, key=lambda r: float(np.var(y[r]) * r.size), default=None)
 
 
 def _has_harmonic(fit: _OrderFit) -> bool:
@@ -330,7 +448,7 @@ def _result(
     numbers = dict(
         offset_mm=centre + spread * fit.params[0],
         drift_mm_per_s=spread * fit.params[1] * fps,
-        r2=1.0 - ss_res / ss_tot,
+        r2=1.0 - ss_res / ss_tot if ss_tot > 0 else float("nan"),  # nan: all samples left equal (null, reason says)
         noise_mm=spread * robust_sigma(window.y - model),
     )
     if fit.order == 0:
@@ -356,10 +474,19 @@ def _result(
     duration = (common["end_frame"] - common["start_frame"]) / fps
     s = settle(amp, decay, duration, settings.settle_fraction, settings.settle_floor_mm)
     status = "unresolved" if fit.problem else "ok"
+    if not s.settled:
+        problem = "; ".join([p for p in [problem] if p] + [_still_running(s, common["ends_at_ejection"])])
     return WindowResult(
         status=status, reason=problem, **common, **numbers, modes=estimates, poles_from=fit.poles_from,
         settling_time_s=s.time_s, settled=s.settled, residual_amplitude_mm=s.residual_amplitude_mm,
     )
+
+
+def _still_running(s: Settling, at_ejection: bool) -> str:
+    """What a window whose oscillation had not settled when it ended says of it."""
+    end = "the next ejection" if at_ejection else "the end of the window"
+    return (f"still oscillating at {end}: residual amplitude {s.residual_amplitude_mm:.3g} mm over the settling "
+            f"tolerance {s.tolerance_mm:.3g} mm")
 
 
 def _without_modes(
@@ -370,15 +497,19 @@ def _without_modes(
     note = f" ({problem})" if problem else ""
     change = spread * abs(fit.params[1]) * (window.n[-1] - window.n[0])  # mm over the window
     tol = tolerance([], settings.settle_fraction, settings.settle_floor_mm)
-    if change > tol and window.drift_evident(fit):
+    if change > tol and fit.drift:
         return WindowResult(
             status="unresolved", **common, **numbers, residual_amplitude_mm=None,
             reason=f"no resolved oscillation, but the displacement trends by {change:.3g} mm over the window "
             f"(settling tolerance {tol:.3g} mm): a slow motion under one cycle, or drift{note}",
         )
+    model, _ = kernels.columns(window.n, fit.params)
+    residual = spread * np.sqrt(2 * np.mean((window.y - model) ** 2))
+    alone = "offset and drift" if fit.drift else "an offset"
     return WindowResult(
-        status="settled", **common, **numbers, settling_time_s=0.0, settled=True, residual_amplitude_mm=0.0,
-        reason=f"no oscillation above the noise: {settings.criterion} prefers offset and drift alone{note}",
+        status="settled", **common, **numbers, settling_time_s=0.0, settled=True, residual_amplitude_mm=residual,
+        reason=f"settled: no oscillation above the noise ({settings.criterion} prefers {alone} alone; what is left "
+        f"moves {residual:.3g} mm, the amplitude of a sinusoid of its power){note}",
     )
 
 

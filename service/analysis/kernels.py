@@ -93,25 +93,33 @@ def _search_point(n: np.ndarray, y: np.ndarray, scale: float, robust: bool,
 
 @njit(**_JIT)
 def levenberg_marquardt(n: np.ndarray, y: np.ndarray, scale: float, robust: bool, params: np.ndarray,
-                        tolerance: float, evaluations: int) -> np.ndarray:
+                        tolerance: float, evaluations: int, free: np.ndarray | None = None) -> np.ndarray:
     """Least-squares optimum of the model near ``params``, by Levenberg-Marquardt with Marquardt's scaling.
 
     Each trial solves (J'J + mu D) h = -J'r, D the largest diag(J'J) seen so far (as MINPACK scales),
     and mu follows Nielsen's gain-ratio rule. It stops when a step changes the cost or the scaled point
     by under ``tolerance`` (relative), or after ``evaluations`` evaluations: a search that has not
-    converged by then has a mode its data do not pin down, and is judged from where it stopped."""
+    converged by then has a mode its data do not pin down, and is judged from where it stopped. Parameters
+    where ``free`` (k,) is False keep their start values (the drift of a window fitted without one); all are
+    free without it."""
     x = params.copy()
     for j in range(BASE + 3, x.size, PER_MODE):
         x[j] = np.sqrt(max(x[j], 0.0))
     r, jac = _search_point(n, y, scale, robust, x)
     cost = r @ r
     k = x.size
+    fixed = np.zeros(k, np.bool_) if free is None else ~free
     diag = np.zeros(k)
     mu, nu = 1e-3, 2.0
     for _ in range(evaluations - 1):
         normal = jac.T @ jac
         gradient = jac.T @ r
         for j in range(k):
+            if fixed[j]:  # a step of exactly 0 in it
+                normal[j, :] = 0.0
+                normal[:, j] = 0.0
+                normal[j, j] = 1.0
+                gradient[j] = 0.0
             diag[j] = max(diag[j], normal[j, j], 1e-300)
         if not np.all(np.isfinite(normal)) or np.max(np.abs(gradient)) <= 1e-15 * max(cost, 1e-300):
             break
@@ -197,3 +205,17 @@ def covariance_diagonal(jac: np.ndarray) -> np.ndarray:
         return np.full(k, np.inf)
     return np.sum((vt.T / sv) ** 2, axis=1) / norms**2
 
+
+
+@njit(**_JIT)
+def step_z(n: np.ndarray, y: np.ndarray, scale: float, robust: bool, params: np.ndarray, index: int) -> float:
+    """The Gauss-Newton step of parameter ``index`` from ``params``, in standard errors (residual variance over
+    N - k): how far the optimum would move it, were it free; inf where the normal matrix is singular."""
+    r, jac = weighted_jacobian(n, y, scale, robust, params)
+    normal = jac.T @ jac
+    if not np.all(np.isfinite(normal)) or np.linalg.cond(normal) > 1e14:
+        return np.inf
+    inverse = np.linalg.inv(normal)
+    step = -(inverse @ (jac.T @ r))[index]
+    variance = inverse[index, index] * (r @ r) / max(n.size - params.size, 1)
+    return abs(step) / np.sqrt(variance) if variance > 0 else np.inf

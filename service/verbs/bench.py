@@ -1,4 +1,4 @@
-"""``meniscope bench BENCHMARK``: measuring front door; every module of ``service.bench`` adds one benchmark."""
+"""``meniscope bench BENCHMARK``: measuring front door; every module of ``service.bench`` with a ``register`` adds one benchmark."""
 from __future__ import annotations
 
 import argparse
@@ -13,4 +13,6 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     import service.bench as bench
 
     for info in sorted(pkgutil.iter_modules(bench.__path__), key=lambda m: m.name):
-        importlib.import_module(f"{bench.__name__}.{info.name}").register(benchmarks)
+        module = importlib.import_module(f"{bench.__name__}.{info.name}")
+        if hasattr(module, "register"):  # a verb; the others (fitsuite, peers) are what a verb measures with
+            module.register(benchmarks)
