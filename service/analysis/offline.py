@@ -9,6 +9,7 @@ window's steady D(0, t) (:mod:`service.analysis.steady`) is fitted by :func:`ser
 """
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -19,9 +20,7 @@ from tqdm import tqdm
 from service.analysis import synthesis
 from service.analysis.fit import fit_windows
 from service.analysis.results import FitSettings, Report, Source, WindowResult
-from service.analysis.segment import (Window, find_ejections, frame_activity, frame_brightness, frame_steps,
-                                      series_activity, windows_between)
-from service.analysis.steady import steady_centre
+from service.analysis.segment import Window, find_ejections, frame_activity, series_activity, windows_between
 from service.csvtable import write_columns
 from service.errors import MeniscopeError
 from service.inverse import regularised
@@ -29,14 +28,21 @@ from service.inverse.base import InverseMethod, InverseOutput
 from service.inverse.manifest import sha256_file
 from service.inverse.methods import open_method
 from service.inverse.nearest import NearestDatabase
-from service.recordings import open_recording
 from service.physics import WindowTruth, centre_displacement
-from service.recordings.roi import roi_chunks, roi_frames
+from service.pipeline.records import COEFFICIENTS, coefficients_of
+from service.pipeline.segmenter import StreamingSegmenter
+from service.pipeline.stages import FrameStages
+from service.pipeline.windows import JobRunner, job_for
+from service.recordings import open_recording
+from service.recordings.roi import roi_frames
 from service.render.renderer import Renderer
 from service.scene import Scene
+from service.sources.replay import ReplaySource
 
 #: Neighbours per frame among which the regularised fit chooses (the paper's 10).
 CANDIDATES = 10
+#: Frames per read of the replay: large enough that per-call overheads vanish, small enough for the cache.
+READ_FRAMES = 512
 
 
 @dataclass(frozen=True)
@@ -61,9 +67,11 @@ def analyse_recording(
     path: Path, scene: Scene, method: str, models: Path, database: Path | None = None,
     ejections: Ejections = Ejections(), settings: FitSettings = FitSettings(), progress: bool = True,
     opened: tuple[InverseMethod, NearestDatabase | None] | None = None, refine: bool = False,
+    scheduler: str | None = None, workers: int | None = None,
 ) -> Analysis:
-    """Per-frame inversion of a recording, its windows, (``refine``) each window's motion refined on its
-    frames, and one fit per window.
+    """The pipeline's stages over a recording replayed at full speed, its windows, (``refine``) each window's motion
+    refined on its frames, and one fit per window as independent tasks (:class:`JobRunner`: a local process
+    pool of ``workers``, or the Dask cluster at ``scheduler``).
 
     ``opened``: the method and database :func:`open_method` returned, when analysing several
     recordings with one (they are opened here otherwise). With ``refine`` the windows keep their own poles
@@ -72,42 +80,67 @@ def analyse_recording(
     if refine:
         settings = settings.model_copy(update={"poles": "series"})
     inverse, db = opened or open_method(method, scene, models, database)
-    with open_recording(path) as rec:
-        n, fps = len(rec), rec.fps
-        if n < 2:
-            raise MeniscopeError(path, f"{n} frame(s): a window analysis needs at least 2")
-        coefficients, centre = np.empty((n, 4)), np.empty(n)
-        steps, brightness = np.empty(n), np.empty(n)
-        candidates = np.empty((n, CANDIDATES), np.int64) if method == "regularised" else None
-        previous = None
-        with tqdm(total=n, unit="frame", desc=f"{method} {path.name}", disable=not progress) as bar:
-            for start, frames in roi_chunks(rec, scene):
-                part = slice(start, start + len(frames))
-                steps[part] = frame_steps(frames, previous)
-                brightness[part] = frame_brightness(frames)
-                previous = frames[-1]
-                if candidates is None:
-                    out = inverse.infer(frames)
-                    coefficients[part], centre[part] = out.coefficients, out.centre
-                else:  # the window fit below picks every frame's values among these; one search serves
-                    candidates[part] = db.search(frames, k=CANDIDATES, exact=True).index
-                bar.update(len(frames))
-        source = Source(path=str(path), frames=n, fps=fps, width=rec.width, height=rec.height,
-                        sha256=sha256_file(path))
-    cuts, _ = find_ejections(frame_activity(steps), fps, ejections.file, ejections.hz)
-    windows = windows_between(cuts, n)
-    if candidates is not None:
-        coefficients, centre = _regularise(db, candidates, windows, fps, settings, progress)
-    motions = {}
-    if refine:
-        coefficients, centre, motions = _refine(path, scene, coefficients, windows, fps, settings, progress)
-    steady = steady_centre(coefficients, windows, scene.nozzle.radius_mm, settings.transient_frames(fps))
-    results = fit_windows(steady, fps, windows, settings, progress=progress, brightness=brightness)
+    with JobRunner(settings, scheduler, workers) as runner, ThreadPoolExecutor(1) as hasher:
+        digest = hasher.submit(sha256_file, path)  # hashlib lets go of the interpreter lock: read while it hashes
+        records, candidates, fps, (width, height) = _frame_records(path, scene, inverse, db if method == "regularised"
+                                                                   else None, progress)
+        n = len(records)
+        cuts, _ = find_ejections(frame_activity(records["change"]), fps, ejections.file, ejections.hz)
+        segmenter = StreamingSegmenter(1, n, np.inf)  # the ejections are known: the whole recording looked ahead
+        windows = [c.window for c in segmenter.push(np.arange(n), records, records["activity"], np.zeros(n), cuts)
+                   + segmenter.finish(np.nan)]
+        if candidates is not None:
+            _set_coefficients(records, *_regularise(db, candidates, windows, fps, settings, progress))
+        motions = {}
+        if refine:
+            coefficients, centre, motions = _refine(path, scene, coefficients_of(records), windows, fps, settings,
+                                                    progress)
+            _set_coefficients(records, coefficients, centre)
+        transient = settings.transient_frames(fps)
+        jobs = [job_for(w, records[w.start : w.end], scene.nozzle.radius_mm, transient) for w in windows]
+        results = runner.run(jobs, fps, progress)
+        source = Source(path=str(path), frames=n, fps=fps, width=width, height=height, sha256=digest.result())
     results = [_with_pixel_intervals(r, *motions[r.index], fps, settings.confidence) if r.index in motions else r
                for r in results]
     report = Report(source=source, method=method_label(method, refine), ejections=cuts.tolist(), windows=results,
                     fit=settings)
-    return Analysis(report, InverseOutput(coefficients=coefficients, centre=centre), steady)
+    steady = np.concatenate([job.series for job in jobs])
+    return Analysis(report, InverseOutput(coefficients=coefficients_of(records), centre=records["centre"].copy()),
+                    steady)
+
+
+def _frame_records(path: Path, scene: Scene, inverse: InverseMethod, db: NearestDatabase | None,
+                   progress: bool) -> tuple[np.ndarray, np.ndarray | None, float, tuple[int, int]]:
+    """Every frame's record (:class:`FrameStages` on a replay at full speed) and, with a database ``db`` (the
+    regularised method), each frame's :data:`CANDIDATES` nearest renders, whose first one is its record's.
+    Also the recording's frame rate and frame size."""
+    parts, found = [], []
+    with ReplaySource(path, speed=0.0) as source:
+        n, fps = source.describe()["frames_in_file"], source.fps
+        if n < 2:
+            raise MeniscopeError(path, f"{n} frame(s): a window analysis needs at least 2")
+        stages = FrameStages(scene, source.width, source.height, str(path), inverse)
+        with tqdm(total=n, unit="frame", desc=f"{inverse.name} {path.name}", disable=not progress) as bar:
+            while (batch := source.read(READ_FRAMES)) is not None:
+                batch = stages.roi(batch)
+                records = stages.measure(batch)
+                if db is None:
+                    stages.infer(batch.pixels, records)
+                else:  # the window fit picks every frame's values among these; one search serves
+                    index = db.search(batch.pixels, k=CANDIDATES, exact=True).index
+                    _set_coefficients(records, db.coeffs[index[:, 0]], db.centre[index[:, 0]])
+                    found.append(index)
+                parts.append(records)
+                bar.update(len(batch))
+        size = (source.width, source.height)
+    return np.concatenate(parts), np.concatenate(found) if found else None, fps, size
+
+
+def _set_coefficients(records: np.ndarray, coefficients: np.ndarray, centre: np.ndarray) -> None:
+    """Write coefficients (N, 4) and D(0, t) (N,) into ``records`` (N,) in place."""
+    for name, column in zip(COEFFICIENTS, np.asarray(coefficients).T):
+        records[name] = column
+    records["centre"] = centre
 
 
 def _regularise(db: NearestDatabase, candidates: np.ndarray, windows: list[Window], fps: float,

@@ -140,7 +140,7 @@ def frame_steps(frames: np.ndarray, previous: np.ndarray | None = None) -> np.nd
         chunk = np.concatenate([before, frames[lo : lo + _CHUNK_FRAMES]])
         if exact:
             flat = chunk.reshape(len(chunk), -1)
-            step[lo : lo + len(chunk) - 1] = cv2.absdiff(flat[1:], flat[:-1]).sum(axis=1, dtype=np.uint64) / flat.shape[1]
+            step[lo : lo + len(chunk) - 1] = cv2.absdiff(flat[1:], flat[:-1]).sum(axis=1, dtype=_sum_type(flat)) / flat.shape[1]
         else:
             diff = np.abs(np.diff(chunk.astype(np.float32), axis=0))
             step[lo : lo + len(chunk) - 1] = diff.mean(axis=(1, 2))
@@ -153,10 +153,14 @@ def frame_brightness(frames: np.ndarray) -> np.ndarray:
     flat = frames.reshape(len(frames), -1)
     if not np.issubdtype(flat.dtype, np.unsignedinteger):  # an unsigned sum of signed pixels would wrap
         return flat.mean(axis=1, dtype=np.float64)
-    # an exact integer sum, in 32 bits where no frame can overflow them (2.7x faster than a float64 mean, and
-    # the same to the last bit: both are exact below 2**53)
-    wide = np.uint32 if flat.shape[1] * int(np.iinfo(flat.dtype).max) < 2**32 else np.uint64
-    return flat.sum(axis=1, dtype=wide) / flat.shape[1]
+    # an exact integer sum (2.7x faster than a float64 mean, and the same to the last bit: both are exact below 2**53)
+    return flat.sum(axis=1, dtype=_sum_type(flat)) / flat.shape[1]
+
+
+def _sum_type(flat: np.ndarray) -> type:
+    """The integer type that sums a row of unsigned ``flat`` (N, P) exactly: 32 bits where no row can overflow
+    them (faster), else 64."""
+    return np.uint32 if flat.shape[1] * int(np.iinfo(flat.dtype).max) < 2**32 else np.uint64
 
 
 def frame_activity(steps: ArrayLike) -> np.ndarray:

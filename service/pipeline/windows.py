@@ -53,3 +53,87 @@ def failed_result(job: WindowJob, reason: str) -> WindowResult:
     return WindowResult(index=w.index, start_frame=w.start, end_frame=w.end, status="failed", reason=reason,
                         samples=int(finite.sum()), missing=int((~finite).sum()),
                         starts_at_ejection=w.starts_at_ejection, ends_at_ejection=w.ends_at_ejection)
+
+
+class JobRunner:
+    """Runs window jobs as independent tasks: in a local process pool of ``workers`` (default: one per core), or on
+    the Dask cluster whose scheduler listens at ``scheduler`` (``tcp://host:8786``; the ``scale`` extra).
+
+    Started before the frames are read, so that its workers load the compiled fit while inference runs."""
+
+    def __init__(self, settings: FitSettings, scheduler: str | None = None, workers: int | None = None) -> None:
+        self.settings, self.scheduler = settings, scheduler
+        self._client = self._pool = None
+        if scheduler is not None:
+            self._client = _dask_client(scheduler)
+        else:
+            import multiprocessing
+            import os
+            from concurrent.futures import ProcessPoolExecutor
+
+            count = workers or os.cpu_count() or 1
+            # spawn, not fork: the caller's inference threads may hold locks a forked child would inherit
+            self._pool = ProcessPoolExecutor(count, multiprocessing.get_context("spawn"), initializer=_warm)
+            for _ in range(count):  # the pool starts its processes as work comes: start them all now
+                self._pool.submit(int)
+
+    def run(self, jobs: list[WindowJob], fps: float, progress: bool = False) -> list[WindowResult]:
+        """Each job's result, in the jobs' order (a failed result, saying why, for a fit that raised)."""
+        from tqdm import tqdm
+
+        bar = tqdm(total=len(jobs), desc="fit", unit="window", disable=not progress)
+        if self._client is not None:
+            futures = self._client.map(_fit_or_fail, jobs, fps=fps, settings=self.settings, pure=False)
+            results = []
+            for future in futures:
+                results.append(future.result())
+                bar.update()
+        else:
+            results = []
+            for result in self._pool.map(_fit_or_fail, jobs, [fps] * len(jobs), [self.settings] * len(jobs),
+                                         chunksize=max(1, len(jobs) // (8 * self._pool._max_workers))):
+                results.append(result)
+                bar.update()
+        bar.close()
+        return results
+
+    def close(self) -> None:
+        if self._client is not None:
+            self._client.close()
+        if self._pool is not None:
+            self._pool.shutdown()
+
+    def __enter__(self) -> "JobRunner":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def _fit_or_fail(job: WindowJob, fps: float, settings: FitSettings) -> WindowResult:
+    """:func:`fit_job`, or the failed result naming what it raised (one window's fit never stops an analysis)."""
+    try:
+        return fit_job(job, fps, settings)
+    except Exception as exc:  # noqa: BLE001 - reported as the window's failed fit
+        return failed_result(job, f"the fit raised {type(exc).__name__}: {exc}")
+
+
+def _warm() -> None:
+    """Load the fit and its compiled kernels in a new worker process (from numba's cache)."""
+    from service.analysis.fit import warm
+
+    warm()
+
+
+def _dask_client(scheduler: str):  # type: ignore[no-untyped-def]
+    """A client of the Dask scheduler at ``scheduler``; a clear error without the ``scale`` extra or a scheduler."""
+    from service.errors import MeniscopeError
+
+    try:
+        from distributed import Client
+    except ImportError:
+        raise MeniscopeError("--scheduler", "needs the Dask distributed package: pip install 'meniscope[scale]'") from None
+    try:
+        return Client(scheduler, timeout="10s")
+    except (OSError, TimeoutError) as exc:
+        raise MeniscopeError(scheduler, f"no Dask scheduler answers there: {exc}") from None
