@@ -10,17 +10,9 @@ import importlib
 import pkgutil
 import sys
 from importlib.metadata import entry_points
-from pathlib import Path
 from typing import Callable, Sequence
 
 from service.errors import MeniscopeError
-
-
-def add_scene_option(parser: argparse.ArgumentParser) -> None:
-    """``--scene SCENE.json``, defaulting to the embedded scene: every verb that renders, trains or analyses takes one."""
-    from service import DEFAULT_SCENE
-
-    parser.add_argument("--scene", type=Path, default=DEFAULT_SCENE, help="scene file (default: the embedded one)")
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -13,7 +13,7 @@ import argparse
 import os
 from pathlib import Path
 
-from service.cli import add_scene_option
+from service.verbs import add_scene_option
 from service.errors import MeniscopeError
 from service.scene import Scene
 

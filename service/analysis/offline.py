@@ -10,6 +10,7 @@ window's steady D(0, t) (:mod:`service.analysis.steady`) is fitted by :func:`ser
 from __future__ import annotations
 
 from concurrent.futures import ThreadPoolExecutor
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -21,6 +22,7 @@ from service.analysis import synthesis
 from service.analysis.fit import fit_windows
 from service.analysis.results import FitSettings, Report, Source, WindowResult
 from service.analysis.segment import Window, find_ejections, frame_activity, series_activity, windows_between
+from service.analysis.steady import steady_centre
 from service.csvtable import write_columns
 from service.errors import MeniscopeError
 from service.inverse import regularised
@@ -32,11 +34,12 @@ from service.physics import WindowTruth, centre_displacement
 from service.pipeline.records import COEFFICIENTS, coefficients_of
 from service.pipeline.segmenter import StreamingSegmenter
 from service.pipeline.stages import FrameStages
-from service.pipeline.windows import JobRunner, job_for
+from service.pipeline.windows import JobRunner, gather, job_for
 from service.recordings import open_recording
 from service.recordings.roi import roi_frames
 from service.render.renderer import Renderer
 from service.scene import Scene
+from service.sources import FrameBatch
 from service.sources.replay import ReplaySource
 
 #: Neighbours per frame among which the regularised fit chooses (the paper's 10).
@@ -79,61 +82,72 @@ def analyse_recording(
     """
     if refine:
         settings = settings.model_copy(update={"poles": "series"})
+    fps = fps_of(path)
     inverse, db = opened or open_method(method, scene, models, database)
+    db = db if method == "regularised" else None
+    transient, radius = settings.transient_frames(fps), scene.nozzle.radius_mm
     with JobRunner(settings, scheduler, workers) as runner, ThreadPoolExecutor(1) as hasher:
         digest = hasher.submit(sha256_file, path)  # hashlib lets go of the interpreter lock: read while it hashes
-        records, candidates, fps, (width, height) = _frame_records(path, scene, inverse, db if method == "regularised"
-                                                                   else None, progress)
+        # look ahead: every frame's change first (cheap), so that the ejections are known before the frames are
+        # inferred and each window's fit starts as soon as its frames are, alongside the inference
+        records = np.concatenate([stages.measure(batch) for stages, batch in _replay(path, scene, inverse)])
         n = len(records)
+        if n < 2:
+            raise MeniscopeError(path, f"{n} frame(s): a window analysis needs at least 2")
         cuts, _ = find_ejections(frame_activity(records["change"]), fps, ejections.file, ejections.hz)
-        segmenter = StreamingSegmenter(1, n, np.inf)  # the ejections are known: the whole recording looked ahead
-        windows = [c.window for c in segmenter.push(np.arange(n), records, records["activity"], np.zeros(n), cuts)
-                   + segmenter.finish(np.nan)]
-        if candidates is not None:
-            _set_coefficients(records, *_regularise(db, candidates, windows, fps, settings, progress))
+        segmenter = StreamingSegmenter(1, n, np.inf)  # cut at the ejections found: the whole recording looked ahead
+        at_once = db is None and not refine  # else the windows' per-frame values change once all are known
+        windows, futures, found = [], [], []
+        with tqdm(total=n, unit="frame", desc=f"{inverse.name} {path.name}", disable=not progress) as bar:
+            for stages, batch in _replay(path, scene, inverse):
+                part = records[batch.indices[0] : batch.indices[-1] + 1]  # a view: filled in place
+                if db is None:
+                    stages.infer(batch.pixels, part)
+                else:  # the window fit picks every frame's values among these; one search serves
+                    index = db.search(batch.pixels, k=CANDIDATES, exact=True).index
+                    _set_coefficients(part, db.coeffs[index[:, 0]], db.centre[index[:, 0]])
+                    found.append(index)
+                closed = segmenter.push(batch.indices, part, part["activity"], np.zeros(len(batch)), cuts)
+                windows += [c.window for c in closed]
+                futures += [runner.submit(job_for(c.window, c.values, radius, transient), fps) for c in closed
+                            if at_once]
+                bar.update(len(batch))
+        last = [c.window for c in segmenter.finish(np.nan)]
+        windows += last
+        if db is not None:
+            _set_coefficients(records, *_regularise(db, np.concatenate(found), windows, fps, settings, progress))
         motions = {}
         if refine:
             coefficients, centre, motions = _refine(path, scene, coefficients_of(records), windows, fps, settings,
                                                     progress)
             _set_coefficients(records, coefficients, centre)
-        transient = settings.transient_frames(fps)
-        jobs = [job_for(w, records[w.start : w.end], scene.nozzle.radius_mm, transient) for w in windows]
-        results = runner.run(jobs, fps, progress)
-        source = Source(path=str(path), frames=n, fps=fps, width=width, height=height, sha256=digest.result())
+        jobs = [job_for(w, records[w.start : w.end], radius, transient) for w in (last if at_once else windows)]
+        results = gather(futures + [runner.submit(job, fps) for job in jobs], progress)
+        with open_recording(path) as rec:
+            source = Source(path=str(path), frames=n, fps=fps, width=rec.width, height=rec.height,
+                            sha256=digest.result())
     results = [_with_pixel_intervals(r, *motions[r.index], fps, settings.confidence) if r.index in motions else r
                for r in results]
     report = Report(source=source, method=method_label(method, refine), ejections=cuts.tolist(), windows=results,
                     fit=settings)
-    steady = np.concatenate([job.series for job in jobs])
+    steady = steady_centre(coefficients_of(records), windows, radius, transient)
     return Analysis(report, InverseOutput(coefficients=coefficients_of(records), centre=records["centre"].copy()),
                     steady)
 
 
-def _frame_records(path: Path, scene: Scene, inverse: InverseMethod, db: NearestDatabase | None,
-                   progress: bool) -> tuple[np.ndarray, np.ndarray | None, float, tuple[int, int]]:
-    """Every frame's record (:class:`FrameStages` on a replay at full speed) and, with a database ``db`` (the
-    regularised method), each frame's :data:`CANDIDATES` nearest renders, whose first one is its record's.
-    Also the recording's frame rate and frame size."""
-    parts, found = [], []
+def fps_of(path: Path) -> float:
+    """The recording's frame rate."""
+    with open_recording(path) as rec:
+        return rec.fps
+
+
+def _replay(path: Path, scene: Scene, inverse: InverseMethod) -> Iterator[tuple[FrameStages, FrameBatch]]:
+    """The recording replayed at full speed in reads of :data:`READ_FRAMES`, each read's ROI with the stages of
+    the stream."""
     with ReplaySource(path, speed=0.0) as source:
-        n, fps = source.describe()["frames_in_file"], source.fps
-        if n < 2:
-            raise MeniscopeError(path, f"{n} frame(s): a window analysis needs at least 2")
         stages = FrameStages(scene, source.width, source.height, str(path), inverse)
-        with tqdm(total=n, unit="frame", desc=f"{inverse.name} {path.name}", disable=not progress) as bar:
-            while (batch := source.read(READ_FRAMES)) is not None:
-                batch = stages.roi(batch)
-                records = stages.measure(batch)
-                if db is None:
-                    stages.infer(batch.pixels, records)
-                else:  # the window fit picks every frame's values among these; one search serves
-                    index = db.search(batch.pixels, k=CANDIDATES, exact=True).index
-                    _set_coefficients(records, db.coeffs[index[:, 0]], db.centre[index[:, 0]])
-                    found.append(index)
-                parts.append(records)
-                bar.update(len(batch))
-        size = (source.width, source.height)
-    return np.concatenate(parts), np.concatenate(found) if found else None, fps, size
+        while (batch := source.read(READ_FRAMES)) is not None:
+            yield stages, stages.roi(batch)
 
 
 def _set_coefficients(records: np.ndarray, coefficients: np.ndarray, centre: np.ndarray) -> None:

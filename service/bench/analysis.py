@@ -23,7 +23,7 @@ import numpy as np
 from service import DEFAULT_MODELS
 from service.analysis.offline import analyse_recording, method_label
 from service.analysis.score import summary
-from service.cli import add_scene_option
+from service.verbs import add_scene_option
 from service.errors import MeniscopeError, require_folder_of
 from service.inverse.methods import DATABASE_METHODS, METHODS, database_folder, open_method
 from service.scene import Scene

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from service import DEFAULT_MODELS
-from service.cli import add_scene_option
+from service.verbs import add_scene_option
 from service.errors import MeniscopeError, require_folder_of
 from service.inverse.manifest import load_manifest
 from service.inverse.network import OPTIMISATION, NetworkMethod

@@ -21,7 +21,7 @@ import numpy as np
 from tqdm import tqdm
 
 from service.bench import parse_pairs
-from service.cli import add_scene_option
+from service.verbs import add_scene_option
 from service.errors import MeniscopeError
 from service.physics import CoefficientRanges
 from service.plotting import pyplot

@@ -20,7 +20,7 @@ from pathlib import Path
 
 from service import DEFAULT_MODELS
 from service.bench import analysis, fit
-from service.cli import add_scene_option
+from service.verbs import add_scene_option
 from service.errors import MeniscopeError
 from service.inverse.manifest import load_manifest
 from service.plotting import pyplot

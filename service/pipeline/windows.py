@@ -7,6 +7,7 @@ Dask cluster for an offline analysis (:func:`run_jobs`).
 from __future__ import annotations
 
 import math
+from concurrent.futures import Future
 from dataclasses import dataclass
 
 import numpy as np
@@ -72,30 +73,23 @@ class JobRunner:
             from concurrent.futures import ProcessPoolExecutor
 
             count = workers or os.cpu_count() or 1
-            # spawn, not fork: the caller's inference threads may hold locks a forked child would inherit
-            self._pool = ProcessPoolExecutor(count, multiprocessing.get_context("spawn"), initializer=_warm)
+            # fork: a worker starts in milliseconds with everything imported (spawned ones took seconds of the two
+            # cores the frames need). Safe here although the caller may run inference threads: a worker only fits
+            # (numpy, numba) and never takes a lock those threads hold; the runner is made before the analysis
+            # starts threads of its own.
+            self._pool = ProcessPoolExecutor(count, multiprocessing.get_context("fork"), initializer=_warm)
             for _ in range(count):  # the pool starts its processes as work comes: start them all now
                 self._pool.submit(int)
 
-    def run(self, jobs: list[WindowJob], fps: float, progress: bool = False) -> list[WindowResult]:
-        """Each job's result, in the jobs' order (a failed result, saying why, for a fit that raised)."""
-        from tqdm import tqdm
-
-        bar = tqdm(total=len(jobs), desc="fit", unit="window", disable=not progress)
+    def submit(self, job: WindowJob, fps: float) -> Future:
+        """Start ``job``'s fit; the future's result is the window's (a failed one, saying why, if the fit raised)."""
         if self._client is not None:
-            futures = self._client.map(_fit_or_fail, jobs, fps=fps, settings=self.settings, pure=False)
-            results = []
-            for future in futures:
-                results.append(future.result())
-                bar.update()
-        else:
-            results = []
-            for result in self._pool.map(_fit_or_fail, jobs, [fps] * len(jobs), [self.settings] * len(jobs),
-                                         chunksize=max(1, len(jobs) // (8 * self._pool._max_workers))):
-                results.append(result)
-                bar.update()
-        bar.close()
-        return results
+            return self._client.submit(_fit_or_fail, job, fps, self.settings, pure=False)
+        return self._pool.submit(_fit_or_fail, job, fps, self.settings)
+
+    def run(self, jobs: list[WindowJob], fps: float, progress: bool = False) -> list[WindowResult]:
+        """Each job's result, in the jobs' order."""
+        return gather([self.submit(job, fps) for job in jobs], progress)
 
     def close(self) -> None:
         if self._client is not None:
@@ -108,6 +102,13 @@ class JobRunner:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def gather(futures: list[Future], progress: bool = False) -> list[WindowResult]:
+    """The futures' results in their order, with a progress bar over windows."""
+    from tqdm import tqdm
+
+    return [future.result() for future in tqdm(futures, desc="fit", unit="window", disable=not progress)]
 
 
 def _fit_or_fail(job: WindowJob, fps: float, settings: FitSettings) -> WindowResult:

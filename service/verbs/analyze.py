@@ -6,7 +6,7 @@ import argparse
 import math
 from pathlib import Path
 
-from service.cli import add_scene_option
+from service.verbs import add_scene_option
 from service.errors import MeniscopeError, require_folder_of
 
 

@@ -13,4 +13,6 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     import service.bench as bench
 
     for info in sorted(pkgutil.iter_modules(bench.__path__), key=lambda m: m.name):
-        importlib.import_module(f"{bench.__name__}.{info.name}").register(benchmarks)
+        module = importlib.import_module(f"{bench.__name__}.{info.name}")
+        if hasattr(module, "register"):  # a benchmark, not a helper such as the results writer
+            module.register(benchmarks)

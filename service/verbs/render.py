@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from service.cli import add_scene_option
+from service.verbs import add_scene_option
 from service.csvtable import read_columns
 from service.errors import MeniscopeError, require_folder_of
 from service.scene import Scene

@@ -5,7 +5,7 @@ import argparse
 import math
 from pathlib import Path
 
-from service.cli import add_scene_option
+from service.verbs import add_scene_option
 from service.camera_effects import NOISE_PRESETS, noise_preset
 from service.errors import MeniscopeError
 from service.scene import Scene

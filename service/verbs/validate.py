@@ -4,7 +4,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from service.cli import add_scene_option
+from service.verbs import add_scene_option
 from service.scene import Scene
 
 
