@@ -119,7 +119,7 @@ def analyse_recording(
         motions = {}
         if refine:
             coefficients, centre, motions = _refine(path, scene, coefficients_of(records), windows, fps, settings,
-                                                    progress)
+                                                    runner, progress)
             _set_coefficients(records, coefficients, centre)
         jobs = [job_for(w, records[w.start : w.end], radius, transient) for w in (last if at_once else windows)]
         results = gather(futures + [runner.submit(job, fps) for job in jobs], progress)
@@ -177,27 +177,45 @@ def method_label(method: str, refine: bool) -> str:
 
 
 def _refine(path: Path, scene: Scene, coefficients: np.ndarray, windows: list[Window], fps: float,
-            settings: FitSettings, progress: bool) -> tuple[np.ndarray, np.ndarray, dict[int, tuple[WindowTruth,
-                                                                                                    np.ndarray]]]:
+            settings: FitSettings, runner: JobRunner, progress: bool) -> tuple[np.ndarray, np.ndarray, dict[int, tuple[
+                WindowTruth, np.ndarray]]]:
     """Per frame, the coefficients of its window's motion refined on the window's frames (after the ejection's
     transient; windows too short for the search keep their per-frame values), and per refined window (by index)
-    its motion and the standard errors of the pixel fit (:func:`synthesis.standard_errors`)."""
+    its motion and the standard errors of the pixel fit (:func:`synthesis.standard_errors`). Each window is an
+    independent task on ``runner``."""
     coefficients = coefficients.copy()
-    motions = {}
-    renderer = Renderer(scene)
     skip = settings.transient_frames(fps)
+    spans, futures = [], []
     with open_recording(path) as rec:
-        for w in tqdm(windows, desc="refine by synthesis", unit="window", disable=not progress):
+        for w in windows:
             lo = w.oscillation_start(skip)
             if w.end - lo < synthesis.MIN_FRAMES:
                 continue
             t = (np.arange(lo, w.end) - w.start) / fps
             start = synthesis.start_motion(coefficients[lo : w.end], t, fps)
-            frames = roi_frames(rec, scene, lo, w.end - lo)
-            refined = synthesis.refine_window(renderer, frames, t, start)
-            coefficients[lo : w.end] = refined.motion.coefficients(t).to_array()
-            motions[w.index] = refined.motion, synthesis.standard_errors(renderer, frames, t, refined)
+            spans.append((w.index, lo, w.end))
+            futures.append(runner.call(refine_task, scene, roi_frames(rec, scene, lo, w.end - lo), t, start))
+    motions = {}
+    for (index, lo, end), future in zip(spans, tqdm(futures, desc="refine by synthesis", unit="window",
+                                                     disable=not progress)):
+        coefficients[lo:end], motion, errors = future.result()
+        motions[index] = motion, errors
     return coefficients, centre_displacement(*coefficients.T, scene.nozzle.radius_mm), motions
+
+
+#: One renderer per scene in each process that refines windows (building one costs more than a window's refinement).
+_RENDERERS: dict[str, Renderer] = {}
+
+
+def refine_task(scene: Scene, frames: np.ndarray, t: np.ndarray, start: WindowTruth) -> tuple[np.ndarray, WindowTruth,
+                                                                                               np.ndarray]:
+    """One window's refinement by synthesis (a task that runs wherever the runner sends it): the refined motion's
+    coefficients at times ``t`` (m, 4), the motion, and the pixel fit's standard errors."""
+    key = scene.model_dump_json()
+    renderer = _RENDERERS.get(key) or _RENDERERS.setdefault(key, Renderer(scene))
+    refined = synthesis.refine_window(renderer, frames, t, start)
+    return (refined.motion.coefficients(t).to_array(), refined.motion,
+            synthesis.standard_errors(renderer, frames, t, refined))
 
 
 def _with_pixel_intervals(result: WindowResult, motion: WindowTruth, errors: np.ndarray, fps: float,

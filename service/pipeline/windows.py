@@ -9,6 +9,7 @@ from __future__ import annotations
 import math
 from concurrent.futures import Future
 from dataclasses import dataclass
+from typing import Any, Callable
 
 import numpy as np
 
@@ -56,6 +57,10 @@ def failed_result(job: WindowJob, reason: str) -> WindowResult:
                         starts_at_ejection=w.starts_at_ejection, ends_at_ejection=w.ends_at_ejection)
 
 
+#: Seconds to wait for a Dask scheduler to answer.
+CONNECT_TIMEOUT_S = 10.0
+
+
 class JobRunner:
     """Runs window jobs as independent tasks: in a local process pool of ``workers`` (default: one per core), or on
     the Dask cluster whose scheduler listens at ``scheduler`` (``tcp://host:8786``; the ``scale`` extra).
@@ -86,6 +91,12 @@ class JobRunner:
         if self._client is not None:
             return self._client.submit(_fit_or_fail, job, fps, self.settings, pure=False)
         return self._pool.submit(_fit_or_fail, job, fps, self.settings)
+
+    def call(self, task: Callable[..., Any], *args: Any) -> Future:
+        """Start any other window-level ``task(*args)`` (a picklable function of self-contained arguments)."""
+        if self._client is not None:
+            return self._client.submit(task, *args, pure=False)
+        return self._pool.submit(task, *args)
 
     def run(self, jobs: list[WindowJob], fps: float, progress: bool = False) -> list[WindowResult]:
         """Each job's result, in the jobs' order."""
@@ -135,6 +146,6 @@ def _dask_client(scheduler: str):  # type: ignore[no-untyped-def]
     except ImportError:
         raise MeniscopeError("--scheduler", "needs the Dask distributed package: pip install 'meniscope[scale]'") from None
     try:
-        return Client(scheduler, timeout="10s")
+        return Client(scheduler, timeout=CONNECT_TIMEOUT_S, set_as_default=False)
     except (OSError, TimeoutError) as exc:
-        raise MeniscopeError(scheduler, f"no Dask scheduler answers there: {exc}") from None
+        raise MeniscopeError(scheduler, f"cannot reach the Dask scheduler: {exc}") from None
