@@ -4,7 +4,7 @@ A recording is streamed in chunks (any length fits in memory): each chunk's ROI 
 activity (ejection detection) and the per-frame inverse method. The window-level ``regularised``
 method then replaces each window's per-frame values by the neighbour candidates its damped
 sinusoid passes through. With ``refine``, each window's motion is then refined on its frames through the
-renderer (:mod:`service.analysis.synthesis`), starting from the per-frame values, and replaces them. Every
+renderer (:mod:`service.inverse.synthesis`), starting from the per-frame values, and replaces them. Every
 window's steady D(0, t) (:mod:`service.analysis.steady`) is fitted by :func:`service.analysis.fit.fit_windows`.
 """
 from __future__ import annotations
@@ -18,7 +18,7 @@ import numpy as np
 from scipy.stats import norm
 from tqdm import tqdm
 
-from service.analysis import synthesis
+from service.inverse import synthesis
 from service.analysis.fit import fit_windows
 from service.analysis.results import FitSettings, Report, Source, WindowResult
 from service.analysis.segment import Window, find_ejections, frame_activity, series_activity, windows_between

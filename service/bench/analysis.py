@@ -22,7 +22,7 @@ import numpy as np
 
 from service import DEFAULT_MODELS
 from service.analysis.offline import analyse_recording, method_label
-from service.analysis.score import summary
+from service.validation.score import summary
 from service.verbs import add_scene_option
 from service.errors import MeniscopeError, require_folder_of
 from service.inverse.methods import DATABASE_METHODS, METHODS, database_folder, open_method
@@ -68,7 +68,7 @@ def run_method(method: str, recordings: list[Path], scene: Scene, models: Path, 
                refine: bool = False) -> dict:
     """Open ``method`` once (timed), then one row per recording: noise preset, wall time, frames and
     :func:`summary` figures; with this process's peak resident memory. Run in a fresh process per method.
-    ``refine``: each window's motion refined on its frames (:mod:`service.analysis.synthesis`)."""
+    ``refine``: each window's motion refined on its frames (:mod:`service.inverse.synthesis`)."""
     start = time.perf_counter()
     opened = open_method(method, scene, models, database)
     setup_s = time.perf_counter() - start
