@@ -10,7 +10,6 @@ correlation, and the peak memory of the process that ran the method. Recordings 
 from __future__ import annotations
 
 import argparse
-import json
 import multiprocessing
 import resource
 import time
@@ -29,6 +28,7 @@ from service.inverse.methods import DATABASE_METHODS, METHODS, database_folder, 
 from service.scene import Scene
 from service.simulate import truth_path
 from service.validation.truth import read_truth
+from service.bench.results import write_results
 
 #: Summary figures averaged over a method's recordings, as (key, label, format) of the table.
 COLUMNS = (
@@ -141,8 +141,5 @@ def run(args: argparse.Namespace) -> int:
             for noise, group in sorted(by_noise.items())}
         print(f"{method}: done ({len(rows)} recordings, setup {measured['setup_s']:.1f} s, "
               f"peak {measured['peak_memory_mb']:.0f} MB)")
-    args.out.write_text(json.dumps(results, indent=2, allow_nan=False) + "\n")
-    table = markdown(results)
-    args.out.with_suffix(".md").write_text(table)
-    print(table)
+    write_results(args.out, results, markdown(results))
     return 0

@@ -25,6 +25,7 @@ import urllib.request
 from pathlib import Path
 
 from service.errors import MeniscopeError
+from service.bench.results import write_results
 
 LATENCY = "meniscope_window_publish_latency_seconds"
 
@@ -204,8 +205,5 @@ def run(args: argparse.Namespace) -> int:
     for k in range(args.runs):
         print(f"bench live: run {k + 1} of {args.runs}, {args.seconds:g} s ...", flush=True)
         runs.append(measure(args.seconds))
-    (args.out / "live.json").write_text(json.dumps({"runs": runs}, indent=1))
-    table = markdown(runs)
-    (args.out / "live.md").write_text(table)
-    print(table)
+    write_results(args.out / "live.json", {"runs": runs}, markdown(runs))
     return 0

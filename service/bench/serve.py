@@ -23,7 +23,6 @@ from __future__ import annotations
 import argparse
 import asyncio
 import itertools
-import json
 import os
 import tempfile
 import time
@@ -37,6 +36,7 @@ from service.analysis.results import FitSettings
 from service.bench import parse_pairs
 from service.errors import MeniscopeError
 from service.settings import ServiceSettings, default_data_dir
+from service.bench.results import write_results
 
 CONFIGS = "512x1,512x2,128x1"
 #: The issue's target: a window's result published within this many ms of its close.
@@ -255,8 +255,5 @@ def run(args: argparse.Namespace) -> int:
             results["runs"].append({"batch": batch, "threads": threads, "variant": variant, "run": name,
                                     "max_modes": modes, **measure(settings, args.seconds)})
     results["stage_costs"] = stage_costs(recording, configs)
-    (args.out / "serve.json").write_text(json.dumps(results, indent=1))
-    table = markdown(results)
-    (args.out / "serve.md").write_text(table)
-    print(table)
+    write_results(args.out / "serve.json", results, markdown(results))
     return 0
