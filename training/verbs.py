@@ -15,7 +15,6 @@ from pathlib import Path
 
 from service.verbs import add_scene_option
 from service.errors import MeniscopeError
-from service.scene import Scene
 
 
 def _render_options(p: argparse.ArgumentParser, seed: int) -> None:
@@ -93,6 +92,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run_train(args: argparse.Namespace) -> int:
+    from service.scene import Scene
+
     from dataclasses import replace
 
     from training.normalise import downsample_factor  # torch loads only when the verb runs
@@ -125,6 +126,8 @@ def run_train(args: argparse.Namespace) -> int:
 
 
 def run_quantize(args: argparse.Namespace) -> int:
+    from service.scene import Scene
+
     from training.quantize import quantize_models  # onnx loads only when the verb runs
 
     for option, value in (("--calibration", args.calibration), ("--parity", args.parity)):
@@ -139,6 +142,8 @@ def run_quantize(args: argparse.Namespace) -> int:
 
 
 def run(args: argparse.Namespace) -> int:
+    from service.scene import Scene
+
     from pydantic import ValidationError
 
     from training.dataset import DatasetConfig, generate  # the renderer loads only when the verb runs

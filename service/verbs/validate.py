@@ -5,7 +5,6 @@ import argparse
 from pathlib import Path
 
 from service.verbs import add_scene_option
-from service.scene import Scene
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -32,6 +31,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from service.scene import Scene
+
     from service.validation.report import validate  # onnxruntime and the renderer load only when the verb runs
 
     document = validate(Scene.load(args.scene), args.models, args.database, args.recording, args.out,
