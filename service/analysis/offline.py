@@ -166,7 +166,7 @@ def _regularise(db: NearestDatabase, candidates: np.ndarray, windows: list[Windo
         lo = w.oscillation_start(skip)
         if w.end - lo < 4:  # too short to fit a sinusoid: keep the nearest
             continue
-        fit = regularised.fit_window(db.centre[candidates[lo:w.end]], fps)
+        fit = regularised.choose_candidates(db.centre[candidates[lo:w.end]], fps)
         chosen[lo:w.end] = candidates[np.arange(lo, w.end), fit.chosen]
     return db.coeffs[chosen], db.centre[chosen]
 
