@@ -46,7 +46,7 @@ def free_port() -> int:
         return int(s.getsockname()[1])
 
 
-class Service:
+class ServeProcess:
     """``meniscope serve`` in a child process on free ports with a data folder of its own, until :meth:`stop`."""
 
     def __init__(self, data_dir: Path) -> None:
@@ -93,14 +93,14 @@ class Service:
 class Clients:
     """A WebSocket client and a ZeroMQ subscriber of ``service``, counting the window messages each receives."""
 
-    def __init__(self, service: Service) -> None:
+    def __init__(self, service: ServeProcess) -> None:
         self.received = {"websocket": 0, "zeromq": 0}
         self._stop = threading.Event()
         self._threads = [threading.Thread(target=f, args=(service,), daemon=True) for f in (self._ws, self._zmq)]
         for t in self._threads:
             t.start()
 
-    def _ws(self, service: Service) -> None:
+    def _ws(self, service: ServeProcess) -> None:
         from websockets.sync.client import connect
 
         with connect(f"ws://127.0.0.1:{service.port}/ws") as ws:
@@ -111,7 +111,7 @@ class Clients:
                 except TimeoutError:
                     pass
 
-    def _zmq(self, service: Service) -> None:
+    def _zmq(self, service: ServeProcess) -> None:
         import zmq
 
         sub = zmq.Context.instance().socket(zmq.SUB)
@@ -138,7 +138,7 @@ class Clients:
 COUNTERS = ("meniscope_frames_dropped_total", "meniscope_windows_skipped_total")
 
 
-def scrape(service: Service) -> tuple[dict[str, float], dict[str, float]]:
+def scrape(service: ServeProcess) -> tuple[dict[str, float], dict[str, float]]:
     """From /metrics (parsed by prometheus_client's own parser): the latency histogram's cumulative bucket
     counts by bound (its ``le`` label, s, and "+Inf"), and :data:`COUNTERS` so far."""
     from prometheus_client.parser import text_string_to_metric_families
@@ -157,7 +157,7 @@ def scrape(service: Service) -> tuple[dict[str, float], dict[str, float]]:
 def measure(seconds: float) -> dict:
     """One run: a fresh service, clients attached, the histogram's growth over ``seconds``."""
     with tempfile.TemporaryDirectory(prefix="meniscope-live-") as tmp:
-        service = Service(Path(tmp))
+        service = ServeProcess(Path(tmp))
         try:
             service.wait_ready()
             clients = Clients(service)
