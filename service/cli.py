@@ -10,17 +10,9 @@ import importlib
 import pkgutil
 import sys
 from importlib.metadata import entry_points
-from pathlib import Path
 from typing import Callable, Sequence
 
 from service.errors import MeniscopeError
-
-
-def add_scene_option(parser: argparse.ArgumentParser) -> None:
-    """``--scene SCENE.json``, defaulting to the embedded scene: every verb that renders, trains or analyses takes one."""
-    from service import DEFAULT_SCENE
-
-    parser.add_argument("--scene", type=Path, default=DEFAULT_SCENE, help="scene file (default: the embedded one)")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -43,7 +35,12 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point: run one verb; user errors print one line and exit 2."""
-    args = build_parser().parse_args(argv)
+    parser = build_parser()
+    args, rest = parser.parse_known_args(argv)
+    if rest:  # a verb that parses its own options (``bench``) takes them; for any other, argparse's usual error
+        if not hasattr(args, "options"):
+            parser.parse_args(argv)
+        args.options = [*rest, *args.options]
     try:
         return int(args.func(args) or 0)
     except MeniscopeError as exc:

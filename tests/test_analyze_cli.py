@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from service.analysis.results import Report
-from service.analysis.score import ejection_matches
+from service.validation.score import ejection_matches
 from service.csvtable import read_columns
 from service.validation.truth import read_truth, truth_centre
 from tests.servicekit import meniscope

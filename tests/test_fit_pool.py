@@ -13,8 +13,8 @@ import pytest
 from service.analysis.results import FitSettings, WindowResult
 from service.analysis.segment import Window
 from service.errors import MeniscopeError
-from service.pipeline.fitting import FitPool, fit_one
-from service.pipeline.segmenter import ClosedWindow
+from service.pipeline.fitting import FitPool
+from service.pipeline.windows import WindowJob, fit_job
 
 FPS = 19000.0
 
@@ -29,10 +29,10 @@ class Results:
     """Collects what the pool hands back, and says when ``expected`` results have come."""
 
     def __init__(self, expected: int) -> None:
-        self.got: list[tuple[ClosedWindow, WindowResult, float, float, float]] = []
+        self.got: list[tuple[WindowJob, WindowResult, float, float, float]] = []
         self.expected, self.done = expected, threading.Event()
 
-    def __call__(self, closed: ClosedWindow, result: WindowResult, started: float, finished: float) -> None:
+    def __call__(self, closed: WindowJob, result: WindowResult, started: float, finished: float) -> None:
         self.got.append((closed, result, started, finished, time.monotonic()))
         if len(self.got) >= self.expected:
             self.done.set()
@@ -46,19 +46,19 @@ def pool() -> FitPool:
 
 
 def test_a_window_is_fitted_in_its_worker_as_in_process_and_its_times_follow_each_other(pool: FitPool) -> None:
-    closed = ClosedWindow(Window(3, 100, 290, True, True), damped(), 0.0)
+    closed = WindowJob(Window(3, 100, 290, True, True), damped())
     results = Results(1)
     submitted = time.monotonic()
     assert pool.submit(closed, FPS, results)
     assert results.done.wait(60)
     (back, result, started, finished, delivered), = results.got
     assert back is closed
-    assert result == fit_one(closed.window, closed.values, FPS, FitSettings())
+    assert result == fit_job(closed, FPS, FitSettings())
     assert submitted <= started <= finished <= delivered  # one monotonic clock across the processes
 
 
 def test_a_window_finding_every_worker_busy_waits_once_and_one_more_is_refused(pool: FitPool) -> None:
-    first, second, third = (ClosedWindow(Window(k, 0, 190, True, True), damped(), 0.0) for k in (0, 1, 2))
+    first, second, third = (WindowJob(Window(k, 0, 190, True, True), damped()) for k in (0, 1, 2))
     results = Results(2)
     assert pool.submit(first, FPS, results)
     assert pool.submit(second, FPS, results)  # one worker busy: the window waits behind its fit
@@ -84,8 +84,8 @@ def test_a_worker_that_dies_while_fitting_fails_its_window_and_the_one_waiting_a
         pool: FitPool) -> None:
     results = Results(2)
     n = 200_000  # a fit of seconds: still running when the worker is killed just after the hand-over
-    long_window = ClosedWindow(Window(0, 0, n, True, True), damped(n), 0.0)
-    waiting = ClosedWindow(Window(1, n, n + 190, True, True), damped(), 0.0)
+    long_window = WindowJob(Window(0, 0, n, True, True), damped(n))
+    waiting = WindowJob(Window(1, n, n + 190, True, True), damped())
     assert pool.submit(long_window, FPS, results)
     assert pool.submit(waiting, FPS, results)
     kill_worker(pool)
@@ -100,5 +100,5 @@ def test_a_worker_that_dies_while_fitting_fails_its_window_and_the_one_waiting_a
 def test_a_window_handed_to_a_worker_that_died_idle_is_refused_with_an_error_naming_the_workers(pool: FitPool) -> None:
     kill_worker(pool)
     with pytest.raises(MeniscopeError, match="fit worker process died"):
-        pool.submit(ClosedWindow(Window(0, 0, 190, True, True), damped(), 0.0), FPS, Results(1))
+        pool.submit(WindowJob(Window(0, 0, 190, True, True), damped()), FPS, Results(1))
     assert pool.broken

@@ -29,7 +29,7 @@ def test_the_demo_recording_is_cut_at_its_true_ejections_whatever_the_batching(b
     frames = np.concatenate([frames, frames])  # as the looping replay delivers them
     indices = np.arange(len(frames))
     tracker = ActivityTracker()
-    activity = np.concatenate([tracker.update(frames[i:i + batch], indices[i:i + batch])
+    activity = np.concatenate([tracker.update(frames[i:i + batch], indices[i:i + batch])[1]
                                for i in range(0, len(frames), batch)])
     closed = segment(StreamingSegmenter(95, 950, 8.0), indices, indices.astype(float), activity, batch)
     truth = json.loads(DEMO_TRUTH.read_text())["ejections"]

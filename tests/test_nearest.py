@@ -8,7 +8,7 @@ from hypothesis import strategies as st
 
 from service.errors import MeniscopeError
 from service.inverse.nearest import NearestDatabase, NearestMethod, recall_at_k
-from service.inverse.regularised import fit_window
+from service.inverse.regularised import choose_candidates
 from service.physics import CoefficientRanges, centre_displacement
 from service.render import Renderer
 from service.scene import Scene
@@ -78,7 +78,7 @@ def test_the_regularised_fit_recovers_frequency_and_decay_from_noisy_candidates(
     out at 576 Hz, 676 Hz at 682 /s decaying at 437 /s.)"""
     assume(g0 <= f0 / 1.2)
     candidates, truth = _window(f0, g0, 190, np.random.default_rng(seed), decoys=0)
-    fit = fit_window(candidates, FPS, seed=seed)
+    fit = choose_candidates(candidates, FPS, seed=seed)
     # 2 % where several cycles show; 3 % where the decay leaves about one (600 Hz at 500 /s: e^-1 in 1.2 cycles)
     assert fit.frequency_hz == pytest.approx(f0, rel=0.02 if g0 / f0 < 0.5 else 0.03)
     # the min over candidates lets the curve pick among the near ones, so the decay is the loose figure
@@ -89,7 +89,7 @@ def test_the_regularised_fit_recovers_frequency_and_decay_from_noisy_candidates(
 
 @pytest.mark.parametrize("n", [4, 12, 190])
 def test_a_still_surface_fits_no_oscillation_and_nothing_is_nan(n: int) -> None:
-    fit = fit_window(np.full((n, 10), 0.013), FPS)
+    fit = choose_candidates(np.full((n, 10), 0.013), FPS)
     values = [fit.frequency_hz, fit.decay_rate_per_s, fit.amplitude_mm, fit.offset_mm, fit.rms_mm]
     assert np.all(np.isfinite(values)) and fit.amplitude_mm < 1e-9
     assert fit.offset_mm == pytest.approx(0.013)
@@ -99,12 +99,12 @@ def test_a_still_surface_fits_no_oscillation_and_nothing_is_nan(n: int) -> None:
                                             (np.zeros((20, 10)), 0.0)])
 def test_unusable_windows_are_a_clear_error(candidates: np.ndarray, fps: float) -> None:
     with pytest.raises(MeniscopeError, match="candidates"):
-        fit_window(candidates, fps)
+        choose_candidates(candidates, fps)
 
 
 def test_the_regularised_fit_of_identical_candidates_is_a_flat_line() -> None:
     """All candidates equal (a window of blank frames): a zero-width range must not break the search."""
-    fit = fit_window(np.full((20, 10), 0.0123), FPS)
+    fit = choose_candidates(np.full((20, 10), 0.0123), FPS)
     assert fit.offset_mm == pytest.approx(0.0123) and fit.amplitude_mm < 1e-9
 
 

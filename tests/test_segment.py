@@ -8,7 +8,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from service.analysis.score import ejection_matches
+from service.validation.score import ejection_matches
 from service.analysis.segment import (
     burst_period, detect_ejections, ejections_at_rate, frame_brightness, read_ejections, robust_z, windows_between,
 )

@@ -12,7 +12,7 @@ import pytest
 from service import DEFAULT_SCENE
 from service.analysis.fit import fit_window
 from service.analysis.offline import _with_pixel_intervals
-from service.analysis.synthesis import frames_start, plausible, refine_window, standard_errors, start_motion
+from service.inverse.synthesis import frames_start, plausible, refine_window, standard_errors, start_motion
 from service.camera_effects import CameraEffects
 from service.physics import WindowTruth
 from service.render.renderer import Renderer

@@ -15,9 +15,8 @@ import os
 from collections.abc import Callable
 from pathlib import Path
 
-from service.cli import add_scene_option
+from service.verbs import add_scene_option
 from service.errors import MeniscopeError
-from service.scene import Scene
 
 #: Top-level modules of the train extra -> the extra (the scale extra's Dask is checked where --scheduler is read).
 EXTRA_OF = {"torch": "train", "onnx": "train"}
@@ -120,6 +119,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 @_needs_extras
 def run_train(args: argparse.Namespace) -> int:
+    from service.scene import Scene
+
     from dataclasses import replace
 
     from training.normalise import downsample_factor  # torch loads only when the verb runs
@@ -153,6 +154,8 @@ def run_train(args: argparse.Namespace) -> int:
 
 @_needs_extras
 def run_quantize(args: argparse.Namespace) -> int:
+    from service.scene import Scene
+
     from training.quantize import quantize_models  # onnx loads only when the verb runs
 
     for option, value in (("--calibration", args.calibration), ("--parity", args.parity)):
@@ -168,6 +171,8 @@ def run_quantize(args: argparse.Namespace) -> int:
 
 @_needs_extras
 def run(args: argparse.Namespace) -> int:
+    from service.scene import Scene
+
     from pydantic import ValidationError
 
     from training.dataset import DatasetConfig, generate  # the renderer loads only when the verb runs

@@ -4,11 +4,13 @@ A recording is streamed in chunks (any length fits in memory): each chunk's ROI 
 activity (ejection detection) and the per-frame inverse method. The window-level ``regularised``
 method then replaces each window's per-frame values by the neighbour candidates its damped
 sinusoid passes through. With ``refine``, each window's motion is then refined on its frames through the
-renderer (:mod:`service.analysis.synthesis`), starting from the per-frame values, and replaces them. Every
+renderer (:mod:`service.inverse.synthesis`), starting from the per-frame values, and replaces them. Every
 window's steady D(0, t) (:mod:`service.analysis.steady`) is fitted by :func:`service.analysis.fit.fit_windows`.
 """
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -16,11 +18,10 @@ import numpy as np
 from scipy.stats import norm
 from tqdm import tqdm
 
-from service.analysis import synthesis
+from service.inverse import synthesis
 from service.analysis.fit import fit_windows
 from service.analysis.results import FitSettings, Report, Source, WindowResult
-from service.analysis.segment import (Window, find_ejections, frame_activity, frame_brightness, frame_steps,
-                                      series_activity, windows_between)
+from service.analysis.segment import Window, find_ejections, frame_activity, series_activity, windows_between
 from service.analysis.steady import steady_centre
 from service.csvtable import write_columns
 from service.errors import MeniscopeError
@@ -29,14 +30,22 @@ from service.inverse.base import InverseMethod, InverseOutput
 from service.inverse.manifest import sha256_file
 from service.inverse.methods import open_method
 from service.inverse.nearest import NearestDatabase
-from service.recordings import open_recording
 from service.physics import WindowTruth, centre_displacement
-from service.recordings.roi import roi_chunks, roi_frames
+from service.pipeline.records import COEFFICIENTS, coefficients_of
+from service.pipeline.segmenter import StreamingSegmenter
+from service.pipeline.stages import FrameStages
+from service.pipeline.windows import JobRunner, gather, job_for
+from service.recordings import open_recording
+from service.recordings.roi import roi_frames
 from service.render.renderer import Renderer
 from service.scene import Scene
+from service.sources import FrameBatch
+from service.sources.replay import ReplaySource
 
 #: Neighbours per frame among which the regularised fit chooses (the paper's 10).
 CANDIDATES = 10
+#: Frames per read of the replay: large enough that per-call overheads vanish, small enough for the cache.
+READ_FRAMES = 512
 
 
 @dataclass(frozen=True)
@@ -61,9 +70,11 @@ def analyse_recording(
     path: Path, scene: Scene, method: str, models: Path, database: Path | None = None,
     ejections: Ejections = Ejections(), settings: FitSettings = FitSettings(), progress: bool = True,
     opened: tuple[InverseMethod, NearestDatabase | None] | None = None, refine: bool = False,
+    scheduler: str | None = None, workers: int | None = None,
 ) -> Analysis:
-    """Per-frame inversion of a recording, its windows, (``refine``) each window's motion refined on its
-    frames, and one fit per window.
+    """The pipeline's stages over a recording replayed at full speed, its windows, (``refine``) each window's motion
+    refined on its frames, and one fit per window as independent tasks (:class:`JobRunner`: a local process
+    pool of ``workers``, or the Dask cluster at ``scheduler``).
 
     ``opened``: the method and database :func:`open_method` returned, when analysing several
     recordings with one (they are opened here otherwise). With ``refine`` the windows keep their own poles
@@ -71,43 +82,79 @@ def analyse_recording(
     """
     if refine:
         settings = settings.model_copy(update={"poles": "series"})
+    fps = fps_of(path)
     inverse, db = opened or open_method(method, scene, models, database)
-    with open_recording(path) as rec:
-        n, fps = len(rec), rec.fps
+    db = db if method == "regularised" else None
+    transient, radius = settings.transient_frames(fps), scene.nozzle.radius_mm
+    with JobRunner(settings, scheduler, workers) as runner, ThreadPoolExecutor(1) as hasher:
+        digest = hasher.submit(sha256_file, path)  # hashlib lets go of the interpreter lock: read while it hashes
+        # look ahead: every frame's change first (cheap), so that the ejections are known before the frames are
+        # inferred and each window's fit starts as soon as its frames are, alongside the inference
+        records = np.concatenate([stages.measure(batch) for stages, batch in _replay(path, scene, inverse)])
+        n = len(records)
         if n < 2:
             raise MeniscopeError(path, f"{n} frame(s): a window analysis needs at least 2")
-        coefficients, centre = np.empty((n, 4)), np.empty(n)
-        steps, brightness = np.empty(n), np.empty(n)
-        candidates = np.empty((n, CANDIDATES), np.int64) if method == "regularised" else None
-        previous = None
-        with tqdm(total=n, unit="frame", desc=f"{method} {path.name}", disable=not progress) as bar:
-            for start, frames in roi_chunks(rec, scene):
-                part = slice(start, start + len(frames))
-                steps[part] = frame_steps(frames, previous)
-                brightness[part] = frame_brightness(frames)
-                previous = frames[-1]
-                if candidates is None:
-                    out = inverse.infer(frames)
-                    coefficients[part], centre[part] = out.coefficients, out.centre
-                else:  # the window fit below picks every frame's values among these; one search serves
-                    candidates[part] = db.search(frames, k=CANDIDATES, exact=True).index
-                bar.update(len(frames))
-        source = Source(path=str(path), frames=n, fps=fps, width=rec.width, height=rec.height,
-                        sha256=sha256_file(path))
-    cuts, _ = find_ejections(frame_activity(steps), fps, ejections.file, ejections.hz)
-    windows = windows_between(cuts, n)
-    if candidates is not None:
-        coefficients, centre = _regularise(db, candidates, windows, fps, settings, progress)
-    motions = {}
-    if refine:
-        coefficients, centre, motions = _refine(path, scene, coefficients, windows, fps, settings, progress)
-    steady = steady_centre(coefficients, windows, scene.nozzle.radius_mm, settings.transient_frames(fps))
-    results = fit_windows(steady, fps, windows, settings, progress=progress, brightness=brightness)
+        cuts, _ = find_ejections(frame_activity(records["change"]), fps, ejections.file, ejections.hz)
+        segmenter = StreamingSegmenter(1, n, np.inf)  # cut at the ejections found: the whole recording looked ahead
+        at_once = db is None and not refine  # else the windows' per-frame values change once all are known
+        windows, futures, found = [], [], []
+        with tqdm(total=n, unit="frame", desc=f"{inverse.name} {path.name}", disable=not progress) as bar:
+            for stages, batch in _replay(path, scene, inverse):
+                part = records[batch.indices[0] : batch.indices[-1] + 1]  # a view: filled in place
+                if db is None:
+                    stages.infer(batch.pixels, part)
+                else:  # the window fit picks every frame's values among these; one search serves
+                    index = db.search(batch.pixels, k=CANDIDATES, exact=True).index
+                    _set_coefficients(part, db.coeffs[index[:, 0]], db.centre[index[:, 0]])
+                    found.append(index)
+                closed = segmenter.push(batch.indices, part, part["activity"], np.zeros(len(batch)), cuts)
+                windows += [c.window for c in closed]
+                futures += [runner.submit(job_for(c.window, c.values, radius, transient), fps) for c in closed
+                            if at_once]
+                bar.update(len(batch))
+        last = [c.window for c in segmenter.finish(np.nan)]
+        windows += last
+        if db is not None:
+            _set_coefficients(records, *_regularise(db, np.concatenate(found), windows, fps, settings, progress))
+        motions = {}
+        if refine:
+            coefficients, centre, motions = _refine(path, scene, coefficients_of(records), windows, fps, settings,
+                                                    runner, progress)
+            _set_coefficients(records, coefficients, centre)
+        jobs = [job_for(w, records[w.start : w.end], radius, transient) for w in (last if at_once else windows)]
+        results = gather(futures + [runner.submit(job, fps) for job in jobs], progress)
+        with open_recording(path) as rec:
+            source = Source(path=str(path), frames=n, fps=fps, width=rec.width, height=rec.height,
+                            sha256=digest.result())
     results = [_with_pixel_intervals(r, *motions[r.index], fps, settings.confidence) if r.index in motions else r
                for r in results]
     report = Report(source=source, method=method_label(method, refine), ejections=cuts.tolist(), windows=results,
                     fit=settings)
-    return Analysis(report, InverseOutput(coefficients=coefficients, centre=centre), steady)
+    steady = steady_centre(coefficients_of(records), windows, radius, transient)
+    return Analysis(report, InverseOutput(coefficients=coefficients_of(records), centre=records["centre"].copy()),
+                    steady)
+
+
+def fps_of(path: Path) -> float:
+    """The recording's frame rate."""
+    with open_recording(path) as rec:
+        return rec.fps
+
+
+def _replay(path: Path, scene: Scene, inverse: InverseMethod) -> Iterator[tuple[FrameStages, FrameBatch]]:
+    """The recording replayed at full speed in reads of :data:`READ_FRAMES`, each read's ROI with the stages of
+    the stream."""
+    with ReplaySource(path, speed=0.0) as source:
+        stages = FrameStages(scene, source.width, source.height, str(path), inverse)
+        while (batch := source.read(READ_FRAMES)) is not None:
+            yield stages, stages.roi(batch)
+
+
+def _set_coefficients(records: np.ndarray, coefficients: np.ndarray, centre: np.ndarray) -> None:
+    """Write coefficients (N, 4) and D(0, t) (N,) into ``records`` (N,) in place."""
+    for name, column in zip(COEFFICIENTS, np.asarray(coefficients).T):
+        records[name] = column
+    records["centre"] = centre
 
 
 def _regularise(db: NearestDatabase, candidates: np.ndarray, windows: list[Window], fps: float,
@@ -119,7 +166,7 @@ def _regularise(db: NearestDatabase, candidates: np.ndarray, windows: list[Windo
         lo = w.oscillation_start(skip)
         if w.end - lo < 4:  # too short to fit a sinusoid: keep the nearest
             continue
-        fit = regularised.fit_window(db.centre[candidates[lo:w.end]], fps)
+        fit = regularised.choose_candidates(db.centre[candidates[lo:w.end]], fps)
         chosen[lo:w.end] = candidates[np.arange(lo, w.end), fit.chosen]
     return db.coeffs[chosen], db.centre[chosen]
 
@@ -130,27 +177,45 @@ def method_label(method: str, refine: bool) -> str:
 
 
 def _refine(path: Path, scene: Scene, coefficients: np.ndarray, windows: list[Window], fps: float,
-            settings: FitSettings, progress: bool) -> tuple[np.ndarray, np.ndarray, dict[int, tuple[WindowTruth,
-                                                                                                    np.ndarray]]]:
+            settings: FitSettings, runner: JobRunner, progress: bool) -> tuple[np.ndarray, np.ndarray, dict[int, tuple[
+                WindowTruth, np.ndarray]]]:
     """Per frame, the coefficients of its window's motion refined on the window's frames (after the ejection's
     transient; windows too short for the search keep their per-frame values), and per refined window (by index)
-    its motion and the standard errors of the pixel fit (:func:`synthesis.standard_errors`)."""
+    its motion and the standard errors of the pixel fit (:func:`synthesis.standard_errors`). Each window is an
+    independent task on ``runner``."""
     coefficients = coefficients.copy()
-    motions = {}
-    renderer = Renderer(scene)
     skip = settings.transient_frames(fps)
+    spans, futures = [], []
     with open_recording(path) as rec:
-        for w in tqdm(windows, desc="refine by synthesis", unit="window", disable=not progress):
+        for w in windows:
             lo = w.oscillation_start(skip)
             if w.end - lo < synthesis.MIN_FRAMES:
                 continue
             t = (np.arange(lo, w.end) - w.start) / fps
             start = synthesis.start_motion(coefficients[lo : w.end], t, fps)
-            frames = roi_frames(rec, scene, lo, w.end - lo)
-            refined = synthesis.refine_window(renderer, frames, t, start)
-            coefficients[lo : w.end] = refined.motion.coefficients(t).to_array()
-            motions[w.index] = refined.motion, synthesis.standard_errors(renderer, frames, t, refined)
+            spans.append((w.index, lo, w.end))
+            futures.append(runner.call(refine_task, scene, roi_frames(rec, scene, lo, w.end - lo), t, start))
+    motions = {}
+    for (index, lo, end), future in zip(spans, tqdm(futures, desc="refine by synthesis", unit="window",
+                                                     disable=not progress)):
+        coefficients[lo:end], motion, errors = future.result()
+        motions[index] = motion, errors
     return coefficients, centre_displacement(*coefficients.T, scene.nozzle.radius_mm), motions
+
+
+#: One renderer per scene in each process that refines windows (building one costs more than a window's refinement).
+_RENDERERS: dict[str, Renderer] = {}
+
+
+def refine_task(scene: Scene, frames: np.ndarray, t: np.ndarray, start: WindowTruth) -> tuple[np.ndarray, WindowTruth,
+                                                                                               np.ndarray]:
+    """One window's refinement by synthesis (a task that runs wherever the runner sends it): the refined motion's
+    coefficients at times ``t`` (m, 4), the motion, and the pixel fit's standard errors."""
+    key = scene.model_dump_json()
+    renderer = _RENDERERS.get(key) or _RENDERERS.setdefault(key, Renderer(scene))
+    refined = synthesis.refine_window(renderer, frames, t, start)
+    return (refined.motion.coefficients(t).to_array(), refined.motion,
+            synthesis.standard_errors(renderer, frames, t, refined))
 
 
 def _with_pixel_intervals(result: WindowResult, motion: WindowTruth, errors: np.ndarray, fps: float,

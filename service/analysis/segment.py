@@ -19,6 +19,7 @@ import csv
 from dataclasses import dataclass
 from pathlib import Path
 
+import cv2
 import numpy as np
 from numpy.typing import ArrayLike
 from scipy.signal import find_peaks
@@ -133,10 +134,16 @@ def frame_steps(frames: np.ndarray, previous: np.ndarray | None = None) -> np.nd
     n = frames.shape[0]
     step = np.full(n, np.nan)
     first = 0 if previous is not None else 1
+    exact = frames.dtype in (np.uint8, np.uint16)  # OpenCV's absolute difference, summed in integers: exact
     for lo in range(first, n, _CHUNK_FRAMES):
         before = previous[None] if lo == 0 else frames[lo - 1 : lo]
-        chunk = np.concatenate([before, frames[lo : lo + _CHUNK_FRAMES]]).astype(np.float32)
-        step[lo : lo + chunk.shape[0] - 1] = np.abs(np.diff(chunk, axis=0)).mean(axis=(1, 2))
+        chunk = np.concatenate([before, frames[lo : lo + _CHUNK_FRAMES]])
+        if exact:
+            flat = chunk.reshape(len(chunk), -1)
+            step[lo : lo + len(chunk) - 1] = cv2.absdiff(flat[1:], flat[:-1]).sum(axis=1, dtype=_sum_type(flat)) / flat.shape[1]
+        else:
+            diff = np.abs(np.diff(chunk.astype(np.float32), axis=0))
+            step[lo : lo + len(chunk) - 1] = diff.mean(axis=(1, 2))
     return step
 
 
@@ -146,10 +153,14 @@ def frame_brightness(frames: np.ndarray) -> np.ndarray:
     flat = frames.reshape(len(frames), -1)
     if not np.issubdtype(flat.dtype, np.unsignedinteger):  # an unsigned sum of signed pixels would wrap
         return flat.mean(axis=1, dtype=np.float64)
-    # an exact integer sum, in 32 bits where no frame can overflow them (2.7x faster than a float64 mean, and
-    # the same to the last bit: both are exact below 2**53)
-    wide = np.uint32 if flat.shape[1] * int(np.iinfo(flat.dtype).max) < 2**32 else np.uint64
-    return flat.sum(axis=1, dtype=wide) / flat.shape[1]
+    # an exact integer sum (2.7x faster than a float64 mean, and the same to the last bit: both are exact below 2**53)
+    return flat.sum(axis=1, dtype=_sum_type(flat)) / flat.shape[1]
+
+
+def _sum_type(flat: np.ndarray) -> type:
+    """The integer type that sums a row of unsigned ``flat`` (N, P) exactly: 32 bits where no row can overflow
+    them (faster), else 64."""
+    return np.uint32 if flat.shape[1] * int(np.iinfo(flat.dtype).max) < 2**32 else np.uint64
 
 
 def frame_activity(steps: ArrayLike) -> np.ndarray:

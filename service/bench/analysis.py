@@ -10,7 +10,6 @@ correlation, and the peak memory of the process that ran the method. Recordings 
 from __future__ import annotations
 
 import argparse
-import json
 import multiprocessing
 import resource
 import time
@@ -22,13 +21,14 @@ import numpy as np
 
 from service import DEFAULT_MODELS
 from service.analysis.offline import analyse_recording, method_label
-from service.analysis.score import summary
-from service.cli import add_scene_option
+from service.validation.score import summary
+from service.verbs import add_scene_option
 from service.errors import MeniscopeError, require_folder_of
 from service.inverse.methods import DATABASE_METHODS, METHODS, database_folder, open_method
 from service.scene import Scene
 from service.simulate import truth_path
 from service.validation.truth import read_truth
+from service.bench.results import write_results
 
 #: Summary figures averaged over a method's recordings, as (key, label, format) of the table.
 COLUMNS = (
@@ -68,7 +68,7 @@ def run_method(method: str, recordings: list[Path], scene: Scene, models: Path, 
                refine: bool = False) -> dict:
     """Open ``method`` once (timed), then one row per recording: noise preset, wall time, frames and
     :func:`summary` figures; with this process's peak resident memory. Run in a fresh process per method.
-    ``refine``: each window's motion refined on its frames (:mod:`service.analysis.synthesis`)."""
+    ``refine``: each window's motion refined on its frames (:mod:`service.inverse.synthesis`)."""
     start = time.perf_counter()
     opened = open_method(method, scene, models, database)
     setup_s = time.perf_counter() - start
@@ -141,8 +141,5 @@ def run(args: argparse.Namespace) -> int:
             for noise, group in sorted(by_noise.items())}
         print(f"{method}: done ({len(rows)} recordings, setup {measured['setup_s']:.1f} s, "
               f"peak {measured['peak_memory_mb']:.0f} MB)")
-    args.out.write_text(json.dumps(results, indent=2, allow_nan=False) + "\n")
-    table = markdown(results)
-    args.out.with_suffix(".md").write_text(table)
-    print(table)
+    write_results(args.out, results, markdown(results))
     return 0

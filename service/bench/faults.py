@@ -29,7 +29,7 @@ import urllib.error
 from collections.abc import Callable
 from pathlib import Path
 
-from service.bench.live import Service, free_port, subscribe
+from service.bench.live import ServeProcess, free_port, subscribe
 from service.errors import MeniscopeError
 
 
@@ -41,7 +41,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
-def ready(service: Service) -> bool | None:
+def ready(service: ServeProcess) -> bool | None:
     """/readyz: True or False, None when the service does not answer."""
     try:
         return bool(json.loads(service.get("/readyz")).get("ready"))
@@ -79,7 +79,7 @@ class WindowIds:
         return self.ids
 
 
-def stored_ids(service: Service) -> set[int]:
+def stored_ids(service: ServeProcess) -> set[int]:
     """Every window id in the service's history (paged through REST)."""
     ids: set[int] = set()
     since = 0
@@ -91,7 +91,7 @@ def stored_ids(service: Service) -> set[int]:
         since = page["last_id"]
 
 
-def fault(service: Service, name: str, apply: Callable[[], None], restore: Callable[[], None] | None,
+def fault(service: ServeProcess, name: str, apply: Callable[[], None], restore: Callable[[], None] | None,
           timeout: float = 60.0) -> dict:
     """Apply a fault, time readiness dropping, restore (if anything), time readiness coming back."""
     apply()
@@ -107,7 +107,7 @@ def replay_faults(tmp: Path, demo: Path) -> list[dict]:
     recordings.mkdir()
     rec = recordings / "rec.cine"
     shutil.copy(demo, rec)
-    service = Service(tmp / "data-replay", {"MENISCOPE_SOURCE": f"file://{rec}?speed=1&loop=1",
+    service = ServeProcess(tmp / "data-replay", {"MENISCOPE_SOURCE": f"file://{rec}?speed=1&loop=1",
                                             "MENISCOPE_RECORDINGS_DIR": str(recordings)}, tmp / "replay.log")
     try:
         service.wait_ready()
@@ -129,7 +129,7 @@ def sender_fault(tmp: Path, demo: Path) -> dict:
     sender_cmd = [sys.executable, "-m", "service.cli", "publish-frames", str(demo), "--bind",
                   f"tcp://127.0.0.1:{port}", "--speed", "1", "--loop"]
     sender = subprocess.Popen(sender_cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    service = Service(tmp / "data-zmq", {"MENISCOPE_SOURCE": f"zmq+tcp://127.0.0.1:{port}"}, tmp / "zmq.log")
+    service = ServeProcess(tmp / "data-zmq", {"MENISCOPE_SOURCE": f"zmq+tcp://127.0.0.1:{port}"}, tmp / "zmq.log")
     try:
         service.wait_ready()
         restarted: list[subprocess.Popen] = []
@@ -152,7 +152,7 @@ def unwritable_fault(tmp: Path, seconds: float) -> dict:
     data.mkdir()
     subprocess.run(["mount", "-t", "tmpfs", "-o", "size=48m", "meniscope-bench", str(data)], check=True)
     try:
-        service = Service(data, log=tmp / "full.log")
+        service = ServeProcess(data, log=tmp / "full.log")
         ids = WindowIds(service.zmq_port)
         try:
             service.wait_ready()
@@ -180,14 +180,14 @@ def unwritable_fault(tmp: Path, seconds: float) -> dict:
 
 def crash_fault(tmp: Path) -> dict:
     data = tmp / "data-crash"
-    service = Service(data, log=tmp / "crash.log")
+    service = ServeProcess(data, log=tmp / "crash.log")
     ids = WindowIds(service.zmq_port)
     service.wait_ready()
     time.sleep(5.0)
     service.kill()
     published = ids.stop()
     t0 = time.monotonic()
-    service = Service(data, log=tmp / "crash.log")
+    service = ServeProcess(data, log=tmp / "crash.log")
     try:
         service.wait_ready()
         back = time.monotonic() - t0

@@ -11,20 +11,20 @@ from __future__ import annotations
 
 import argparse
 import itertools
-import json
 import time
 from pathlib import Path
 
 import numpy as np
 
 from service import DEFAULT_MODELS
-from service.cli import add_scene_option
+from service.verbs import add_scene_option
 from service.errors import MeniscopeError, require_folder_of
 from service.inverse.manifest import load_manifest
 from service.inverse.network import OPTIMISATION, NetworkMethod
 from service.pipeline.demo import DEMO_AVI
 from service.recordings.roi import read_roi_frames
 from service.scene import Scene
+from service.bench.results import write_results
 
 
 
@@ -108,8 +108,5 @@ def run(args: argparse.Namespace) -> int:
     frames, _ = read_roi_frames(args.recording, scene, args.frames)
     rows = measure(args.models or [DEFAULT_MODELS], scene, frames, threads, batches, levels, args.repeats)
     results = {"recording": str(args.recording), "frames": len(frames), "repeats": args.repeats, "rows": rows}
-    args.out.write_text(json.dumps(results, indent=1, allow_nan=False) + "\n")
-    table = markdown(rows)
-    args.out.with_suffix(".md").write_text(table)
-    print(table)
+    write_results(args.out, results, markdown(rows))
     return 0

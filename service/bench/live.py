@@ -26,6 +26,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from service.errors import MeniscopeError
+from service.bench.results import write_results
 
 LATENCY = "meniscope_window_publish_latency_seconds"
 
@@ -46,7 +47,7 @@ def free_port() -> int:
         return int(s.getsockname()[1])
 
 
-class Service:
+class ServeProcess:
     """``meniscope serve`` in a child process on free ports with a data folder of its own, until :meth:`stop`."""
 
     def __init__(self, data_dir: Path, extra_env: dict[str, str] | None = None, log: Path | None = None) -> None:
@@ -105,14 +106,14 @@ class Service:
 class Clients:
     """A WebSocket client and a ZeroMQ subscriber of ``service``, counting the window messages each receives."""
 
-    def __init__(self, service: Service) -> None:
+    def __init__(self, service: ServeProcess) -> None:
         self.received = {"websocket": 0, "zeromq": 0}
         self._stop = threading.Event()
         self._threads = [threading.Thread(target=f, args=(service,), daemon=True) for f in (self._ws, self._zmq)]
         for t in self._threads:
             t.start()
 
-    def _ws(self, service: Service) -> None:
+    def _ws(self, service: ServeProcess) -> None:
         from websockets.sync.client import connect
 
         with connect(f"ws://127.0.0.1:{service.port}/ws") as ws:
@@ -123,7 +124,7 @@ class Clients:
                 except TimeoutError:
                     pass
 
-    def _zmq(self, service: Service) -> None:
+    def _zmq(self, service: ServeProcess) -> None:
         subscribe(service.zmq_port, self._stop, lambda parts: self.received.update(zeromq=self.received["zeromq"] + 1))
 
     def stop(self) -> None:
@@ -154,7 +155,7 @@ def subscribe(port: int, stop: threading.Event, on_message: Callable[[list[bytes
 COUNTERS = ("meniscope_frames_dropped_total", "meniscope_windows_skipped_total")
 
 
-def scrape(service: Service) -> tuple[dict[str, float], dict[str, float]]:
+def scrape(service: ServeProcess) -> tuple[dict[str, float], dict[str, float]]:
     """From /metrics (parsed by prometheus_client's own parser): the latency histogram's cumulative bucket
     counts by bound (its ``le`` label, s, and "+Inf"), and :data:`COUNTERS` so far."""
     from prometheus_client.parser import text_string_to_metric_families
@@ -173,7 +174,7 @@ def scrape(service: Service) -> tuple[dict[str, float], dict[str, float]]:
 def measure(seconds: float) -> dict:
     """One run: a fresh service, clients attached, the histogram's growth over ``seconds``."""
     with tempfile.TemporaryDirectory(prefix="meniscope-live-") as tmp:
-        service = Service(Path(tmp))
+        service = ServeProcess(Path(tmp))
         try:
             service.wait_ready()
             clients = Clients(service)
@@ -221,8 +222,5 @@ def run(args: argparse.Namespace) -> int:
     for k in range(args.runs):
         print(f"bench live: run {k + 1} of {args.runs}, {args.seconds:g} s ...", flush=True)
         runs.append(measure(args.seconds))
-    (args.out / "live.json").write_text(json.dumps({"runs": runs}, indent=1))
-    table = markdown(runs)
-    (args.out / "live.md").write_text(table)
-    print(table)
+    write_results(args.out / "live.json", {"runs": runs}, markdown(runs))
     return 0

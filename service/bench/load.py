@@ -20,7 +20,7 @@ import time
 import urllib.request
 from pathlib import Path
 
-from service.bench.live import Service
+from service.bench.live import ServeProcess
 from service.errors import MeniscopeError
 
 #: The counters each phase reads before and after.
@@ -40,7 +40,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
-def counters(service: Service) -> dict[str, float]:
+def counters(service: ServeProcess) -> dict[str, float]:
     """:data:`COUNTERS` and the windows published (all statuses) from /metrics."""
     from prometheus_client.parser import text_string_to_metric_families
 
@@ -117,7 +117,7 @@ class PageReader:
         self._thread.join(30)
 
 
-def phase(service: Service, seconds: float, name: str, clients: object | None) -> dict:
+def phase(service: ServeProcess, seconds: float, name: str, clients: object | None) -> dict:
     """The counters' growth over ``seconds`` with ``clients`` attached (they are stopped after)."""
     time.sleep(2.0)  # clients connected
     before, t0, load0 = counters(service), time.monotonic(), os.getloadavg()[0]
@@ -134,7 +134,7 @@ def phase(service: Service, seconds: float, name: str, clients: object | None) -
 
 def measure(seconds: float, readers: int, stalled: int) -> list[dict]:
     with tempfile.TemporaryDirectory(prefix="meniscope-load-") as tmp:
-        service = Service(Path(tmp))
+        service = ServeProcess(Path(tmp))
         try:
             service.wait_ready()
             time.sleep(3.0)  # fit workers warm, history filling

@@ -11,7 +11,6 @@ coefficients to ``--out``, and prints the table.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import time
 from pathlib import Path
@@ -21,11 +20,12 @@ import numpy as np
 from tqdm import tqdm
 
 from service.bench import parse_pairs
-from service.cli import add_scene_option
+from service.verbs import add_scene_option
 from service.errors import MeniscopeError
 from service.physics import CoefficientRanges
 from service.plotting import pyplot
 from service.scene import Scene
+from service.bench.results import write_results
 
 #: (frames, samples) for a full run and for ``--quick``.
 FULL, QUICK = (300, 32), (12, 8)
@@ -172,14 +172,11 @@ def run(args: argparse.Namespace) -> int:
                    "frames_per_s": cycles_rate},
         "ours": ours_results,
     }
-    args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / "render.json").write_text(json.dumps(results, indent=2, allow_nan=False) + "\n")
     table = markdown(results)
-    (args.out / "render.md").write_text(table)
+    write_results(args.out / "render.json", results, table)
     ours, agreement, ss, sun = best
     np.save(args.out / "ours.npy", ours)
     np.save(args.out / "cycles.npy", cycles)
     np.savetxt(args.out / "coefficients.csv", coeffs, delimiter=",", header="d,p,a,b", comments="")
     figure(ours, cycles, agreement, args.out / "render.png", label=f"ours {ss}x{sun}")
-    print(table, end="")
     return 0

@@ -23,7 +23,6 @@ from __future__ import annotations
 import argparse
 import asyncio
 import itertools
-import json
 import os
 import tempfile
 import time
@@ -37,6 +36,7 @@ from service.analysis.results import FitSettings
 from service.bench import parse_pairs
 from service.errors import MeniscopeError
 from service.settings import ServiceSettings, default_data_dir
+from service.bench.results import write_results
 
 CONFIGS = "512x1,512x2,128x1"
 #: The issue's target: a window's result published within this many ms of its close.
@@ -131,14 +131,13 @@ def measure(settings: ServiceSettings, seconds: float) -> dict:
 
 
 def stage_costs(recording: Path, configs: list[tuple[int, int]], frames: int = 3 * 19000) -> dict:
-    """CPU microseconds per frame of each stage (one thread at a time), and the fit's milliseconds per window."""
+    """CPU microseconds per frame of each stage (one thread at a time), and the fit's milliseconds per window: the
+    pipeline's own stages (:class:`FrameStages`, the segmenter, :func:`job_for`, :func:`fit_job`) called in turn."""
     from service import DEFAULT_MODELS, DEFAULT_SCENE
-    from service.analysis.fit import fit_window
-    from service.analysis.segment import frame_brightness
-    from service.analysis.steady import window_steady_centre
     from service.inverse.network import NetworkMethod
-    from service.pipeline.activity import ActivityTracker
     from service.pipeline.runtime import segmenter_for
+    from service.pipeline.stages import FrameStages
+    from service.pipeline.windows import fit_job, job_for
     from service.scene import Scene
     from service.sources import FrameBatch, open_source
 
@@ -149,27 +148,27 @@ def stage_costs(recording: Path, configs: list[tuple[int, int]], frames: int = 3
         return max(own, process) / count * 1e6, out  # onnxruntime's own threads count through process time
 
     with open_source(f"file://{quote(str(recording))}?speed=max&loop=1") as source:
-        fps = source.fps
+        fps, size = source.fps, (source.width, source.height)
         read_us, reads = cpu_us_per_frame(lambda: [source.read(128) for _ in range(frames // 128)])
     costs: dict = {"read_128": read_us}
     batch = FrameBatch.concatenate(reads)
     scene = Scene.load(DEFAULT_SCENE)
-    for size, threads in configs:
-        method = NetworkMethod(DEFAULT_MODELS, scene, threads=threads, batch=size)
-        method.infer(batch.pixels[:size])
-        costs[f"infer_{size}x{threads}"], out = cpu_us_per_frame(lambda: method.infer(batch.pixels), len(batch))
-    per_frame = np.column_stack([out.coefficients, frame_brightness(batch.pixels)])  # as the pipeline pushes them
-    tracker, segmenter = ActivityTracker(), segmenter_for(ServiceSettings(), fps)
-    costs["activity_segmentation"], closed = cpu_us_per_frame(lambda: [
-        w for lo in range(0, len(batch), 512) for w in segmenter.push(
-            batch.indices[lo:lo + 512], per_frame[lo:lo + 512],
-            tracker.update(batch.pixels[lo:lo + 512], batch.indices[lo:lo + 512]), np.zeros(len(batch.indices[lo:lo + 512])))
-    ], len(batch))
-    transient = FitSettings().transient_frames(fps)  # the series and the skipped transient the pipeline's fit gets
-    series = [(window_steady_centre(c.values[:, :4], scene.nozzle.radius_mm, transient, c.window.starts_at_ejection),
-               c.values[:, 4], c.window.starts_at_ejection) for c in closed]
-    fit_us, _ = cpu_us_per_frame(lambda: [fit_window(v, fps, starts_at_ejection=e, brightness=b) for v, b, e in series],
-                                 len(series))
+    stages = None
+    for size_, threads in configs:
+        method = NetworkMethod(DEFAULT_MODELS, scene, threads=threads, batch=size_)
+        stages = FrameStages(scene, *size, str(recording), method)
+        method.infer(batch.pixels[:size_])
+        costs[f"infer_{size_}x{threads}"], _ = cpu_us_per_frame(lambda: method.infer(batch.pixels), len(batch))
+    parts = [batch.select(slice(lo, lo + 512)) for lo in range(0, len(batch), 512)]
+    costs["measures"], measured = cpu_us_per_frame(lambda: [stages.measure(part) for part in parts], len(batch))
+    records = [stages.infer(part.pixels, m) for part, m in zip(parts, measured)]
+    segmenter = segmenter_for(ServiceSettings(), fps)
+    costs["segmentation"], closed = cpu_us_per_frame(lambda: [
+        w for part, r in zip(parts, records) for w in segmenter.push(part.indices, r, r["activity"],
+                                                                     np.zeros(len(part)))], len(batch))
+    settings = FitSettings()
+    jobs = [job_for(c.window, c.values, scene.nozzle.radius_mm, settings.transient_frames(fps)) for c in closed]
+    fit_us, _ = cpu_us_per_frame(lambda: [fit_job(job, fps, settings) for job in jobs], len(jobs))
     costs["fit_ms_per_window"] = fit_us / 1e3
     costs["fit_per_frame_at_100_hz"] = fit_us * 100 / fps
     costs["windows_fitted"] = len(closed)
@@ -256,8 +255,5 @@ def run(args: argparse.Namespace) -> int:
             results["runs"].append({"batch": batch, "threads": threads, "variant": variant, "run": name,
                                     "max_modes": modes, **measure(settings, args.seconds)})
     results["stage_costs"] = stage_costs(recording, configs)
-    (args.out / "serve.json").write_text(json.dumps(results, indent=1))
-    table = markdown(results)
-    (args.out / "serve.md").write_text(table)
-    print(table)
+    write_results(args.out / "serve.json", results, markdown(results))
     return 0

@@ -20,11 +20,12 @@ from pathlib import Path
 
 from service import DEFAULT_MODELS
 from service.bench import analysis, fit
-from service.cli import add_scene_option
+from service.verbs import add_scene_option
 from service.errors import MeniscopeError
 from service.inverse.manifest import load_manifest
 from service.plotting import pyplot
 from service.scene import Scene
+from service.bench.results import write_results
 
 #: (windows per recording, seeds, fit-suite windows per category, render frames flag, serve seconds) of the two modes.
 MODES = {"quick": (2, (201,), 1, ["--quick"], 3.0), "full": (12, (201, 202, 203), 25, [], 20.0)}
@@ -184,9 +185,6 @@ def run(args: argparse.Namespace) -> int:
                "render": json.loads((args.out / "render" / "render.json").read_text()),
                "render_md": str(args.out / "render" / "render.md"),
                "serve": serve, "realtime_factor": serve["frames_per_s_inferred"] / CAMERA_FPS}
-    (args.out / "tradeoff.json").write_text(json.dumps(results, indent=1, allow_nan=False) + "\n")
-    table = markdown(results)
-    (args.out / "tradeoff.md").write_text(table)
+    write_results(args.out / "tradeoff.json", results, markdown(results))
     pareto(rows, args.out / "tradeoff.png")
-    print(table)
     return 0

@@ -9,12 +9,14 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from service.errors import MeniscopeError
-from service.inverse.base import InverseMethod
-from service.inverse.nearest import NearestDatabase, NearestMethod
-from service.inverse.network import NetworkMethod
-from service.scene import Scene
+
+if TYPE_CHECKING:  # the methods load onnxruntime and scipy: imported when one is opened, not to list their names
+    from service.inverse.base import InverseMethod
+    from service.inverse.nearest import NearestDatabase
+    from service.scene import Scene
 
 METHODS = ("network", "direct", "nearest", "nearest-approx", "regularised")
 #: Methods that need a render database (``meniscope dataset``).
@@ -39,6 +41,9 @@ def open_method(name: str, scene: Scene, models: Path, database: Path | None = N
     ``regularised`` returns the exact nearest method (its per-frame fallback) with the database
     whose candidates the window fit chooses among.
     """
+    from service.inverse.nearest import NearestMethod
+    from service.inverse.network import NetworkMethod
+
     if name not in METHODS:
         raise MeniscopeError("--method", f"unknown method {name!r}; choose one of {', '.join(METHODS)}")
     if name not in DATABASE_METHODS:
@@ -50,6 +55,8 @@ def open_method(name: str, scene: Scene, models: Path, database: Path | None = N
 def open_database(folder: Path, scene: Scene) -> NearestDatabase:
     """The render database in ``folder``, refused unless its renders are the scene's ROI (the frames searched)
     and were made for this scene (its sha256, as a model folder's manifest is checked)."""
+    from service.inverse.nearest import NearestDatabase
+
     db = NearestDatabase.load(folder)
     if db.shape != (scene.camera.height_px, scene.camera.width_px):
         raise MeniscopeError(folder, f"renders of {db.shape[1]}x{db.shape[0]} px do not match the scene's ROI "

@@ -74,8 +74,9 @@ def _spectral_start(nearest: np.ndarray, fps: float, bounds: list[tuple[float, f
     return np.clip(x0, lower + inset, upper - inset)
 
 
-def fit_window(candidates: np.ndarray, fps: float, seed: int = 0) -> RegularisedFit:
-    """Fit one window: ``candidates`` (n, k) of D(0) in mm for n consecutive frames at ``fps``."""
+def choose_candidates(candidates: np.ndarray, fps: float, seed: int = 0) -> RegularisedFit:
+    """The regularised method on one window: the damped sinusoid through ``candidates`` (n, k) of D(0) in mm for n
+    consecutive frames at ``fps``, and the candidate it passes nearest per frame."""
     c = np.asarray(candidates, np.float64)
     if c.ndim != 2 or c.shape[0] < 4 or c.shape[1] < 1:
         raise MeniscopeError("candidates", f"need (frames >= 4, k >= 1), got shape {c.shape}")

@@ -27,28 +27,19 @@ from typing import Callable
 
 import numpy as np
 
-from service.analysis.fit import fit_window
 from service.analysis.results import FitSettings, WindowResult
 from service.analysis.segment import Window
 from service.errors import MeniscopeError
-from service.pipeline.segmenter import ClosedWindow
+from service.pipeline.windows import WindowJob, failed_result, fit_job
 
-#: What the pool calls with each finished fit: the window, its result (a failed one if the fit raised), and when
+#: What the pool calls with each finished fit: the job, its result (a failed one if the fit raised), and when
 #: (monotonic s: one clock for every process on the machine) its worker started and finished it (NaN if it raised).
-OnFitted = Callable[[ClosedWindow, WindowResult, float, float], None]
-
-
-def fit_one(window: Window, values: np.ndarray, fps: float, settings: FitSettings,
-            brightness: np.ndarray | None = None) -> WindowResult:
-    """:func:`fit_window` on one closed window (runs in a worker process)."""
-    return fit_window(values, fps, settings, index=window.index, start_frame=window.start,
-                      starts_at_ejection=window.starts_at_ejection, ends_at_ejection=window.ends_at_ejection,
-                      brightness=brightness)
+OnFitted = Callable[[WindowJob, WindowResult, float, float], None]
 
 
 def _serve(conn: Connection, settings: FitSettings, nice: int) -> None:
-    """A worker process: fit each (window, values, fps, brightness) the pipe brings until None, answering each
-    with (result, started, finished) (monotonic s) or, if the fit raised, the error as text."""
+    """A worker process: fit each (job, fps) the pipe brings until None, answering each with (result, started,
+    finished) (monotonic s) or, if the fit raised, the error as text."""
     os.nice(nice)
     try:
         _fit_until_told(conn, settings)
@@ -58,27 +49,19 @@ def _serve(conn: Connection, settings: FitSettings, nice: int) -> None:
 
 def _fit_until_told(conn: Connection, settings: FitSettings) -> None:
     """The loop of :func:`_serve`, until None comes or the pipe breaks."""
-    while (job := conn.recv()) is not None:
+    while (sent := conn.recv()) is not None:
         started = time.monotonic()
-        window, values, fps, brightness = job
+        job, fps = sent
         try:
-            answer: tuple[WindowResult, float, float] | str = (fit_one(window, values, fps, settings, brightness),
-                                                               started, time.monotonic())
+            answer: tuple[WindowResult, float, float] | str = (fit_job(job, fps, settings), started,
+                                                               time.monotonic())
         except Exception as exc:  # noqa: BLE001 - reported as the window's failed fit
             answer = f"{type(exc).__name__}: {exc}"
         conn.send(answer)
 
 
-def _failed(closed: ClosedWindow, reason: str) -> WindowResult:
-    w = closed.window
-    return WindowResult(index=w.index, start_frame=w.start, end_frame=w.end, status="failed",
-                        reason=reason, samples=int(np.isfinite(closed.values).sum()),
-                        missing=int((~np.isfinite(closed.values)).sum()), starts_at_ejection=w.starts_at_ejection,
-                        ends_at_ejection=w.ends_at_ejection)
-
-
-#: A window handed to the pool: the window, its frame rate and where its result goes.
-Job = tuple[ClosedWindow, float, OnFitted]
+#: A window handed to the pool: its job, its frame rate and where its result goes.
+Job = tuple[WindowJob, float, OnFitted]
 
 
 class _Worker:
@@ -109,13 +92,13 @@ class FitPool:
         self._all = [_Worker(settings, nice) for _ in range(workers)]
         warm = np.sin(np.arange(64) / 3.0)  # start the workers, import and load the compiled fit now, not at the first window
         for worker in self._all:
-            worker.conn.send((Window(0, 0, 64, False, False), warm, 1.0, warm))
+            worker.conn.send((WindowJob(Window(0, 0, 64, False, False), warm, warm), 1.0))
         for worker in self._all:
             worker.conn.recv()
             threading.Thread(target=self._receive, args=(worker,), name="meniscope-fit-results", daemon=True).start()
             self._idle.append(worker)
 
-    def submit(self, closed: ClosedWindow, fps: float, on_fitted: OnFitted) -> bool:
+    def submit(self, closed: WindowJob, fps: float, on_fitted: OnFitted) -> bool:
         """Start fitting ``closed`` (sampled at ``fps``), or queue it behind the fits in flight; False (and
         nothing done) when every worker is busy and as many windows already wait."""
         if self.broken:
@@ -136,7 +119,7 @@ class FitPool:
         worker.job = job
         closed, fps, _ = job
         try:
-            worker.conn.send((closed.window, closed.values, fps, closed.brightness))
+            worker.conn.send((closed, fps))
         except OSError:  # the worker died since its last fit
             worker.job, self.broken = None, True
             raise MeniscopeError("fit workers", "a fit worker process died; starting new ones") from None
@@ -155,7 +138,7 @@ class FitPool:
                         lost = ([worker.job] if worker.job is not None else []) + list(self._waiting)
                         self._waiting.clear()
                     for closed, _, on_fitted in lost:
-                        on_fitted(closed, _failed(closed, "the fit worker process died"), math.nan, math.nan)
+                        on_fitted(closed, failed_result(closed, "the fit worker process died"), math.nan, math.nan)
                 return
             assert worker.job is not None
             (closed, _, on_fitted), worker.job = worker.job, None
@@ -168,9 +151,9 @@ class FitPool:
                     self._start(worker, following)
                 except MeniscopeError:
                     closed_next, _, on_next = following
-                    on_next(closed_next, _failed(closed_next, "the fit worker process died"), math.nan, math.nan)
+                    on_next(closed_next, failed_result(closed_next, "the fit worker process died"), math.nan, math.nan)
             if isinstance(answer, str):
-                on_fitted(closed, _failed(closed, f"the fit raised {answer}"), math.nan, math.nan)
+                on_fitted(closed, failed_result(closed, f"the fit raised {answer}"), math.nan, math.nan)
             else:
                 on_fitted(closed, *answer)
 

@@ -1,9 +1,10 @@
-"""The live pipeline: source -> frame activity -> bounded queue -> batched inference -> segmentation -> fits.
+"""The live pipeline: the stages of :mod:`service.pipeline.stages` behind two threads and the fit pool.
 
-Two threads and a process pool. The acquisition thread reads the source, cuts each batch down to
-the scene's region of interest at once (a sensor larger than the ROI costs no queue memory or copies
-beyond it), scores each frame's activity and mean brightness (cheap numpy that the inference thread,
-the busier of the two, need not wait for) and offers the read to a queue of ``queue_batches`` reads;
+source -> ROI -> per-frame measures -> bounded queue -> batched inference -> segmentation -> fits.
+The acquisition thread reads the source, cuts each batch down to the scene's region of interest at once
+(a sensor larger than the ROI costs no queue memory or copies beyond it), measures each frame's change,
+activity and mean brightness (cheap numpy that the inference thread, the busier of the two, need not
+wait for) and offers the read to a queue of ``queue_batches`` reads;
 when the queue is full the read is dropped and counted, so a camera is never made to wait and memory
 never grows. The inference thread takes what is queued in one ONNX call, but no more frames than it
 infers within ``batch_ms`` at the cost per frame measured so far (:class:`BatchBudget`; a read that
@@ -17,20 +18,20 @@ import logging
 import queue
 import threading
 import time
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from functools import partial
 from typing import Protocol
 
 import numpy as np
 
 from service.analysis.results import WindowResult
-from service.analysis.segment import MIN_EJECTION_PERIOD_S, frame_brightness
-from service.analysis.steady import window_steady_centre
+from service.analysis.segment import MIN_EJECTION_PERIOD_S
 from service.errors import MeniscopeError
 from service.inverse.base import InverseMethod
-from service.pipeline.activity import ActivityTracker
 from service.pipeline.fitting import FitPool
 from service.pipeline.segmenter import ClosedWindow, StreamingSegmenter
+from service.pipeline.stages import FrameStages
+from service.pipeline.windows import WindowJob, job_for
 from service.scene import Scene
 from service.settings import ServiceSettings
 from service.sources import FrameBatch, FrameSource
@@ -43,20 +44,19 @@ DROP_REPORT_S = 10.0
 
 @dataclass(frozen=True)
 class Acquired:
-    """A read's ROI frames and what acquisition measured of each (N,): when it was read (monotonic s), its
-    activity z-score and its mean brightness."""
+    """A read's ROI frames, when each was read (monotonic s) and their records (N,) as acquisition measured them
+    (:meth:`FrameStages.measure`)."""
 
     batch: FrameBatch
     arrival: np.ndarray
-    activity: np.ndarray
-    brightness: np.ndarray
+    records: np.ndarray
 
     def __len__(self) -> int:
         return len(self.batch)
 
     def select(self, which: slice) -> "Acquired":
         """The frames ``which`` picks, with what was measured of them."""
-        return Acquired(self.batch.select(which), self.arrival[which], self.activity[which], self.brightness[which])
+        return Acquired(self.batch.select(which), self.arrival[which], self.records[which])
 
     @classmethod
     def concatenate(cls, parts: list["Acquired"]) -> "Acquired":
@@ -64,7 +64,7 @@ class Acquired:
         if len(parts) == 1:
             return parts[0]
         return cls(FrameBatch.concatenate([p.batch for p in parts]),
-                   *(np.concatenate([getattr(p, f) for p in parts]) for f in ("arrival", "activity", "brightness")))
+                   *(np.concatenate([getattr(p, f) for p in parts]) for f in ("arrival", "records")))
 
 
 @dataclass(frozen=True)
@@ -175,7 +175,8 @@ def segmenter_for(settings: ServiceSettings, fps: float) -> StreamingSegmenter:
     """The live segmenter ``settings`` ask for at ``fps``: no two ejections within half the expected period
     (:data:`MIN_EJECTION_PERIOD_S` when no rate is given), windows cut at ``max_window_s``."""
     period = fps / settings.ejection_hz if settings.ejection_hz else MIN_EJECTION_PERIOD_S * fps
-    return StreamingSegmenter(int(0.5 * period), int(settings.max_window_s * fps), settings.activity_threshold)
+    return StreamingSegmenter(int(0.5 * period), int(settings.max_window_s * fps), settings.activity_threshold,
+                              drop_leading=True)
 
 
 class Pipeline:
@@ -186,15 +187,11 @@ class Pipeline:
 
     def __init__(self, settings: ServiceSettings, scene: Scene, source: FrameSource, method: InverseMethod,
                  fits: FitPool, sink: PipelineSink, stats: PipelineStats) -> None:
-        scene.check_roi(source.width, source.height, source.uri)
+        self.stages = FrameStages(scene, source.width, source.height, source.uri, method)
         self.settings, self.source, self.method, self.fits = settings, source, method, fits
         self.sink, self.stats = sink, stats
-        (x, y), h, w = scene.camera.roi, scene.camera.height_px, scene.camera.width_px
-        self._roi = (slice(None), slice(y, y + h), slice(x, x + w))
-        self._roi_is_frame = (source.height, source.width) == (h, w)
         fps = source.fps
         self.segmenter = segmenter_for(settings, fps)
-        self.activity = ActivityTracker()
         self._queue: queue.Queue[Acquired] = queue.Queue(settings.queue_batches)
         self._rest: Acquired | None = None  # a read's frames past the last call's cap
         self.budget = BatchBudget(settings.batch_ms / 1e3, settings.batch, settings.read_frames)
@@ -236,15 +233,14 @@ class Pipeline:
                 stats.fps_in = meter.add(len(batch), now)
                 if not len(batch):
                     continue
-                batch = self._roi_of(batch)
+                batch = self.stages.roi(batch)
                 stats.frames_acquired += len(batch)
                 stats.last_frame_at = now
                 seen = self.source.stats
                 stats.frame_gaps += seen.gaps - lost.gaps
                 stats.frames_lost_upstream += seen.dropped - lost.dropped
                 lost = seen
-                acquired = Acquired(batch, np.full(len(batch), now), self.activity.update(batch.pixels, batch.indices),
-                                    frame_brightness(batch.pixels))
+                acquired = Acquired(batch, np.full(len(batch), now), self.stages.measure(batch))
                 try:
                     self._queue.put_nowait(acquired)
                 except queue.Full:
@@ -255,13 +251,6 @@ class Pipeline:
             self._error = MeniscopeError(self.source.uri, f"the source failed: {type(exc).__name__}: {exc}")
         finally:
             self._acquired.set()
-
-    def _roi_of(self, batch: FrameBatch) -> FrameBatch:
-        """The batch's ROI, copied out so that the whole sensor frames are freed at once; a batch whose frames
-        are the ROI passes as it is."""
-        if self._roi_is_frame:
-            return batch
-        return FrameBatch(batch.pixels[self._roi].copy(), batch.indices, batch.timestamps)
 
     def _infer(self, stop: threading.Event) -> bool:
         """The inference loop; True when the stream ended (everything read was processed)."""
@@ -317,33 +306,31 @@ class Pipeline:
         batch = acquired.batch
         pixels = batch.pixels
         t0 = time.perf_counter()
-        out = self.method.infer(pixels)
+        records = self.stages.infer(pixels, acquired.records)
         seconds = time.perf_counter() - t0
         self.budget.record(seconds, len(batch))
         self.sink.on_inference(seconds, len(batch))
         self.stats.frames_inferred += len(batch)
-        per_frame = np.column_stack([out.coefficients, acquired.brightness])  # d, p, a, b, brightness
-        self._dispatch(self.segmenter.push(batch.indices, per_frame, acquired.activity, acquired.arrival))
+        self._dispatch(self.segmenter.push(batch.indices, records, records["activity"], acquired.arrival))
+        last = records[-1]
         self.stats.latest = LatestFrame(int(batch.indices[-1]), pixels[-1].copy(),
-                                        tuple(float(c) for c in out.coefficients[-1]), float(out.centre[-1]))
-        self._update_trace(batch.indices, out.centre)
+                                        (float(last["d"]), float(last["p"]), float(last["a"]), float(last["b"])),
+                                        float(last["centre"]))
+        self._update_trace(batch.indices, records["centre"])
 
     def _dispatch(self, closed: list[ClosedWindow]) -> None:
-        """Each closed window's steady D(0, t) and brightness (as ``meniscope analyze`` fits them) to the fit
-        workers."""
+        """Each closed window's job (:func:`job_for`, as ``meniscope analyze`` makes it) to the fit workers."""
         for window in closed:
-            window = replace(window, values=window_steady_centre(window.values[:, :4], self._radius, self._transient,
-                                                                 window.window.starts_at_ejection),
-                             brightness=window.values[:, 4])
+            job = job_for(window.window, window.values, self._radius, self._transient, window.closed_at)
             self.stats.windows_closed += 1
             dispatched_at = time.monotonic()
-            if not self.fits.submit(window, self._fps, partial(self._fitted, dispatched_at)):
+            if not self.fits.submit(job, self._fps, partial(self._fitted, dispatched_at)):
                 self.stats.windows_skipped += 1
 
-    def _fitted(self, dispatched_at: float, closed: ClosedWindow, result: WindowResult, started_at: float,
+    def _fitted(self, dispatched_at: float, job: WindowJob, result: WindowResult, started_at: float,
                 finished_at: float) -> None:
-        self.sink.on_window(FittedWindow(result, self.settings.source_name, closed.values, self._fps,
-                                         closed.closed_at, dispatched_at, started_at, finished_at, time.monotonic()))
+        self.sink.on_window(FittedWindow(result, self.settings.source_name, job.series, self._fps,
+                                         job.closed_at, dispatched_at, started_at, finished_at, time.monotonic()))
 
     def _update_trace(self, indices: np.ndarray, centre: np.ndarray) -> None:
         """Keep the last ``trace_frames`` samples; send them ``trace_hz`` times a second."""

@@ -1,11 +1,14 @@
-"""Live segmentation: the centre-displacement stream cut into windows at ejections, as frames arrive.
+"""Window assembly: the per-frame records cut into windows at ejections, as frames arrive.
 
-The causal counterpart of :mod:`service.analysis.segment` (same :class:`Window` conventions): an
-ejection is the first frame whose activity rises above the threshold, at least ``min_gap`` frames
-after the previous ejection (half the expected period), so it is known the moment its frame is
-inferred and the window before it closes at once. Frames lost on the way (source gaps, frames the
-service dropped) become NaN samples, which the fit skips; a window that outgrows ``max_frames`` or a
-gap that long is cut there (its end is then not an ejection), so memory stays bounded.
+The one segmenter of every front door (same :class:`Window` conventions as
+:mod:`service.analysis.segment`). Live, an ejection is the first frame whose activity rises above
+the threshold, at least ``min_gap`` frames after the previous ejection (half the expected period),
+so it is known the moment its frame is inferred and the window before it closes at once. Offline
+looks further ahead (the printer's file, a known rate, or detection over the whole recording) and
+hands the ejections it found to :meth:`StreamingSegmenter.push` with the frames; the windows are cut
+by the same code. Frames lost on the way (source gaps, frames the service dropped) become NaN
+records, which the fit skips; a window that outgrows ``max_frames`` or a gap that long is cut there
+(its end is then not an ejection), so memory stays bounded.
 """
 from __future__ import annotations
 
@@ -21,23 +24,28 @@ from service.analysis.segment import Window
 class ClosedWindow:
     """A window whose frames are all in: its place in the stream, its samples and when it closed.
 
-    ``values``: (end - start, ...) what was pushed per frame (the live pipeline's d, p, a, b and brightness;
-    after its dispatch, the steady D(0, t)), NaN where frames are missing;
-    ``closed_at``: monotonic time (s) the frame that closed it was acquired;
-    ``brightness``: (end - start,) the frames' mean brightness, where the fit takes its poles from the frames.
+    ``values``: (end - start, ...) what was pushed per frame (the pipeline's records,
+    :data:`service.pipeline.records.FRAME`), NaN where frames are missing;
+    ``closed_at``: monotonic time (s) the frame that closed it was acquired.
     """
 
     window: Window
     values: np.ndarray
     closed_at: float
-    brightness: np.ndarray | None = None
 
 
 class StreamingSegmenter:
-    """Cuts consecutive batches of (frame index, per-frame values, activity, arrival time) into closed windows."""
+    """Cuts consecutive batches of (frame index, per-frame values, activity, arrival time) into closed windows.
 
-    def __init__(self, min_gap: int, max_frames: int, threshold: float) -> None:
+    ``drop_leading``: the window before the stream's first ejection (when the stream does not start at one) is
+    not returned, though it keeps its index: its frames are the end of a window whose ejection was never seen,
+    so it has no t = 0 to fit from (the live service starts and restarts anywhere in a window).
+    """
+
+    def __init__(self, min_gap: int, max_frames: int, threshold: float, drop_leading: bool = False) -> None:
         self.min_gap, self.max_frames, self.threshold = max(1, min_gap), max(2, max_frames), threshold
+        self.drop_leading = drop_leading
+        self._seen_ejection = False
         self.ejections: deque[int] = deque(maxlen=256)  # recent ejection frames, for the live trace
         self._count = 0  # windows closed so far: the next one's index
         self._next: int | None = None  # the frame index expected next
@@ -48,9 +56,12 @@ class StreamingSegmenter:
         self._above = False  # whether the last frame's activity was above the threshold
         self._last_ejection: int | None = None
 
-    def push(self, indices: np.ndarray, values: np.ndarray, activity: np.ndarray,
-             arrival: np.ndarray) -> list[ClosedWindow]:
-        """Add a batch (indices, activity, arrival (N,), increasing; values (N, ...)); the windows it closes."""
+    def push(self, indices: np.ndarray, values: np.ndarray, activity: np.ndarray, arrival: np.ndarray,
+             ejections: np.ndarray | None = None) -> list[ClosedWindow]:
+        """Add a batch (indices, activity, arrival (N,), increasing; values (N, ...)); the windows it closes.
+
+        ``ejections``: the ejection frames among ``indices`` when they are known already (offline, which looks
+        further ahead); the activity's rising edges are then not consulted."""
         closed: list[ClosedWindow] = []
         if self._next is not None and indices[0] - self._next >= self.max_frames:
             closed += self._close(False, float(arrival[0]))  # a gap as long as a window: start afresh
@@ -58,7 +69,8 @@ class StreamingSegmenter:
         first = int(indices[0]) if self._next is None else self._next
         dense = np.arange(first, int(indices[-1]) + 1)
         slot = indices - first
-        x = np.full((dense.size, *np.shape(values)[1:]), np.nan)
+        values = np.asarray(values)
+        x = np.full((dense.size, *values.shape[1:]), np.nan, values.dtype if values.dtype.names else np.float64)
         x[slot] = values
         z = np.zeros(dense.size)
         z[slot] = activity
@@ -67,11 +79,15 @@ class StreamingSegmenter:
         when = np.minimum.accumulate(when[::-1])[::-1]  # a missing frame counts as arriving with the next one
         if self._length == 0:
             self._start = first
-        above = z > self.threshold
-        rising = np.flatnonzero(above & ~np.concatenate([[self._above], above[:-1]]))
-        self._above = bool(above[-1])
+        if ejections is None:
+            above = z > self.threshold
+            rising = np.flatnonzero(above & ~np.concatenate([[self._above], above[:-1]]))
+            self._above = bool(above[-1])
+            cuts = self._ejections(dense, rising)
+        else:
+            cuts = np.flatnonzero(np.isin(dense, ejections)).tolist()
         i = 0
-        for cut in [*self._ejections(dense, rising), dense.size]:
+        for cut in [*cuts, dense.size]:
             while i < cut:
                 take = min(cut - i, self.max_frames - self._length)
                 self._append(x[i : i + take])
@@ -81,7 +97,7 @@ class StreamingSegmenter:
                     self._start, self._at_ejection = int(dense[i - 1]) + 1, False
             if cut < dense.size:
                 closed += self._close(True, float(when[cut]))
-                self._start, self._at_ejection = int(dense[cut]), True
+                self._start, self._at_ejection, self._seen_ejection = int(dense[cut]), True, True
                 self.ejections.append(int(dense[cut]))
         self._next = int(dense[-1]) + 1
         return closed
@@ -113,4 +129,6 @@ class StreamingSegmenter:
         window = Window(self._count, self._start, self._start + len(values), self._at_ejection, at_ejection)
         self._count += 1
         self._pieces, self._length = [], 0
+        if self.drop_leading and not self._seen_ejection:  # the tail of a window whose ejection was not seen
+            return []
         return [ClosedWindow(window, values, closed_at)]

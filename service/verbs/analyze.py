@@ -6,7 +6,7 @@ import argparse
 import math
 from pathlib import Path
 
-from service.cli import add_scene_option
+from service.verbs import add_scene_option
 from service.errors import MeniscopeError, require_folder_of
 
 
@@ -44,6 +44,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--refine", action="store_true",
                    help="refine each window's motion on its frames through the renderer, starting from the method's "
                    "per-frame values: seconds per window instead of milliseconds, far more accurate decay and amplitude")
+    p.add_argument("--scheduler", metavar="ADDRESS",
+                   help="fit (and refine) the windows on the Dask cluster whose scheduler listens there "
+                   "(tcp://host:8786; needs the 'scale' extra) instead of local processes")
+    p.add_argument("--workers", type=int, help="local processes fitting windows (default: one per core)")
     p.add_argument("--poles", choices=("frames", "series"),
                    help="where each window's frequencies and decay rates come from: its frames' mean brightness "
                    "(default; amplitudes, phases and offset still from D(0, t)) or D(0, t) alone (always with --refine: "
@@ -104,12 +108,14 @@ def run_analyze(args: argparse.Namespace) -> int:
 
     if args.refine and args.poles == "frames":
         raise MeniscopeError("--poles", "frames cannot be used with --refine: a refined window's poles are its own")
+    if args.workers is not None and args.workers < 1:
+        raise MeniscopeError("--workers", f"must be at least 1, got {args.workers}")
     settings = _settings(args, args.poles or ("series" if args.refine else "frames"))
     report_path, csv_path, png_path = _outputs(args.out)
     scene = Scene.load(args.scene)
     analysis = analyse_recording(args.recording, scene, args.method, args.models or DEFAULT_MODELS, args.database,
                                  Ejections(args.ejections, args.ejection_hz), settings, progress=not args.quiet,
-                                 refine=args.refine)
+                                 refine=args.refine, scheduler=args.scheduler, workers=args.workers)
     report = analysis.report
     report.write(report_path)
     write_per_frame(csv_path, analysis.per_frame, report.source.fps)

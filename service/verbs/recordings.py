@@ -5,11 +5,7 @@ import argparse
 import json
 from pathlib import Path
 
-import numpy as np
-from tqdm import tqdm
-
 from service.errors import MeniscopeError, require_folder_of
-from service.recordings import open_recording
 
 #: Frames copied per step of ``frames``: bounded by bytes, so big frames do not need big memory.
 CHUNK_BYTES = 64 * 2**20
@@ -40,6 +36,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def run_info(args: argparse.Namespace) -> int:
     """Print the recording's :meth:`~service.recordings.Recording.info` as JSON."""
+    from service.recordings import open_recording
+
     with open_recording(args.recording) as recording:
         print(json.dumps(recording.info(), indent=2, allow_nan=False))
     return 0
@@ -47,6 +45,11 @@ def run_info(args: argparse.Namespace) -> int:
 
 def run_frames(args: argparse.Namespace) -> int:
     """Copy frames ``--start`` .. ``--start + --count - 1`` into a .npy file, a chunk at a time."""
+    import numpy as np
+    from tqdm import tqdm
+
+    from service.recordings import open_recording
+
     out: Path = args.out
     require_folder_of(out)
     with open_recording(args.recording) as recording:

@@ -4,12 +4,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-import numpy as np
-
-from service.cli import add_scene_option
-from service.csvtable import read_columns
+from service.verbs import add_scene_option
 from service.errors import MeniscopeError, require_folder_of
-from service.scene import Scene
 
 
 def _quality(p: argparse.ArgumentParser) -> None:
@@ -37,6 +33,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _renderer(args: argparse.Namespace):
+    from service.scene import Scene
+
     from service.render import Renderer  # the compiled renderer loads only when a verb needs it
 
     return Renderer(Scene.load(args.scene), supersample=args.supersample, sun_samples=args.sun_samples)
@@ -49,6 +47,10 @@ def _writable(out: Path, suffix: str) -> None:
 
 
 def run_render(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from service.csvtable import read_columns
+
     _writable(args.out, ".npy")
     coeffs = read_columns(args.coefficients, ("d", "p", "a", "b"))
     frames = _renderer(args).render(coeffs)

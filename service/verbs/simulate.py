@@ -5,10 +5,9 @@ import argparse
 import math
 from pathlib import Path
 
-from service.cli import add_scene_option
+from service.verbs import add_scene_option
 from service.camera_effects import NOISE_PRESETS, noise_preset
 from service.errors import MeniscopeError
-from service.scene import Scene
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -35,6 +34,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from service.scene import Scene
+
     from service.simulate import check_output, simulate, truth_path  # the renderer loads only when a verb needs it
 
     if args.windows < 1:

@@ -4,8 +4,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from service.cli import add_scene_option
-from service.scene import Scene
+from service.verbs import add_scene_option
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -32,6 +31,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from service.scene import Scene
+
     from service.validation.report import validate  # onnxruntime and the renderer load only when the verb runs
 
     document = validate(Scene.load(args.scene), args.models, args.database, args.recording, args.out,

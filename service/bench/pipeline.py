@@ -1,0 +1,132 @@
+"""``meniscope bench pipeline``: the one pipeline's two ways of running, side by side on one recording.
+
+- offline: ``meniscope analyze``'s analysis (:func:`service.analysis.offline.analyse_recording`: the stages on a
+  replay at full speed, the windows fitted on the local process pool), the method opened once beforehand;
+- live: the live :class:`service.pipeline.runtime.Pipeline` (acquisition and inference threads, the fit workers)
+  on the same recording replayed at full speed: its capacity, the frames/s it infers when no camera paces it.
+
+Each ``--repeat`` times, alternating, so that both see the same load; medians and the ratio to the camera's rate.
+"""
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from service.verbs import add_scene_option
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser("pipeline", help="offline analysis and the live pipeline's capacity on one recording",
+                              description=__doc__)
+    p.add_argument("recording", type=Path, help="REC.cine or REC.avi, e.g. from `meniscope simulate --windows 200`")
+    add_scene_option(p)
+    p.add_argument("--repeat", type=int, default=3, help="runs of each (default 3)")
+    p.add_argument("--workers", type=int, help="fit processes (default: one per core)")
+    p.add_argument("--out", type=Path, required=True, help="PIPELINE.json to write; a Markdown table beside it")
+    p.set_defaults(func=run)
+
+
+def measure_offline(recording: Path, scene, opened, workers: int | None) -> dict:  # type: ignore[no-untyped-def]
+    """One offline analysis: wall seconds and frames/s (the method already open)."""
+    import time
+
+    from service import DEFAULT_MODELS
+    from service.analysis.offline import analyse_recording
+
+    t0 = time.perf_counter()
+    analysis = analyse_recording(recording, scene, "network", DEFAULT_MODELS, progress=False, opened=opened,
+                                 workers=workers)
+    seconds = time.perf_counter() - t0
+    frames = analysis.report.source.frames
+    return {"seconds": seconds, "frames_per_s": frames / seconds, "windows": len(analysis.report.windows)}
+
+
+def measure_live(recording: Path, scene, method, workers: int | None) -> dict:  # type: ignore[no-untyped-def]
+    """One run of the live pipeline over the recording at full speed with its fit workers: frames/s inferred and
+    windows fitted by the time the last fit came back."""
+    import os
+    import threading
+    import time
+    from urllib.parse import quote
+
+    from service.pipeline.fitting import FitPool
+    from service.pipeline.runtime import Pipeline, PipelineStats
+    from service.settings import ServiceSettings
+    from service.sources import open_source
+
+    settings = ServiceSettings(source=f"file://{quote(str(recording))}?speed=max", recordings_dir=recording.parent,
+                               fit_workers=workers or os.cpu_count() or 1, queue_batches=1024)
+    fitted: list = []
+    done = threading.Event()
+
+    class Count:
+        def on_window(self, window) -> None:  # type: ignore[no-untyped-def]
+            fitted.append(window)
+            if len(fitted) >= stats.windows_closed - stats.windows_skipped and ended:
+                done.set()
+
+        def on_trace(self, trace) -> None:  # type: ignore[no-untyped-def]
+            pass
+
+        def on_inference(self, seconds: float, frames: int) -> None:
+            pass
+
+    stats, ended = PipelineStats(), False
+    pool = FitPool(settings.fit_workers, settings.fit, settings.fit_nice)
+    try:
+        with open_source(settings.source) as source:
+            t0 = time.perf_counter()
+            Pipeline(settings, scene, source, method, pool, Count(), stats).run(threading.Event())
+            inferred = time.perf_counter() - t0
+            ended = True
+            if len(fitted) < stats.windows_closed - stats.windows_skipped:
+                done.wait(120)
+            seconds = time.perf_counter() - t0
+    finally:
+        pool.close()
+    return {"seconds": seconds, "frames_per_s": stats.frames_inferred / seconds,
+            "inferred_frames_per_s": stats.frames_inferred / inferred, "frames_dropped": stats.frames_dropped,
+            "windows": len(fitted), "windows_skipped": stats.windows_skipped}
+
+
+def markdown(results: dict) -> str:
+    """The side-by-side table."""
+    fps = results["camera_fps"]
+    lines = ["| pipeline | frames/s (median) | x camera | windows | runs (frames/s) |", "|---|---:|---:|---:|---|"]
+    for name in ("offline", "live"):
+        runs = results[name]
+        median = results[f"{name}_median_frames_per_s"]
+        each = ", ".join(f"{r['frames_per_s']:.0f}" for r in runs)
+        lines.append(f"| {name} | {median:.0f} | {median / fps:.2f} | {runs[-1]['windows']} | {each} |")
+    lines.append(f"\noffline / live: {results['offline_over_live']:.2f} (medians of {len(results['offline'])} "
+                 f"alternating runs on {results['recording']})\n")
+    return "\n".join(lines)
+
+
+def run(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from service import DEFAULT_MODELS
+    from service.bench.results import write_results
+    from service.errors import MeniscopeError
+    from service.inverse.methods import open_method
+    from service.recordings import open_recording
+    from service.scene import Scene
+
+    if args.repeat < 1:
+        raise MeniscopeError("--repeat", f"must be at least 1, got {args.repeat}")
+    scene = Scene.load(args.scene)
+    with open_recording(args.recording) as rec:
+        camera_fps = rec.fps
+    opened = open_method("network", scene, DEFAULT_MODELS)
+    offline, live = [], []
+    for k in range(args.repeat):
+        print(f"bench pipeline: run {k + 1} of {args.repeat} ...", flush=True)
+        offline.append(measure_offline(args.recording, scene, opened, args.workers))
+        live.append(measure_live(args.recording, scene, opened[0], args.workers))
+    results = {"recording": str(args.recording), "camera_fps": camera_fps, "offline": offline, "live": live}
+    for name, runs in (("offline", offline), ("live", live)):
+        results[f"{name}_median_frames_per_s"] = float(np.median([r["frames_per_s"] for r in runs]))
+    results["offline_over_live"] = results["offline_median_frames_per_s"] / results["live_median_frames_per_s"]
+    write_results(args.out, results, markdown(results))
+    return 0

@@ -1,0 +1,22 @@
+"""The per-frame record every stage adds to and every front door reads: one typed row per frame.
+
+A numpy structured array (one row per frame, one named field per measure) rather than column-stacked
+floats whose column 4 meant different things in different modules; NaN in every field marks a frame
+that never arrived (the segmenter fills such gaps).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+#: d, p, a, b (Eq. 1: mm, 1, mm, mm), D(0, t) (mm), mean brightness (stored pixel units), change (mean
+#: absolute difference from the frame before, pixel units; NaN without one) and activity (the change as a robust
+#: z-score against the stream's recent frames; 0 without one) of one frame.
+FRAME = np.dtype([("d", "f8"), ("p", "f8"), ("a", "f8"), ("b", "f8"), ("centre", "f8"), ("brightness", "f8"),
+                  ("change", "f8"), ("activity", "f8")])
+#: The fields of :data:`FRAME` that hold Eq. 1's coefficients, in the order inverse methods return them.
+COEFFICIENTS = ("d", "p", "a", "b")
+
+
+def coefficients_of(records: np.ndarray) -> np.ndarray:
+    """The coefficients d, p, a, b of ``records`` as an (N, 4) float64 array."""
+    return np.column_stack([records[name] for name in COEFFICIENTS])

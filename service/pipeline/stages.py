@@ -1,0 +1,54 @@
+"""The per-frame stages every front door runs a batch of frames through: ROI -> measures -> inverse.
+
+``meniscope serve`` calls them from its acquisition and inference threads, ``meniscope analyze`` one
+after the other on a replay read at full speed, ``meniscope bench`` either way: a change to how a
+frame is handled lands here once. Each batch becomes per-frame records
+(:data:`service.pipeline.records.FRAME`), which the segmenter (:mod:`service.pipeline.segmenter`)
+cuts into windows for the window-level work (:mod:`service.pipeline.windows`).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from service.analysis.segment import frame_brightness
+from service.inverse.base import InverseMethod
+from service.pipeline.activity import ActivityTracker
+from service.pipeline.records import COEFFICIENTS, FRAME
+from service.scene import Scene
+from service.sources.base import FrameBatch
+
+
+class FrameStages:
+    """The per-frame stages of one stream of ``width`` x ``height`` frames (from ``uri``) through ``method``."""
+
+    def __init__(self, scene: Scene, width: int, height: int, uri: str, method: InverseMethod) -> None:
+        scene.check_roi(width, height, uri)
+        (x, y), h, w = scene.camera.roi, scene.camera.height_px, scene.camera.width_px
+        self._roi = (slice(None), slice(y, y + h), slice(x, x + w))
+        self._roi_is_frame = (height, width) == (h, w)
+        self.method = method
+        self.activity = ActivityTracker()
+
+    def roi(self, batch: FrameBatch) -> FrameBatch:
+        """The batch's region of interest, copied out so that whole sensor frames are freed at once; a batch whose
+        frames are the ROI passes as it is."""
+        if self._roi_is_frame:
+            return batch
+        return FrameBatch(batch.pixels[self._roi].copy(), batch.indices, batch.timestamps)
+
+    def measure(self, batch: FrameBatch) -> np.ndarray:
+        """Records (N,) of a batch of ROI frames with what the pixels alone say (change from the frame before,
+        activity, mean brightness); the inverse's fields NaN until :meth:`infer`."""
+        records = np.full(len(batch), np.nan, FRAME)
+        records["change"], records["activity"] = self.activity.update(batch.pixels, batch.indices)
+        records["brightness"] = frame_brightness(batch.pixels)
+        return records
+
+    def infer(self, pixels: np.ndarray, records: np.ndarray) -> np.ndarray:
+        """``records`` of ROI frames ``pixels`` (N, H, W) with the inverse method's coefficients and D(0, t) filled
+        in (in place; returned for convenience)."""
+        out = self.method.infer(pixels)
+        for name, column in zip(COEFFICIENTS, out.coefficients.T):
+            records[name] = column
+        records["centre"] = out.centre
+        return records

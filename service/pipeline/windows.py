@@ -1,0 +1,151 @@
+"""Window-level work: what a closed window becomes before its fit, and the fit itself, for every front door.
+
+A :class:`WindowJob` is self-contained (picklable, no handle on the stream), so it runs wherever there is
+room: the live service's fit workers (:class:`service.pipeline.fitting.FitPool`), a local process pool or a
+Dask cluster for an offline analysis (:func:`run_jobs`).
+"""
+from __future__ import annotations
+
+import math
+from concurrent.futures import Future
+from dataclasses import dataclass
+from typing import Any, Callable
+
+import numpy as np
+
+from service.analysis.results import FitSettings, WindowResult
+from service.analysis.segment import Window
+from service.analysis.steady import window_steady_centre
+from service.pipeline.records import coefficients_of
+
+
+@dataclass(frozen=True)
+class WindowJob:
+    """One window's fit to be done: the series it takes (the steady D(0, t), mm per frame, NaN where frames are
+    missing), its frames' mean brightness (where the fit takes its poles from the frames) and when (monotonic s)
+    the frame that closed it was read (NaN offline)."""
+
+    window: Window
+    series: np.ndarray
+    brightness: np.ndarray | None = None
+    closed_at: float = math.nan
+
+
+def job_for(window: Window, records: np.ndarray, radius_mm: float, transient: int,
+            closed_at: float = math.nan) -> WindowJob:
+    """The job of ``window`` from its frames' records: its steady D(0, t) (:mod:`service.analysis.steady`) and
+    brightness."""
+    series = window_steady_centre(coefficients_of(records), radius_mm, transient, window.starts_at_ejection)
+    return WindowJob(window, series, np.ascontiguousarray(records["brightness"]), closed_at)
+
+
+def fit_job(job: WindowJob, fps: float, settings: FitSettings) -> WindowResult:
+    """The window fit (:func:`service.analysis.fit.fit_window`) of one job."""
+    from service.analysis.fit import fit_window
+
+    w = job.window
+    return fit_window(job.series, fps, settings, index=w.index, start_frame=w.start,
+                      starts_at_ejection=w.starts_at_ejection, ends_at_ejection=w.ends_at_ejection,
+                      brightness=job.brightness)
+
+
+def failed_result(job: WindowJob, reason: str) -> WindowResult:
+    """The result of a job whose fit could not be done, saying why."""
+    w, finite = job.window, np.isfinite(job.series)
+    return WindowResult(index=w.index, start_frame=w.start, end_frame=w.end, status="failed", reason=reason,
+                        samples=int(finite.sum()), missing=int((~finite).sum()),
+                        starts_at_ejection=w.starts_at_ejection, ends_at_ejection=w.ends_at_ejection)
+
+
+#: Seconds to wait for a Dask scheduler to answer.
+CONNECT_TIMEOUT_S = 10.0
+
+
+class JobRunner:
+    """Runs window jobs as independent tasks: in a local process pool of ``workers`` (default: one per core), or on
+    the Dask cluster whose scheduler listens at ``scheduler`` (``tcp://host:8786``; the ``scale`` extra).
+
+    Started before the frames are read, so that its workers load the compiled fit while inference runs."""
+
+    def __init__(self, settings: FitSettings, scheduler: str | None = None, workers: int | None = None) -> None:
+        self.settings, self.scheduler = settings, scheduler
+        self._client = self._pool = None
+        if scheduler is not None:
+            self._client = _dask_client(scheduler)
+        else:
+            import multiprocessing
+            import os
+            from concurrent.futures import ProcessPoolExecutor
+
+            count = workers or os.cpu_count() or 1
+            # fork: a worker starts in milliseconds with everything imported (spawned ones took seconds of the two
+            # cores the frames need). Safe here although the caller may run inference threads: a worker only fits
+            # (numpy, numba) and never takes a lock those threads hold; the runner is made before the analysis
+            # starts threads of its own.
+            self._pool = ProcessPoolExecutor(count, multiprocessing.get_context("fork"), initializer=_warm)
+            for _ in range(count):  # the pool starts its processes as work comes: start them all now
+                self._pool.submit(int)
+
+    def submit(self, job: WindowJob, fps: float) -> Future:
+        """Start ``job``'s fit; the future's result is the window's (a failed one, saying why, if the fit raised)."""
+        if self._client is not None:
+            return self._client.submit(_fit_or_fail, job, fps, self.settings, pure=False)
+        return self._pool.submit(_fit_or_fail, job, fps, self.settings)
+
+    def call(self, task: Callable[..., Any], *args: Any) -> Future:
+        """Start any other window-level ``task(*args)`` (a picklable function of self-contained arguments)."""
+        if self._client is not None:
+            return self._client.submit(task, *args, pure=False)
+        return self._pool.submit(task, *args)
+
+    def run(self, jobs: list[WindowJob], fps: float, progress: bool = False) -> list[WindowResult]:
+        """Each job's result, in the jobs' order."""
+        return gather([self.submit(job, fps) for job in jobs], progress)
+
+    def close(self) -> None:
+        if self._client is not None:
+            self._client.close()
+        if self._pool is not None:
+            self._pool.shutdown()
+
+    def __enter__(self) -> "JobRunner":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def gather(futures: list[Future], progress: bool = False) -> list[WindowResult]:
+    """The futures' results in their order, with a progress bar over windows."""
+    from tqdm import tqdm
+
+    return [future.result() for future in tqdm(futures, desc="fit", unit="window", disable=not progress)]
+
+
+def _fit_or_fail(job: WindowJob, fps: float, settings: FitSettings) -> WindowResult:
+    """:func:`fit_job`, or the failed result naming what it raised (one window's fit never stops an analysis)."""
+    try:
+        return fit_job(job, fps, settings)
+    except Exception as exc:  # noqa: BLE001 - reported as the window's failed fit
+        return failed_result(job, f"the fit raised {type(exc).__name__}: {exc}")
+
+
+def _warm() -> None:
+    """Load the fit and its compiled kernels in a new worker process (from numba's cache)."""
+    from service.analysis.fit import warm
+
+    warm()
+
+
+def _dask_client(scheduler: str):  # type: ignore[no-untyped-def]
+    """A client of the Dask scheduler at ``scheduler``; a clear error without the ``scale`` extra or a scheduler."""
+    from service.errors import MeniscopeError
+
+    try:
+        from distributed import Client
+    except ImportError:
+        raise MeniscopeError("--scheduler", "needs the Dask distributed package: pip install 'meniscope[scale]'") from None
+    try:
+        return Client(scheduler, timeout=CONNECT_TIMEOUT_S, set_as_default=False)
+    except (OSError, TimeoutError) as exc:
+        raise MeniscopeError(scheduler, f"cannot reach the Dask scheduler: {exc}") from None

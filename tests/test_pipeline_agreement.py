@@ -1,0 +1,84 @@
+"""One pipeline behind every front door: the live pipeline and ``meniscope analyze`` make the same windows of the
+same recording, field for field, and a live start publishes no fragment of a window as a failure."""
+from __future__ import annotations
+
+import math
+import threading
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from service import DEFAULT_MODELS, DEFAULT_SCENE
+from service.analysis.offline import analyse_recording
+from service.analysis.results import FitSettings
+from service.inverse.network import NetworkMethod
+from service.pipeline.fitting import OnFitted
+from service.pipeline.runtime import FittedWindow, Pipeline, PipelineStats
+from service.pipeline.windows import WindowJob, fit_job
+from service.scene import Scene
+from service.settings import ServiceSettings
+from service.sources import open_source
+
+
+class InProcessFits:
+    """Fit workers that fit each window at once in this process, with the function the workers run."""
+
+    def __init__(self, settings: FitSettings) -> None:
+        self.settings = settings
+
+    def submit(self, job: WindowJob, fps: float, on_fitted: OnFitted) -> bool:
+        on_fitted(job, fit_job(job, fps, self.settings), math.nan, math.nan)
+        return True
+
+
+class Published:
+    """A sink that keeps the fitted windows."""
+
+    def __init__(self) -> None:
+        self.windows: list[FittedWindow] = []
+
+    def on_window(self, fitted: FittedWindow) -> None:
+        self.windows.append(fitted)
+
+    def on_trace(self, trace: object) -> None:
+        pass
+
+    def on_inference(self, seconds: float, frames: int) -> None:
+        pass
+
+
+@pytest.fixture(scope="module")
+def live_and_offline(demo_cine: Path) -> tuple[list[FittedWindow], object]:
+    scene = Scene.load(DEFAULT_SCENE)
+    settings = ServiceSettings(read_frames=37, queue_batches=1024)  # odd reads; room for every one: none dropped
+    method = NetworkMethod(DEFAULT_MODELS, scene)
+    published, stats = Published(), PipelineStats()
+    with open_source(f"file://{demo_cine}?speed=max") as source:
+        assert Pipeline(settings, scene, source, method, InProcessFits(settings.fit), published, stats).run(
+            threading.Event())
+    assert stats.frames_dropped == 0
+    offline = analyse_recording(demo_cine, scene, "network", DEFAULT_MODELS, settings=settings.fit, progress=False,
+                                opened=(method, None), workers=1)
+    return published.windows, offline
+
+
+def test_every_live_window_is_the_offline_window_of_the_same_frames_in_every_field(live_and_offline) -> None:
+    live, offline = live_and_offline
+    by_frames = {(w.start_frame, w.end_frame): w for w in offline.report.windows}
+    assert len(live) >= 3
+    for fitted in live:
+        result = fitted.result
+        twin = by_frames.get((result.start_frame, result.end_frame))
+        assert twin is not None, f"offline has no window {result.start_frame}..{result.end_frame}"
+        assert result.model_dump() == twin.model_dump()  # every field: index, bounds, status, modes, settling, ...
+        np.testing.assert_array_equal(fitted.values, offline.fitted[result.start_frame : result.end_frame])
+
+
+def test_a_live_start_publishes_no_failed_fragment_before_the_first_ejection(live_and_offline) -> None:
+    live, offline = live_and_offline
+    assert all(f.result.status != "failed" for f in live)
+    assert all(f.result.starts_at_ejection for f in live)  # the frames before the first ejection are no window
+    first = min(f.result.start_frame for f in live)
+    assert [w.index for w in offline.report.windows if w.start_frame == first] == \
+           [min(f.result.index for f in live)]  # the dropped fragment keeps its index: live counts as offline does
