@@ -132,13 +132,8 @@ def test_a_csv_without_the_column_is_refused(tmp_path: Path):
     assert done.returncode == 2 and "value" in done.stderr and "s.csv" in done.stderr
 
 
-def test_the_benchmarks_score_against_truth_and_harminv(recording: Path, tmp_path: Path):
-    out = tmp_path / "fit.json"
-    done = meniscope("bench", "fit", "--windows", "5", "--noise-mm", "0,0.001", "--out", out)
-    assert done.returncode == 0, done.stderr
-    levels = json.loads(out.read_text())["levels"]
-    assert [lv["noise_mm"] for lv in levels] == [0, 0.001]
-    assert levels[0]["methods"]["ours"]["found"] == 5 and levels[0]["methods"]["ours"]["frequency_error_median"] < 1e-9
+def test_bench_analysis_scores_every_method_against_the_truth(recording: Path, tmp_path: Path):
+    """(``bench fit``, the window-fit suite, has its own test in test_fit_suite.py.)"""
     out = tmp_path / "analysis.json"
     done = meniscope("bench", "analysis", "--recordings", recording.parent, "--methods", "direct", "--out", out)
     assert done.returncode == 0, done.stderr
