@@ -166,8 +166,7 @@ def _regularise(db: NearestDatabase, candidates: np.ndarray, windows: list[Windo
         lo = w.oscillation_start(skip)
         if w.end - lo < 4:  # too short to fit a sinusoid: keep the nearest
             continue
-        fit = regularised.choose_candidates(db.centre[candidates[lo:w.end]], fps)
-        chosen[lo:w.end] = candidates[np.arange(lo, w.end), fit.chosen]
+        chosen[lo:w.end] = regularised.chosen_rows(candidates[lo:w.end], db.centre, fps)[0]
     return db.coeffs[chosen], db.centre[chosen]
 
 

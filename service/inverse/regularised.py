@@ -107,3 +107,11 @@ def choose_candidates(candidates: np.ndarray, fps: float, seed: int = 0) -> Regu
     return RegularisedFit(frequency_hz=delta / (2 * np.pi), decay_rate_per_s=beta, amplitude_mm=alpha,
                           phase_rad=eps % (2 * np.pi), offset_mm=zeta, centre=c[np.arange(n), chosen], chosen=chosen,
                           rms_mm=float(result.fun) / np.sqrt(n))
+
+
+def chosen_rows(candidates: np.ndarray, centre: np.ndarray, fps: float, seed: int = 0) -> tuple[np.ndarray,
+                                                                                                  RegularisedFit]:
+    """One window's frames regularised: ``candidates`` (N, k) database rows per frame and ``centre`` the
+    database's D(0, t) per row; per frame the row the window's damped sinusoid chose, and that fit."""
+    fit = choose_candidates(centre[candidates], fps, seed=seed)
+    return candidates[np.arange(len(candidates)), fit.chosen], fit

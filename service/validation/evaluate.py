@@ -21,7 +21,7 @@ from service.analysis.offline import CANDIDATES
 from service.inverse.base import InverseMethod
 from service.inverse.manifest import Scores
 from service.inverse.nearest import NearestDatabase, Neighbours, recall_at_k
-from service.inverse.regularised import choose_candidates
+from service.inverse.regularised import chosen_rows
 from service.recordings.roi import read_roi_frames
 from service.scene import Scene
 from service.validation.truth import TruthWindow, read_truth, score, truth_windows
@@ -146,9 +146,8 @@ class Evaluation:
         for k, window in enumerate(result.windows):
             rows = slice(start, start + len(window.frames))
             started = time.perf_counter()
-            fit = choose_candidates(database.centre[exact.index[rows]], fps, seed=k)
+            chosen, fit = chosen_rows(exact.index[rows], database.centre, fps, seed=k)
             fit_seconds.append(time.perf_counter() - started)
-            chosen = exact.index[rows][np.arange(len(window.frames)), fit.chosen]
             pred[rows, :4] = database.coeffs[chosen]
             pred[rows, 4] = fit.curve(np.arange(len(window.frames)) / fps)
             fits.append((fit.frequency_hz, fit.decay_rate_per_s, window.motion.f1, window.motion.g1))
