@@ -182,17 +182,20 @@ def plan_recording(
 
 class CameraFrames:
     """What the camera stores for Eq. 1 coefficients: the scene rendered into its ROI (``camera.roi``) of a
-    sensor that ends with it, black around it, then through the camera's ``effects``.
+    sensor of ``frame`` = (width, height) px (default: one that ends with the ROI), black around it, then
+    through the camera's ``effects``.
 
     ``renderer``: anything with ``render(coeffs (N, 4)) -> (N, H, W)`` linear frames of the scene.
     """
 
-    def __init__(self, scene: Scene, renderer: Renderer, effects: CameraEffects) -> None:
+    def __init__(self, scene: Scene, renderer: Renderer, effects: CameraEffects,
+                 frame: tuple[int, int] | None = None) -> None:
         cam = scene.camera
         x, y = cam.roi
         self.renderer, self.effects = renderer, effects
-        self.height, self.width = y + cam.height_px, x + cam.width_px
-        self._roi = (slice(None), slice(y, None), slice(x, None))
+        self.width, self.height = frame or (x + cam.width_px, y + cam.height_px)
+        scene.check_roi(self.width, self.height, "--frame")
+        self._roi = (slice(None), slice(y, y + cam.height_px), slice(x, x + cam.width_px))
         self._linear = np.zeros((0, self.height, self.width), np.float32)  # linear, black outside the ROI
 
     def take(self, coeffs: np.ndarray, rng: np.random.Generator) -> np.ndarray:
@@ -212,20 +215,22 @@ def truth_path(recording: str | Path) -> Path:
 
 
 def truth_document(plan: Plan, scene: Scene, recording: Path, effects: CameraEffects, seed: int,
-                   ejection_hz: float, noise: str | None, renderer: str) -> dict[str, Any]:
+                   ejection_hz: float, noise: str | None, renderer: str,
+                   frame: tuple[int, int] | None = None) -> dict[str, Any]:
     """The sidecar's content (scene.md, "Recordings and ground truth"): JSON-safe, finite numbers."""
     x, y = scene.camera.roi
+    width, height = frame or (x + scene.camera.width_px, y + scene.camera.height_px)
     return {
         "schema": SCHEMA,
         "recording": {
             "path": recording.name,
             "frames": plan.frame_count,
             "fps": scene.camera.fps,
-            "width": x + scene.camera.width_px,
-            "height": y + scene.camera.height_px,
+            "width": width,
+            "height": height,
             "bit_depth": effects.bit_depth,
         },
-        "scene": scene.model_dump(mode="json"),
+        "scene": scene.as_dict(),
         "scene_sha256": scene.sha256,
         "seed": seed,
         "renderer": renderer,
@@ -269,13 +274,14 @@ def simulate(
     ranges: WindowRanges = WindowRanges(),
     transient: Transient = Transient(),
     renderer: Renderer | None = None,
+    frame: tuple[int, int] | None = None,
 ) -> dict[str, Any]:
     """Render, pass through the camera and write a recording plus its ``.truth.json``; returns the truth.
 
     Deterministic by ``seed``: the motion comes from the first child of ``SeedSequence(seed)``, the
     camera noise of window k from child k of its second child. Frames outside the scene's ROI
     (``camera.roi``) are black before the camera effects. ``noise`` names the preset ``effects``
-    came from, for the record; ``renderer`` is anything with ``render(coeffs (N, 4)) -> (N, H, W)`` linear
+    came from, for the record; ``frame``: the recorded (width, height) when larger than the ROI; ``renderer`` is anything with ``render(coeffs (N, 4)) -> (N, H, W)`` linear
     frames, ours by default (``service.render.blender.BlenderRenderer`` for a second renderer), and the
     truth names its class. Memory stays bounded: at most :data:`BATCH_FRAMES` frames at once.
     """
@@ -291,7 +297,7 @@ def simulate(
         from service.render import Renderer
 
         renderer = Renderer(scene)
-    camera = CameraFrames(scene, renderer, effects)
+    camera = CameraFrames(scene, renderer, effects, frame)
     sidecar = truth_path(out)
     try:
         with open_writer(out, camera.width, camera.height, cam.fps, bit_depth=effects.bit_depth) as writer, tqdm(
@@ -304,7 +310,8 @@ def simulate(
                     stop = min(length, start + BATCH_FRAMES)
                     writer.write(camera.take(plan.coefficients(k, start, stop), rng), None)
                     bar.update(stop - start)
-        truth = truth_document(plan, scene, out, effects, seed, ejection_hz, noise, type(renderer).__name__)
+        truth = truth_document(plan, scene, out, effects, seed, ejection_hz, noise, type(renderer).__name__,
+                               (camera.width, camera.height))
         try:
             sidecar.write_text(json.dumps(truth, indent=1, allow_nan=False) + "\n")
         except OSError as exc:

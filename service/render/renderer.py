@@ -102,7 +102,8 @@ class Renderer:
         self._static_frame = np.clip(scene.camera.exposure * static_pixels, 0, 1).astype(np.float32)
         self._suns = sun_directions(scene, sun_samples)
         self._spheres = scene.spheres
-        self._intensity = mirror_ball_intensity(self._spheres[:, 3], scene.fluid.reflectance, scene.light.strength)
+        self._intensity = mirror_ball_intensity(self._spheres[:, 3], scene.sphere_material.reflectance,
+                                               scene.light.strength)
         self._reach, self._reach_start, self._reach_scale = self._sphere_reach()
 
     # ---- public -------------------------------------------------------------------------------
@@ -193,7 +194,7 @@ class Renderer:
         change = np.where(room > turn, np.arcsin(np.clip(turn / np.maximum(room, 1e-12), 0.0, 1.0)), np.pi)
         fluid, alpha = self.scene.fluid, self.scene.fluid.roughness
         brightest = (fluid.reflectance / (np.pi * alpha**2) / (4 * CULL_MIN_COS_VIEW)
-                     * mirror_ball_intensity(radius, fluid.reflectance, self.scene.light.strength)
+                     * mirror_ball_intensity(radius, self.scene.sphere_material.reflectance, self.scene.light.strength)
                      / np.maximum(nearest, 2 * radius) ** 2)  # (M, I, K)
         ratio = np.minimum(FAINTEST / brightest, 1.0) / 2  # D / D_max below which it is invisible
         lobe = np.arctan(alpha * np.sqrt(np.maximum(ratio**-0.5 - 1.0, 0.0)))
