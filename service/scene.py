@@ -14,7 +14,14 @@ from pathlib import Path
 from typing import Annotated
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
 
 from service.errors import MeniscopeError
 
@@ -36,7 +43,7 @@ class Nozzle(_Strict):
     albedo: Fraction
 
     @model_validator(mode="after")
-    def _outer_beyond_bore(self) -> "Nozzle":
+    def _outer_beyond_bore(self) -> Nozzle:
         if self.outer_radius_mm <= self.radius_mm:
             raise ValueError(
                 f"outer_radius_mm ({self.outer_radius_mm}) must exceed radius_mm ({self.radius_mm})"
@@ -137,7 +144,7 @@ class Scene(_Strict):
     sensor: Sensor | None = None
 
     @model_validator(mode="after")
-    def _artifacts_on_face(self) -> "Scene":
+    def _artifacts_on_face(self) -> Scene:
         lo, hi = self.artifacts.ring_mm
         if self.artifacts.spheres is None and self.artifacts.count and (
             lo < self.nozzle.radius_mm or hi > self.nozzle.outer_radius_mm
@@ -150,7 +157,7 @@ class Scene(_Strict):
 
     # ---- construction -------------------------------------------------------------
     @classmethod
-    def from_dict(cls, data: object, where: str | Path = "scene") -> "Scene":
+    def from_dict(cls, data: object, where: str | Path = "scene") -> Scene:
         """Validate a parsed scene; errors become one :class:`MeniscopeError` line."""
         try:
             return cls.model_validate(data)
@@ -165,7 +172,7 @@ class Scene(_Strict):
             raise MeniscopeError(where, "invalid scene: " + "; ".join(problems)) from None
 
     @classmethod
-    def load(cls, path: str | Path) -> "Scene":
+    def load(cls, path: str | Path) -> Scene:
         """Read and validate a scene JSON file."""
         path = Path(path)
         try:
@@ -196,7 +203,7 @@ class Scene(_Strict):
         return data
 
     @property
-    def sphere_material(self) -> "SphereMaterial":
+    def sphere_material(self) -> SphereMaterial:
         """The artifact spheres' GGX material: their own, or the fluid's in older files."""
         fluid = self.fluid
         return self.artifacts.material or SphereMaterial(roughness=fluid.roughness, reflectance=fluid.reflectance)

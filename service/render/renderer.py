@@ -67,12 +67,14 @@ class Renderer:
 
     ``supersample``: rays per pixel along each axis; ``sun_samples``: directions over the sun's
     disc for the fluid; ``threads``: frames traced at once (default: one per CPU);
-    ``batch_frames``: frames per call of the kernel (bounds the per-frame tables' memory).
+    ``batch_frames``: frames per call of the kernel (bounds the per-frame tables' memory);
+    ``static_sun_samples``: sun directions for the static scene (fewer build faster, as calibration needs).
     """
 
     def __init__(self, scene: Scene, supersample: int = 2, sun_samples: int = 4, threads: int | None = None,
-                 batch_frames: int = 256) -> None:
-        for name, value in (("supersample", supersample), ("sun_samples", sun_samples), ("batch_frames", batch_frames)):
+                 batch_frames: int = 256, static_sun_samples: int = STATIC_SUN_SAMPLES) -> None:
+        for name, value in (("supersample", supersample), ("sun_samples", sun_samples), ("batch_frames", batch_frames),
+                            ("static_sun_samples", static_sun_samples)):
             if not 1 <= value <= 4096:
                 raise MeniscopeError("renderer", f"{name} must be between 1 and 4096, got {value}")
         self.scene, self.supersample, self.batch_frames = scene, supersample, batch_frames
@@ -81,7 +83,7 @@ class Renderer:
         self.shape = (cam.height_px, cam.width_px)
         rays = pixel_rays(scene, supersample)
         static = nozzle.trace(scene, rays.origin, rays.direction, rays.camera_s)
-        radiance = nozzle.shade(scene, rays.origin, rays.direction, static, sun_directions(scene, STATIC_SUN_SAMPLES))
+        radiance = nozzle.shade(scene, rays.origin, rays.direction, static, sun_directions(scene, static_sun_samples))
         h, w, ss = cam.height_px, cam.width_px, supersample
         static_pixels = radiance.reshape(h, ss, w, ss).mean(axis=(1, 3)).ravel()  # (H W,)
 

@@ -65,7 +65,10 @@ def run(args: argparse.Namespace) -> int:
     if args.renderer == "blender":
         from service.render.blender import BlenderRenderer
 
-        renderer = BlenderRenderer(scene, samples=args.blender_samples, seed=args.seed)
+        from service.simulate import canvas
+
+        shown = canvas(scene, args.frame)[0] if args.frame else scene
+        renderer = BlenderRenderer(shown, samples=args.blender_samples, seed=args.seed)
     noise = args.noise or ("scene" if scene.sensor else "lab")
     if noise == "scene":
         if scene.sensor is None:

@@ -1,0 +1,50 @@
+"""meniscope calibrate: a recording of a known mismatched scene, made by our renderer, is calibrated back."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from service import DEFAULT_SCENE
+from service.calibration.fit import SCHEDULE, Stage, calibrate
+from service.calibration.footage import read_footage
+from service.calibration.report import document
+from service.camera_effects import noise_preset
+from service.scene import Scene
+from service.simulate import simulate
+
+#: A small camera (40 px, coarse pixels) so that the whole calibration takes seconds.
+SMALL = {"width_px": 40, "height_px": 40, "fov_deg": 0.6, "roi": [0, 0]}
+
+
+def _scene(**changes: dict) -> Scene:
+    data = json.loads(Path(DEFAULT_SCENE).read_text())
+    data["camera"].update(SMALL)
+    data["artifacts"]["count"] = 0
+    for section, values in changes.items():
+        data[section].update(values)
+    return Scene.from_dict(data)
+
+
+@pytest.fixture(scope="module")
+def lab(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A 'lab' recording: rougher-than-guessed fluid, brighter exposure, the ROI off the corner of a larger frame."""
+    true = _scene(fluid={"roughness": 0.02}, camera={"exposure": 1.5, "roi": [5, 3]})
+    out = tmp_path_factory.mktemp("lab") / "lab.cine"
+    simulate(true, out, windows=2, seed=4, ejection_hz=1000.0, effects=noise_preset("low", 12), frame=(48, 46))
+    return out
+
+
+def test_a_known_mismatch_is_recovered(lab: Path) -> None:
+    footage = read_footage(lab, frames=8, stack=38)
+    guess = _scene()
+    quick = tuple(Stage(stage.sigmas, 1, 10) for stage in SCHEDULE)
+    cal = calibrate(footage, guess, schedule=quick, start_alphas=(), progress=False)
+    assert cal.scene.camera.roi == (5, 3)
+    assert cal.scene.fluid.roughness == pytest.approx(0.02, rel=0.25)
+    assert cal.scene.camera.exposure == pytest.approx(1.5, rel=0.1)
+    assert cal.residual_after < cal.residual_before
+    doc = document(cal, footage)
+    assert doc["versus_truth"]["roi"]["error_px"] == 0
+    json.dumps(doc, allow_nan=False)
