@@ -23,29 +23,47 @@ FLUX_HALF_PX = 2
 DETECT_SIGMAS = 6.0
 
 
-def pixel_ray(scene: Scene, col: float, row: float) -> tuple[np.ndarray, np.ndarray]:
-    """Camera centre and unit direction of the ray through image point (col, row) of the ROI."""
+def pixel_ray(scene: Scene, col: float | np.ndarray, row: float | np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Camera centre (3,) and unit directions (..., 3) of the rays through image points (col, row) of the ROI."""
     cam = scene.camera
     location, forward, up = camera_frame(scene)
     right = np.cross(forward, up)
-    d = focal_px(scene) * forward + (col - (cam.width_px - 1) / 2) * right - (row - (cam.height_px - 1) / 2) * up
-    return location, d / np.linalg.norm(d)
+    x = np.asarray(col, dtype=np.float64)[..., None] - (cam.width_px - 1) / 2
+    y = np.asarray(row, dtype=np.float64)[..., None] - (cam.height_px - 1) / 2
+    d = focal_px(scene) * forward + x * right - y * up
+    return location, d / np.linalg.norm(d, axis=-1, keepdims=True)
 
 
-def detect(residual: np.ndarray, moving: np.ndarray, noise: float) -> np.ndarray:
-    """Glints (G, 3): sub-pixel (col, row) and flux, local maxima of ``residual`` (h, w) (lab static image minus
-    the model's without spheres) above DETECT_SIGMAS ``noise``, outside the ``moving`` mask (the fluid)."""
-    res = np.where(moving, 0.0, residual).astype(np.float32)
-    peak = (res == cv2.dilate(res, np.ones((3, 3), np.uint8))) & (res > DETECT_SIGMAS * noise)
+def face_pixels(scene: Scene) -> np.ndarray:
+    """Pixels (h, w) bool whose ray meets the plane z = 0 on the nozzle's bottom face (R < r < outer radius):
+    where a defect's glint can be."""
+    cam, nz = scene.camera, scene.nozzle
+    rows, cols = np.mgrid[0:cam.height_px, 0:cam.width_px]
+    location, d = pixel_ray(scene, cols.ravel().astype(float), rows.ravel().astype(float))
+    t = -location[2] / d[..., 2]
+    r = np.hypot(*(location[:2, None] + t * d[..., :2].T))
+    return ((r > nz.radius_mm) & (r < nz.outer_radius_mm)).reshape(cam.height_px, cam.width_px)
+
+
+def detect(residual: np.ndarray, allowed: np.ndarray, noise: float) -> np.ndarray:
+    """Glints (G, 3): sub-pixel (col, row) and flux, of ``residual`` (h, w) (lab static image minus the model's
+    without spheres) inside the ``allowed`` mask: local maxima of its white top-hat (small bright specks, not
+    the smooth or edge-like leftovers of an imperfect model) above DETECT_SIGMAS ``noise`` and above
+    DETECT_SIGMAS robust spreads of the top-hat itself."""
+    res = residual.astype(np.float32)
+    speck = cv2.morphologyEx(res, cv2.MORPH_TOPHAT, np.ones((5, 5), np.uint8))
+    spread = 1.4826 * float(np.median(np.abs(speck[allowed] - np.median(speck[allowed])))) if allowed.any() else 0.0
+    peak = ((speck == cv2.dilate(speck, np.ones((3, 3), np.uint8))) & allowed
+            & (speck > DETECT_SIGMAS * max(noise, spread)))
     out = []
     h, w = res.shape
     for row, col in zip(*np.nonzero(peak)):
         r0, r1 = max(0, row - FLUX_HALF_PX), min(h, row + FLUX_HALF_PX + 1)
         c0, c1 = max(0, col - FLUX_HALF_PX), min(w, col + FLUX_HALF_PX + 1)
-        patch = np.maximum(res[r0:r1, c0:c1], 0.0)
+        patch = np.maximum(speck[r0:r1, c0:c1], 0.0)
         total = float(patch.sum())
         rows, cols = np.mgrid[r0:r1, c0:c1]
-        out.append(((cols * patch).sum() / total, (rows * patch).sum() / total, total))
+        out.append(((cols * patch).sum() / total, (rows * patch).sum() / total, float(np.maximum(res[r0:r1, c0:c1], 0).sum())))
     return np.array(out, dtype=np.float64).reshape(-1, 3)
 
 
@@ -85,10 +103,10 @@ def glint_flux(scene: Scene, spheres: np.ndarray, at: np.ndarray, supersample: i
     return np.array(out)
 
 
-def recover(scene: Scene, residual: np.ndarray, moving: np.ndarray, noise: float) -> np.ndarray:
+def recover(scene: Scene, residual: np.ndarray, allowed: np.ndarray, noise: float) -> np.ndarray:
     """The artifact spheres (G, 4) whose glints explain ``residual`` (fractions of full scale, the PSF keeps a
     glint's flux): placed with START_RADIUS_MM, resized from their flux against a render, placed again."""
-    glints = detect(residual, moving, noise)
+    glints = detect(residual, allowed, noise)
     if not len(glints):
         return np.zeros((0, 4))
     radii = np.full(len(glints), START_RADIUS_MM)

@@ -20,7 +20,7 @@ from scipy.sparse import lil_matrix
 from tqdm import tqdm
 
 from service.calibration import parameters as P
-from service.calibration.artifacts import recover, with_spheres
+from service.calibration.artifacts import face_pixels, recover, with_spheres
 from service.calibration.footage import Footage
 from service.calibration.noise import NoiseFit, fit_noise
 from service.calibration.roi import find_roi
@@ -266,5 +266,5 @@ def _spheres(synth: Synthesis, scene: Scene, lab_stack: np.ndarray, moving: np.n
     residual = np.median(lab_stack, axis=0) - static
     sigma_median = max(noise.read_noise_fraction, 1e-4) * 1.25 / math.sqrt(len(lab_stack))
     spread = 1.4826 * float(np.median(np.abs(residual[~moving] - np.median(residual[~moving]))))
-    found = recover(scene, residual, moving, max(sigma_median, spread))
+    found = recover(scene, residual, ~moving & face_pixels(scene), max(sigma_median, spread))
     return found if len(found) else None
