@@ -4,6 +4,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from service import DEFAULT_SCENE
@@ -48,3 +49,20 @@ def test_a_known_mismatch_is_recovered(lab: Path) -> None:
     doc = document(cal, footage)
     assert doc["versus_truth"]["roi"]["error_px"] == 0
     json.dumps(doc, allow_nan=False)
+
+
+def test_a_larger_frame_shows_the_scene_around_the_roi() -> None:
+    from service.camera_effects import CameraEffects
+    from service.render import Renderer
+    from service.simulate import CameraFrames, canvas
+
+    scene = _scene(camera={"roi": [5, 2]})
+    big, corner = canvas(scene, (50, 47))
+    camera = CameraFrames(scene, Renderer(big), CameraEffects(bit_depth=16), (50, 47), corner)
+    coeffs = np.array([[0.01, 0.05, 0.01, 0.004]])
+    frame = camera.take(coeffs, np.random.default_rng(0)).astype(np.float64) / 65535
+    roi = Renderer(scene).render(coeffs)
+    np.testing.assert_allclose(frame[:, 2:42, 5:45], roi, atol=2e-5)  # the ROI is the scene's own view
+    outside = np.ones(frame.shape[1:], bool)
+    outside[2:42, 5:45] = False
+    assert frame[0][outside].max() > 0.01  # and the frame around it is the nozzle's face, not black
