@@ -53,10 +53,11 @@ def document(cal: Calibration, footage: Footage) -> dict[str, Any]:
     for p in P.PARAMETERS:
         value, sigma = _value(after, p.name), cal.sigma.get(p.name, math.inf)
         tol, kind = PRECISION[p.name]
-        identified = math.isfinite(sigma) and sigma <= (tol * abs(value) if kind == "rel" else tol)
+        identified = (math.isfinite(sigma) and sigma <= (tol * abs(value) if kind == "rel" else tol)
+                      and p.name not in P.WEAK)
         rows.append({"name": p.name, "before": _value(before, p.name), "after": value,
                      "sigma": sigma if math.isfinite(sigma) else None, "identified": bool(identified),
-                     "precision_needed": tol, "precision_kind": kind})
+                     "precision_needed": tol, "precision_kind": kind, "note": P.WEAK.get(p.name)})
     top = footage.full_scale
     return {
         "schema": SCHEMA,

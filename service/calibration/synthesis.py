@@ -16,6 +16,9 @@ import numpy as np
 from service.render import Renderer
 from service.scene import Scene
 
+#: Directions over the sun's disc for the fluid: a near-mirror's highlight is the disc's image, and a few
+#: directions would draw it as a few dots, which the fit would then explain with a smaller sun.
+SUN_SAMPLES = 24
 #: Added before the square root: keeps its slope finite at black.
 SQRT_FLOOR = 1e-3
 
@@ -50,7 +53,7 @@ class Synthesis:
     """Renders candidate scenes, keeping the last few renderers (a renderer shades its static scene once, the
     expensive part; the sensor's blur and black level are applied afterwards and never need a new one)."""
 
-    def __init__(self, supersample: int = 1, sun_samples: int = 4, static_sun_samples: int = 8, keep: int = 3) -> None:
+    def __init__(self, supersample: int = 1, sun_samples: int = SUN_SAMPLES, static_sun_samples: int = 8, keep: int = 3) -> None:
         self.quality = {"supersample": supersample, "sun_samples": sun_samples, "static_sun_samples": static_sun_samples}
         self._cache: OrderedDict[str, Renderer] = OrderedDict()
         self.keep = keep
