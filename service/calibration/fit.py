@@ -126,12 +126,41 @@ class Library:
         self.model = synth.levels(scene, self.coeffs, sigmas)
         self._norm = (self.model**2).sum(1)
 
-    def nearest(self, lab: np.ndarray) -> tuple[np.ndarray, float]:
-        """Nearest neighbours' motion (K, 4) of lab frames (K, h, w) and the sum of their squared distances."""
+    def nearest(self, lab: np.ndarray, count: int = 1) -> np.ndarray:
+        """Motion (count, K, 4) of each lab frame's ``count`` nearest neighbours (lab frames (K, h, w)), nearest first."""
         target = pyramid(lab, self.sigmas)
         dist = (target**2).sum(1)[:, None] - 2 * target @ self.model.T + self._norm[None, :]
-        best = np.argmin(dist, axis=1)
-        return self.coeffs[best], float(dist[np.arange(len(best)), best].sum())
+        return self.coeffs[np.argsort(dist, axis=1)[:, :count].T]
+
+
+def motion_only(synth: Synthesis, scene: Scene, lab: np.ndarray, sigmas: tuple[float, ...], starts: int = 5,
+                max_evaluations: int = 15) -> np.ndarray:
+    """Each frame's motion (K, 4) for a fixed scene: its ``starts`` nearest library neighbours each refined by
+    least squares (scene fixed, so no renderer is built), the best kept per frame. Highlights make the motion
+    landscape rugged; several starts per frame are cheap here and spare the joint fit a bad start."""
+    problem = Problem(synth, scene, lab, sigmas)
+    k, q = problem.target.shape
+    scale = np.tile(MOTION_SCALE, k)
+    low, high = np.tile(MOTION_LOW, k), np.tile(MOTION_HIGH, k)
+    sparsity = lil_matrix((k * q, 4 * k), dtype=np.int8)
+    for i in range(k):
+        sparsity[i * q:(i + 1) * q, 4 * i:4 * i + 4] = 1
+    fixed = P.read(scene)
+    best, best_cost = None, None
+    for start in Library(synth, scene, sigmas, size=1500).nearest(lab, starts):
+        x0 = np.clip(start.ravel(), low, high)
+        fun = lambda u: problem.residuals(np.concatenate([fixed, x0 + u * scale]))
+        res = least_squares(fun, np.zeros_like(x0), bounds=((low - x0) / scale, (high - x0) / scale),
+                            jac_sparsity=sparsity, diff_step=DIFF_STEP, max_nfev=max_evaluations, method="trf",
+                            tr_solver="lsmr")
+        motion = (x0 + res.x * scale).reshape(k, 4)
+        cost = (res.fun.reshape(k, q) ** 2).sum(axis=1)
+        if best is None:
+            best, best_cost = motion, cost
+        else:
+            better = cost < best_cost
+            best[better], best_cost[better] = motion[better], cost[better]
+    return best
 
 
 def library_motion(synth: Synthesis, scene: Scene, lab: np.ndarray, sigmas: tuple[float, ...]) -> np.ndarray:
@@ -163,8 +192,7 @@ def locate(synth: Synthesis, scene: Scene, footage: Footage) -> tuple[Scene, np.
     template = synth.stored(big, coeffs).mean(axis=0)[cy:cy + height, cx:cx + width]
     shift, score = find_roi(mean, template, reach=max(width - cam.width_px, height - cam.height_px))
     corner = np.clip(np.array(centred) + shift, 0, [width - cam.width_px, height - cam.height_px])
-    data["camera"]["roi"] = [int(v) for v in np.rint(corner)]
-    return Scene.from_dict(data), corner, score
+    return _with_roi(scene, corner), corner, score
 
 
 def rms_finest(synth: Synthesis, scene: Scene, motion: np.ndarray, lab: np.ndarray) -> float:
@@ -189,7 +217,7 @@ def calibrate(footage: Footage, guess: Scene, schedule: tuple[Stage, ...] = SCHE
     for alpha in (None, *start_alphas):
         start = scene if alpha is None else P.write(scene, _set(P.read(scene), "fluid.roughness", math.log10(alpha)))
         lab = crop(footage.frames, start)
-        motion = library_motion(synth, start, lab, first.sigmas)
+        motion = motion_only(synth, start, lab, first.sigmas)
         problem = Problem(synth, start, lab, first.sigmas)
         x, res = problem.solve(motion, first.max_evaluations)
         starts.append({"fluid.roughness": start.fluid.roughness, "cost": float(res.cost)})
@@ -199,13 +227,18 @@ def calibrate(footage: Footage, guess: Scene, schedule: tuple[Stage, ...] = SCHE
     scene, motion = best[1]
     residual_before = rms_finest(synth, base, library_motion(synth, scene, crop(footage.frames, scene), first.sigmas),
                                  crop(footage.frames, scene))
-    scene, corner, score = locate(synth, scene, footage)  # again, with the scene as fitted so far
+    again, corner_again, score_again = locate(synth, scene, footage)  # with the scene as fitted so far
+    if score_again > score:  # the better likeness decides: a fit on a wrong crop can mislead the second look
+        scene, corner, score = again, corner_again, score_again
     bar.update()
     sigma: dict[str, float] = {}
     for stage in schedule[1:]:
         synth.quality["supersample"] = stage.supersample
         lab = crop(footage.frames, scene)
         problem = Problem(synth, scene, lab, stage.sigmas)
+        fresh = motion_only(synth, scene, lab, stage.sigmas)
+        keep = _frame_costs(problem, scene, motion) <= _frame_costs(problem, scene, fresh)
+        motion = np.where(keep[:, None], motion, fresh)
         x, res = problem.solve(motion, stage.max_evaluations)
         scene, motion = problem.unpack(x)
         sigma = _uncertainty(problem, x, res)
@@ -223,6 +256,19 @@ def calibrate(footage: Footage, guess: Scene, schedule: tuple[Stage, ...] = SCHE
                        residual_after=rms_finest(synth, scene, motion, lab), noise=noise,
                        spheres_found=0 if spheres is None else len(spheres), seconds=time.perf_counter() - began,
                        builds=synth.builds, starts=starts)
+
+
+def _frame_costs(problem: Problem, scene: Scene, motion: np.ndarray) -> np.ndarray:
+    """Each frame's squared residual (K,) for ``motion`` in ``scene``."""
+    r = problem.residuals(np.concatenate([P.read(scene), motion.ravel()]))
+    return (r.reshape(problem.k, -1) ** 2).sum(axis=1)
+
+
+def _with_roi(scene: Scene, corner: np.ndarray) -> Scene:
+    """``scene`` with its ROI's corner at the nearest pixel to ``corner`` (x, y)."""
+    data = scene.as_dict()
+    data["camera"]["roi"] = [int(v) for v in np.rint(corner)]
+    return Scene.from_dict(data)
 
 
 def _set(x: np.ndarray, name: str, value: float) -> np.ndarray:
