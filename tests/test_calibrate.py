@@ -11,7 +11,7 @@ from service import DEFAULT_SCENE
 from service.calibration.fit import SCHEDULE, Stage, calibrate
 from service.calibration.footage import read_footage
 from service.calibration.report import document
-from service.camera_effects import noise_preset
+from service.camera_effects import CameraEffects
 from service.scene import Scene
 from service.simulate import simulate
 
@@ -30,24 +30,26 @@ def _scene(**changes: dict) -> Scene:
 
 @pytest.fixture(scope="module")
 def lab(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """A 'lab' recording: rougher-than-guessed fluid, brighter exposure, the ROI off the corner of a larger frame."""
-    true = _scene(fluid={"roughness": 0.02}, camera={"exposure": 1.5, "roi": [5, 3]})
+    """A 'lab' recording: the light 5 deg round, a brighter exposure, a black level, shot and read noise, and the
+    ROI off the corner of a larger frame."""
+    true = _scene(light={"azimuth_deg": 185.0}, camera={"exposure": 1.5, "roi": [5, 3]})
     out = tmp_path_factory.mktemp("lab") / "lab.cine"
-    simulate(true, out, windows=2, seed=4, ejection_hz=1000.0, effects=noise_preset("low", 12), frame=(48, 46))
+    camera = CameraEffects(offset=0.03, blur_sigma_px=0.5, full_well_e=40000, read_noise_dn=1.0, bit_depth=12)
+    simulate(true, out, windows=2, seed=4, ejection_hz=1000.0, effects=camera, frame=(48, 46))
     return out
 
 
 def test_a_known_mismatch_is_recovered(lab: Path) -> None:
     footage = read_footage(lab, frames=8, stack=38)
-    guess = _scene()
     quick = tuple(Stage(stage.sigmas, 1, 10) for stage in SCHEDULE)
-    cal = calibrate(footage, guess, schedule=quick, start_alphas=(), progress=False)
-    assert cal.scene.camera.roi == (5, 3)
-    # 0.06 guessed, 0.02 true: within 35 % (on pixels three times coarser than the shipped scene's the fluid's
-    # roughness trades a little with the sun's angle, which this fit leaves free)
-    assert cal.scene.fluid.roughness == pytest.approx(0.02, rel=0.35)
-    assert cal.scene.camera.exposure == pytest.approx(1.5, rel=0.1)
-    assert cal.residual_after < cal.residual_before
+    cal = calibrate(footage, _scene(), schedule=quick, start_alphas=(), progress=False)
+    found = cal.scene
+    assert found.camera.roi == (5, 3)
+    assert found.light.azimuth_deg == pytest.approx(185.0, abs=1.0)
+    assert found.camera.exposure == pytest.approx(1.5, rel=0.15)
+    assert found.sensor.offset == pytest.approx(0.03, abs=0.003)
+    assert found.sensor.full_well_e == pytest.approx(40000, rel=0.2)
+    assert cal.residual_after < 0.7 * cal.residual_before
     doc = document(cal, footage)
     assert doc["versus_truth"]["roi"]["error_px"] == 0
     json.dumps(doc, allow_nan=False)

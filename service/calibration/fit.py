@@ -149,7 +149,7 @@ def motion_only(synth: Synthesis, scene: Scene, lab: np.ndarray, sigmas: tuple[f
     best, best_cost = None, None
     for start in Library(synth, scene, sigmas, size=1500).nearest(lab, starts):
         x0 = np.clip(start.ravel(), low, high)
-        fun = lambda u, x0=x0: problem.residuals(np.concatenate([fixed, x0 + u * scale]))  # noqa: E731
+        fun = lambda u, x0=x0: problem.residuals(np.concatenate([fixed, x0 + u * scale]))
         res = least_squares(fun, np.zeros_like(x0), bounds=((low - x0) / scale, (high - x0) / scale),
                             jac_sparsity=sparsity, diff_step=DIFF_STEP, max_nfev=max_evaluations, method="trf",
                             tr_solver="lsmr")
