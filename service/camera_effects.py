@@ -118,10 +118,15 @@ NOISE_PRESETS: dict[str, tuple[float, float, float, float]] = {
 def noise_preset(name: str, bit_depth: BitDepth) -> CameraEffects:
     """The named preset of :data:`NOISE_PRESETS` at ``bit_depth`` (read noise converted to DN)."""
     full_well, read_e, sigma, offset = NOISE_PRESETS[name]
-    read_dn = read_e / full_well * (2**bit_depth - 1) if full_well else 0.0
-    return CameraEffects(
-        full_well_e=full_well, read_noise_dn=read_dn, blur_sigma_px=sigma, offset=offset, bit_depth=bit_depth
-    )
+    return sensor_effects(offset, sigma, full_well, read_e, bit_depth)
+
+
+def sensor_effects(offset: float, blur_sigma_px: float, full_well_e: float, read_noise_e: float,
+                   bit_depth: BitDepth) -> CameraEffects:
+    """A calibrated sensor (a scene's ``sensor`` block, read noise in electrons) at ``bit_depth``."""
+    read_dn = read_noise_e / full_well_e * (2**bit_depth - 1) if full_well_e else 0.0
+    return CameraEffects(full_well_e=full_well_e, read_noise_dn=read_dn, blur_sigma_px=blur_sigma_px,
+                         offset=offset, bit_depth=bit_depth)
 
 
 class EffectRanges(BaseModel):

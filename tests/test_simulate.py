@@ -143,7 +143,7 @@ def test_the_sidecar_describes_the_recording(scene: Scene, ideal: tuple[Path, di
     assert truth_path(out) == out.with_name("rec.truth.json")
     assert json.loads(truth_path(out).read_text()) == truth
     assert truth["schema"] == SCHEMA and truth["seed"] == 3 and truth["ejection_hz"] == 100.0
-    assert truth["scene"] == scene.model_dump(mode="json") and truth["scene_sha256"] == scene.sha256
+    assert truth["scene"] == scene.as_dict() and truth["scene_sha256"] == scene.sha256
     assert truth["recording"] == {"path": "rec.cine", "frames": 570, "fps": 19000.0, "width": 96, "height": 96,
                                   "bit_depth": 12}
     assert truth["ejections"] == [0, 190, 380]

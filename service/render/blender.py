@@ -16,7 +16,7 @@ Conventions (the contract's, mapped onto Cycles):
 - fluid: polar mesh of ``rings`` x ``segments`` over the bore at z = -D(r) (Eq. 1) with
   normals set from the analytic slope dD/dr; Glossy BSDF, GGX, colour = reflectance (no
   Fresnel term), Blender roughness = sqrt(alpha) because Cycles squares it; artifact
-  spheres: UV spheres, 48 x 24, smooth, same material;
+  spheres: UV spheres, 48 x 24, smooth, their own Glossy material (the fluid's when the scene gives none);
 - film: ``samples`` per pixel, no adaptive sampling, no denoising, no clamping, no
   glossy filter, caustics on, Cycles default bounce limits (12 total, 4 diffuse,
   4 glossy), box pixel filter 1 px wide, fixed seed; linear radiance read from a
@@ -131,6 +131,8 @@ class BlenderRenderer:
             },
             "fluid": {"roughness": float(np.sqrt(s.fluid.roughness)), "reflectance": s.fluid.reflectance},
             "spheres": s.spheres.tolist(),
+            "sphere_material": {"roughness": float(np.sqrt(s.sphere_material.roughness)),
+                                "reflectance": s.sphere_material.reflectance},
             "mesh": {"rings": self.rings, "segments": self.segments},
             "frames": frames,
             "profiles": str(profiles),

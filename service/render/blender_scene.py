@@ -16,7 +16,7 @@ JOB.json keys (lengths in mm, angles in radians):
   ``strength`` (irradiance on a surface facing it)
 - ``nozzle``: ``radius``, ``outer_radius``, ``bore_depth``, ``albedo``
 - ``fluid``: ``roughness`` (Blender's, sqrt of GGX alpha), ``reflectance``
-- ``spheres``: list of ``[x, y, z, radius]``
+- ``spheres``: list of ``[x, y, z, radius]``; ``sphere_material``: their ``roughness`` (Blender's), ``reflectance``
 - ``mesh``: ``rings`` (radial subdivisions of the bore), ``segments`` (around it)
 - ``frames``, ``profiles``: raw float32 file of shape (frames, 2, rings + 1): the
   surface height z(r_k) (mm) and the radial slope dD/dr at r_k = radius * k / rings
@@ -266,7 +266,8 @@ def main(job_path: str) -> None:
     _sun(job)
     _nozzle(job)
     glossy = _material("metal", "ShaderNodeBsdfGlossy", job["fluid"]["reflectance"], job["fluid"]["roughness"])
-    _spheres(job, glossy)
+    defect = job["sphere_material"]
+    _spheres(job, _material("defect", "ShaderNodeBsdfGlossy", defect["reflectance"], defect["roughness"]))
     fluid = _Fluid(job, glossy)
     n = job["mesh"]["rings"] + 1
     scene = bpy.context.scene

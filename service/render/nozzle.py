@@ -4,7 +4,7 @@ Geometry (scene.md, "World frame", "Materials"): the nozzle body is the solid
 ``R <= r <= outer_radius, 0 <= z <= bore_depth`` (bottom face, bore wall, outer wall, top),
 Lambert with ``albedo``; the bore above the meniscus holds liquid metal, so a ray that
 reaches ``z = bore_depth`` inside the bore stops there, black. Artifact spheres are GGX
-metal like the fluid. The sun's visibility from a static point is traced against the body
+metal of their own (``scene.sphere_material``). The sun's visibility from a static point is traced against the body
 and the spheres; the fluid's shadow on the static scene is not modelled (it would be per
 frame and falls on the dark nozzle, under 2 % of full scale).
 """
@@ -152,6 +152,7 @@ def shade(scene: Scene, origin: np.ndarray, direction: np.ndarray, hits: StaticH
     glossy = hits.kind == Hit.SPHERE
     if glossy.any():
         vis = sun_visibility(scene, point[glossy], hits.normal[glossy], suns)
+        metal = scene.sphere_material
         radiance[glossy] = specular_sun(hits.normal[glossy], -direction[glossy], suns, vis,
-                                        scene.fluid.roughness, scene.fluid.reflectance, scene.light.strength)
+                                        metal.roughness, metal.reflectance, scene.light.strength)
     return radiance
