@@ -39,6 +39,8 @@ SILENT_S = 3.0
 FANOUT_QUEUE = 1024
 #: Seconds the pipeline process may take to open the history and bind ZeroMQ (imports included, on a busy PC).
 START_S = 120.0
+#: Seconds to wait for a ZeroMQ port held by the pipeline process of a web process that crashed.
+PORT_WAIT_S = 20.0
 #: Seconds it may take to stop (pipeline, fits in flight, publishers, history) before it is killed.
 STOP_S = 30.0
 
@@ -154,8 +156,16 @@ class PipelineProcess:
     def start(self) -> "PipelineProcess":
         """Start the pipeline process and wait until it has opened the history and bound ZeroMQ (their errors
         stop the service, as a bad setting should); the model and the source it opens in its own time."""
+        deadline = time.monotonic() + PORT_WAIT_S
         self._spawn(self.settings)
-        if not self._started.wait(START_S) or self._failure is not None:
+        # after a crash of the web process its pipeline process drains and stops in a few seconds: until then it
+        # holds the ZeroMQ port
+        while (self._started.wait(START_S) and self._failure is not None and "in use" in self._failure
+               and time.monotonic() < deadline):
+            self._end()
+            time.sleep(0.5)
+            self._spawn(self.settings)
+        if not self._started.is_set() or self._failure is not None:
             self._end()
             raise MeniscopeError(self.settings.data_dir, self._failure or "the pipeline process did not start "
                                  f"within {START_S:g} s")
