@@ -8,6 +8,8 @@ window history from SQLite.
 from __future__ import annotations
 
 import asyncio
+import os
+import threading
 import time
 from dataclasses import dataclass, field
 
@@ -89,6 +91,10 @@ class Service:
         self.hub = Hub(loop, s.client_queue)
         self.registry = status_registry(lambda: self.stats, self.health, self.websocket_counts, self.history_health)
         self.pipeline = PipelineProcess(s, self.hub).start()
+        # this thread (the event loop) and the request threads it starts from now on yield the CPU to the pipeline
+        # process; the threads that restart it and read its pipe, started already, keep their priority
+        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(),
+                       min(19, os.getpriority(os.PRIO_PROCESS, threading.get_native_id()) + s.web_nice))
 
     def stop(self) -> None:
         """The pipeline process stops (in its order: pipeline, publishers and ZeroMQ, history), then the reader."""
