@@ -2,6 +2,7 @@
 fails to do, stalls it, and when it dies the service says so and starts it again (issue 18)."""
 from __future__ import annotations
 
+import asyncio
 import json
 import os
 import signal
@@ -9,10 +10,20 @@ import threading
 import time
 from pathlib import Path
 
+import pytest
 from websockets.sync.client import connect
 
 from service.bench.live import subscribe
-from tests.servicekit import free_port, request, running_service, service_settings, wait_for
+from service.errors import MeniscopeError
+from service.server.hub import Hub
+from service.server.pipeline_process import PipelineProcess
+from tests.servicekit import (
+    free_port,
+    request,
+    running_service,
+    service_settings,
+    wait_for,
+)
 from tests.test_serve_cli import serve
 from tests.test_serve_hardening import demo
 
@@ -80,3 +91,14 @@ def _ready(base: str) -> bool:
         return request("GET", base + "/readyz").status == 200
     except OSError:
         return False
+
+
+def test_a_pipeline_process_that_cannot_start_is_one_clear_error(tmp_path: Path) -> None:
+    """A ZeroMQ endpoint that cannot be bound stops the service at start, naming it, as before the split."""
+    settings = service_settings(tmp_path / "data", tmp_path, None).model_copy(update={"zmq_publish": "tcp://256.1.1.1:5"})
+    loop = asyncio.new_event_loop()
+    try:
+        with pytest.raises(MeniscopeError, match="cannot bind the ZeroMQ publisher"):
+            PipelineProcess(settings, Hub(loop, 1)).start()
+    finally:
+        loop.close()

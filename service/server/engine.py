@@ -9,6 +9,7 @@ from __future__ import annotations
 import dataclasses
 import time
 from dataclasses import dataclass
+
 from prometheus_client import generate_latest
 
 from service.pipeline.runtime import LatestFrame, PipelineStats
@@ -54,7 +55,7 @@ class Engine:
         self.publishers = Publishers(self.history, self.metrics, self.zmq, fanout)
         self.supervisor = Supervisor(s, self.publishers, self.stats)
 
-    def start(self) -> "Engine":
+    def start(self) -> Engine:
         self.publishers.start()
         self.supervisor.start()
         return self

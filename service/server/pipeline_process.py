@@ -153,24 +153,32 @@ class PipelineProcess:
     def pid(self) -> int | None:
         return self._process.pid if self._process is not None else None
 
-    def start(self) -> "PipelineProcess":
+    def start(self) -> PipelineProcess:
         """Start the pipeline process and wait until it has opened the history and bound ZeroMQ (their errors
         stop the service, as a bad setting should); the model and the source it opens in its own time."""
         deadline = time.monotonic() + PORT_WAIT_S
         self._spawn(self.settings)
         # after a crash of the web process its pipeline process drains and stops in a few seconds: until then it
         # holds the ZeroMQ port
-        while (self._started.wait(START_S) and self._failure is not None and "in use" in self._failure
+        while (self._wait_started() and self._failure is not None and "in use" in self._failure
                and time.monotonic() < deadline):
             self._end()
             time.sleep(0.5)
             self._spawn(self.settings)
         if not self._started.is_set() or self._failure is not None:
             self._end()
-            raise MeniscopeError(self.settings.data_dir, self._failure or "the pipeline process did not start "
-                                 f"within {START_S:g} s")
+            raise MeniscopeError(self.settings.data_dir, self._failure or "the pipeline process did not start: "
+                                 f"exit code {self._process.exitcode} (its error is in the log above)")
         self._watcher.start()
         return self
+
+    def _wait_started(self) -> bool:
+        """Until the pipeline process says it started or failed (True), or it died or took :data:`START_S` s."""
+        deadline = time.monotonic() + START_S
+        while not self._started.wait(0.2):
+            if not self._process.is_alive() or time.monotonic() > deadline:
+                return self._started.is_set()
+        return True
 
     def _spawn(self, settings: ServiceSettings) -> None:
         self._started.clear()
