@@ -71,6 +71,8 @@ class ServiceSettings(BaseSettings):
     fit_nice: Annotated[int, Field(ge=0, le=19)] = Field(
         10, description="niceness of the fit workers: 0 favours fresh windows, higher favours frames")
     # --- publishing
+    web_nice: Annotated[int, Field(ge=0, le=19)] = Field(
+        5, description="niceness of the web side's requests and WebSocket clients: higher favours frames")
     host: str = "127.0.0.1"
     port: Annotated[int, Field(ge=0, le=65535)] = 8000
     token: SecretStr | None = Field(None, description="bearer token every changing request needs once set (and "

@@ -19,21 +19,21 @@ from typing import Any
 
 import numpy as np
 import pytest
+from prometheus_client import generate_latest
 from websockets.exceptions import InvalidStatus
 from websockets.sync.client import connect
 
 from service.analysis.results import WindowResult
 from service.pipeline.runtime import FittedWindow
 from service.recordings import open_writer
-from service.server.app import create_app
-from service.server.components import Service
+from service.server.engine import Engine
 from service.server.guard import default_hosts, host_name
 from service.server.history import History
 from service.server.hub import Hub
-from service.server.metrics import Metrics
+from service.server.metrics import Metrics, status_registry
 from service.server.publishers import Publishers
 from service.server.zmq_publisher import ZmqPublisher
-from tests.servicekit import (MENISCOPE, checkout_env, free_port, request, running_app, running_service,
+from tests.servicekit import (MENISCOPE, checkout_env, free_port, request, running_service,
                               service_settings, wait_for)
 from tests.test_serve_cli import _answers, serve
 
@@ -125,24 +125,30 @@ class FailingWrites:
 
 def test_windows_sent_while_the_history_fails_are_counted_and_stored_when_it_returns(tmp_path: Path, demo_cine: Path,
                                                                          caplog: pytest.LogCaptureFixture) -> None:
-    app = create_app(service_settings(tmp_path / "data", demo_cine.parent, demo(demo_cine)))
-    with running_app(app) as url:
-        wait_for(lambda: request("GET", url + "/readyz").status == 200, 60, "readiness")
-        history = app.state.service.history
-        writes = history._writer = FailingWrites(history._writer)
+    """The engine the pipeline process runs, in this process, so that its history writer can be made to fail."""
+    engine = Engine(service_settings(tmp_path / "data", demo_cine.parent, demo(demo_cine)), Hub(asyncio.new_event_loop(), 1))
+
+    def text() -> str:
+        return generate_latest(status_registry(lambda: engine.stats, engine.health, lambda: (0, 0),
+                                               engine.history_health)).decode()
+
+    try:
+        engine.start()
+        wait_for(lambda: engine.health().ready, 60, "readiness")
+        writes = engine.history._writer = FailingWrites(engine.history._writer)
         writes.failing.set()
-        status = wait_for(lambda: (s := request("GET", url + "/api/v1/status").json())["history"]["backlog"] >= 5 and s,
-                          30, "windows waiting for the history")
-        ready = request("GET", url + "/readyz")
-        assert ready.status == 503 and ready.json()["state"] == "degraded" and "readonly" in ready.json()["reason"]
-        assert status["history"]["failures"] >= 5 and status["history"]["error"]
-        metrics = request("GET", url + "/metrics").body.decode()
-        assert "meniscope_history_up 0.0" in metrics
+        history = wait_for(lambda: (h := engine.history_health()).backlog >= 5 and h, 30, "windows waiting for the history")
+        health = engine.health()
+        assert health.state == "degraded" and not health.ready and "readonly" in health.reason
+        assert history.failures >= 5 and history.error
+        assert "meniscope_history_up 0.0" in text() and "meniscope_ready 0.0" in text()
         writes.failing.clear()
-        wait_for(lambda: request("GET", url + "/readyz").status == 200, 30, "readiness once the history takes writes")
-        status = request("GET", url + "/api/v1/status").json()
-        ids = [w["id"] for w in request("GET", url + "/api/v1/windows?since=0&limit=1000").json()["windows"]]
-    assert status["history"]["lost"] == 0
+        wait_for(lambda: engine.health().ready, 30, "readiness once the history takes writes")
+        history = engine.history_health()
+        ids = [w.id for w in engine.history.since(0, 100_000)]
+    finally:
+        engine.stop()
+    assert history.lost == 0
     assert ids == list(range(ids[0], ids[0] + len(ids))) and len(ids) >= 5  # every window sent is stored, no gap
     logged = [r for r in caplog.records if r.name == "service.server.publishers"]
     assert len(logged) == 2, [r.getMessage() for r in logged]  # once when it failed, once when it came back
@@ -164,19 +170,17 @@ def test_a_fit_that_comes_back_after_shutdown_is_counted_not_sent_on_a_closed_so
         tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
     """What SIGTERM met: the fit workers finish the fit they are on after the pipeline stopped; its result came
     back after ZeroMQ had closed (`publishing failed ... ZMQError: Socket operation on non-socket`)."""
-    service = Service(service_settings(tmp_path / "data", tmp_path, None))
     loop = asyncio.new_event_loop()
     try:
-        service.history = History(tmp_path / "history.sqlite", 1.0, 100)
-        service.zmq = ZmqPublisher("tcp://127.0.0.1:*")
-        service.metrics = Metrics(service.stats, service.health, lambda: (0, 0))
-        service.publishers = Publishers(service.history, service.metrics, service.zmq, Hub(loop, 1)).start()
-        service.stop()
+        history = History(tmp_path / "history.sqlite", 1.0, 100)
+        publishers = Publishers(history, Metrics(), ZmqPublisher("tcp://127.0.0.1:*"), Hub(loop, 1)).start()
+        publishers.stop()
         result = WindowResult(index=0, start_frame=0, end_frame=10, status="failed", reason="late")
-        service.publishers.on_window(FittedWindow(result, "demo", np.zeros(10), 19000.0, *[0.0] * 5))
+        publishers.on_window(FittedWindow(result, "demo", np.zeros(10), 19000.0, *[0.0] * 5))
+        history.close()
     finally:
         loop.close()
-    assert service.publishers.dropped == 1
+    assert publishers.dropped == 1
     assert not [r for r in caplog.records if r.levelno >= logging.WARNING], caplog.text
 
 

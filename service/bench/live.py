@@ -60,8 +60,8 @@ class ServeProcess:
         self._process = subprocess.Popen([sys.executable, "-m", "service.cli", "serve", "--port", str(self.port)],
                                          env=env, stdout=self._log, stderr=subprocess.STDOUT)
 
-    def get(self, path: str) -> str:
-        with urllib.request.urlopen(f"http://127.0.0.1:{self.port}{path}", timeout=5) as response:
+    def get(self, path: str, timeout: float = 5.0) -> str:
+        with urllib.request.urlopen(f"http://127.0.0.1:{self.port}{path}", timeout=timeout) as response:
             return response.read().decode()
 
     def wait_ready(self, timeout: float = 120.0) -> None:

@@ -46,7 +46,8 @@ def counters(service: ServeProcess) -> dict[str, float]:
 
     values = dict.fromkeys([*COUNTERS, "windows_published"], 0.0)
     names = {v: k for k, v in COUNTERS.items()}
-    for family in text_string_to_metric_families(service.get("/metrics")):
+    # the web process yields the CPU to the frames (web_nice): under a flood of clients a scrape may wait
+    for family in text_string_to_metric_families(service.get("/metrics", timeout=60.0)):
         for sample in family.samples:
             if sample.name in names:
                 values[names[sample.name]] = sample.value

@@ -136,6 +136,8 @@ class Supervisor:
                 self._set("starting", "opening the model and the source", settings)
                 ended = self._run_once(settings)
             except Exception as exc:  # noqa: BLE001 - any failure is reported and retried, never fatal
+                if self._closing.is_set():
+                    break  # stopped while opening (the fit workers it waited for end with the process): no error
                 if not isinstance(exc, MeniscopeError):
                     log.exception("pipeline failed")
                 self._attempts += 1

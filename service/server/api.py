@@ -15,7 +15,7 @@ from typing import Annotated, Any
 from fastapi import APIRouter, Depends, HTTPException, Path, Query, Request, Response, WebSocket
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
-from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
+from prometheus_client import CONTENT_TYPE_LATEST
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from service.analysis.results import WindowResult
@@ -92,10 +92,12 @@ def status(service: Svc) -> dict[str, Any]:
         "frames": {"acquired": s.frames_acquired, "inferred": s.frames_inferred, "dropped": s.frames_dropped,
                    "gaps": s.frame_gaps, "lost_upstream": s.frames_lost_upstream},
         "windows": {"closed": s.windows_closed, "skipped": s.windows_skipped,
-                    "unpublished": service.publishers.dropped if service.publishers else 0},
+                    "unpublished": service.unpublished},
         "history": dataclasses.asdict(service.history_health()),
         "model": {"dir": str(settings.models), "method": settings.method},
-        "zmq_publish": service.zmq.endpoint if service.zmq else None,
+        "zmq_publish": service.zmq_endpoint,
+        "pipeline_process": {"pid": service.pipeline.pid if service.pipeline else None,
+                             "restarts": service.pipeline.restarts if service.pipeline else 0},
         "uptime_s": round(time.time() - service.started, 3),
     }
 
@@ -197,7 +199,7 @@ def latest_coefficients(service: Svc) -> dict[str, Any]:
 
 
 def _latest(service: Service) -> LatestFrame:
-    frame = service.stats.latest
+    frame = service.latest
     if frame is None:
         raise HTTPException(404, "no frame inferred yet")
     return frame
@@ -206,7 +208,7 @@ def _latest(service: Service) -> LatestFrame:
 @router.get("/metrics", tags=["metrics"], response_class=Response)
 def metrics(service: Svc) -> Response:
     """Prometheus text format."""
-    return Response(generate_latest(service.metrics.registry), media_type=CONTENT_TYPE_LATEST)
+    return Response(service.metrics(), media_type=CONTENT_TYPE_LATEST)
 
 
 @router.websocket("/ws")

@@ -27,13 +27,13 @@ disable_created_metrics()  # no *_created series: nothing here reads them, and t
 class _PipelineCollector(Collector):
     """Counters and gauges of the pipeline's statistics and health, as they are at scrape time."""
 
-    def __init__(self, stats: PipelineStats, health: Callable[[], Health],
+    def __init__(self, stats: Callable[[], PipelineStats], health: Callable[[], Health],
                  websocket: Callable[[], tuple[int, int]], history: Callable[[], HistoryHealth] | None) -> None:
         self.stats, self.health, self.websocket = stats, health, websocket
         self.history = history or (lambda: HistoryHealth())
 
     def collect(self) -> Iterator[Metric]:
-        s, health = self.stats, self.health()
+        s, health = self.stats(), self.health()
         ready = float(health.ready)
         flowing = float(health.state in ("running", "no_signal", "degraded")
                         and time.monotonic() - s.last_frame_at < SOURCE_SILENT_S)
@@ -75,14 +75,27 @@ class HistoryHealth:
     lost: int = 0
 
 
-class Metrics:
-    """The service's registry: pipeline statistics plus what :meth:`window` and :meth:`inference` record."""
+def status_registry(stats: Callable[[], PipelineStats], health: Callable[[], Health],
+                    websocket: Callable[[], tuple[int, int]],
+                    history: Callable[[], HistoryHealth] | None = None) -> CollectorRegistry:
+    """A registry of the pipeline's statistics and health, read through these callables at scrape time (the web
+    process reads them from the pipeline process's latest report)."""
+    registry = CollectorRegistry()
+    registry.register(_PipelineCollector(stats, health, websocket, history))
+    return registry
 
-    def __init__(self, stats: PipelineStats, health: Callable[[], Health],
-                 websocket: Callable[[], tuple[int, int]],
+
+class Metrics:
+    """What :meth:`window` and :meth:`inference` record as results are published, plus the pipeline's
+    statistics and health when ``stats`` and ``health`` are given (in one process; the pipeline process
+    records only what it publishes, and the web process adds the rest: :func:`status_registry`)."""
+
+    def __init__(self, stats: PipelineStats | None = None, health: Callable[[], Health] | None = None,
+                 websocket: Callable[[], tuple[int, int]] = lambda: (0, 0),
                  history: Callable[[], HistoryHealth] | None = None) -> None:
         self.registry = r = CollectorRegistry()
-        r.register(_PipelineCollector(stats, health, websocket, history))
+        if stats is not None and health is not None:
+            r.register(_PipelineCollector(lambda: stats, health, websocket, history))
         self.windows = Counter("meniscope_windows", "Windows published, by fit status.", ["status"], registry=r)
         for status in STATUSES:
             self.windows.labels(status)

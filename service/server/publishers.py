@@ -18,10 +18,10 @@ import queue
 import threading
 import time
 from collections import deque
+from typing import Protocol
 
 from service.pipeline.runtime import FittedWindow, TraceSnippet
 from service.server.history import History, StoredWindow
-from service.server.hub import Hub
 from service.server.messages import trace_message, window_message
 from service.server.metrics import Metrics
 from service.server.zmq_publisher import ZmqPublisher
@@ -36,10 +36,19 @@ BACKLOG_WINDOWS = 100_000
 RETRY_S = 1.0
 
 
+class Fanout(Protocol):
+    """Where WebSocket messages go: :class:`service.server.hub.Hub`, or the pipe to the web process."""
+
+    @property
+    def clients(self) -> int: ...
+
+    def broadcast(self, message: str) -> None: ...
+
+
 class Publishers:
     """Publishes what the pipeline makes; each window under the name of the source its frames came from."""
 
-    def __init__(self, history: History, metrics: Metrics, zmq: ZmqPublisher | None, hub: Hub) -> None:
+    def __init__(self, history: History, metrics: Metrics, zmq: ZmqPublisher | None, hub: Fanout) -> None:
         self.history, self.metrics, self.zmq, self.hub = history, metrics, zmq, hub
         self.dropped = 0
         self.history_error: str | None = None  # why the history is not being written, None while it is
