@@ -19,7 +19,7 @@ from fastapi import FastAPI
 
 from service.bench.live import free_port  # noqa: F401 - the tests' free port is the benchmark's
 from service.server.app import create_app
-from service.settings import ServiceSettings
+from service.server.settings import ServiceSettings
 
 #: The checkout these tests belong to, whose code every `meniscope` process they start must run.
 ROOT = Path(__file__).resolve().parents[1]

@@ -132,7 +132,7 @@ def test_the_images_settings_bind_zeromq_where_compose_publishes_it(monkeypatch:
     from urllib.parse import urlsplit
 
     from service.server.zmq_publisher import ZmqPublisher
-    from service.settings import load_settings
+    from service.server.settings import load_settings
 
     env = dict(re.findall(r"(MENISCOPE_\w+)=(\S+)", " ".join(a for op, a in _stages()[-1] if op == "ENV")))
     for name in [k for k in os.environ if k.startswith("MENISCOPE_")]:

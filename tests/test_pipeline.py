@@ -29,7 +29,7 @@ from service.server.history import History
 from service.server.hub import Hub
 from service.server.metrics import Metrics
 from service.server.publishers import Publishers
-from service.settings import ServiceSettings
+from service.server.settings import ServiceSettings
 from service.sources import FrameBatch, ReplaySource, open_source
 
 

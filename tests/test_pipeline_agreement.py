@@ -17,7 +17,7 @@ from service.pipeline.fitting import OnFitted
 from service.pipeline.runtime import FittedWindow, Pipeline, PipelineStats
 from service.pipeline.windows import WindowJob, fit_job
 from service.scene import Scene
-from service.settings import ServiceSettings
+from service.server.settings import ServiceSettings
 from service.sources import open_source
 
 

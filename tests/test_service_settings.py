@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 
 from service.errors import MeniscopeError
-from service.settings import load_settings, resolve_source
+from service.server.settings import load_settings, resolve_source
 
 
 @pytest.fixture(autouse=True)

@@ -5,7 +5,7 @@ from pathlib import Path
 
 from service.errors import MeniscopeError
 from service.pipeline.supervisor import Supervisor
-from service.settings import ServiceSettings
+from service.server.settings import ServiceSettings
 from tests.servicekit import wait_for
 
 

@@ -51,7 +51,7 @@ def measure_live(recording: Path, scene, method, workers: int | None) -> dict:  
 
     from service.pipeline.fitting import FitPool
     from service.pipeline.runtime import Pipeline, PipelineStats
-    from service.settings import ServiceSettings
+    from service.server.settings import ServiceSettings
     from service.sources import open_source
 
     settings = ServiceSettings(source=f"file://{quote(str(recording))}?speed=max", recordings_dir=recording.parent,

@@ -35,7 +35,7 @@ from pydantic import ValidationError
 from service.analysis.results import FitSettings
 from service.bench import parse_pairs
 from service.errors import MeniscopeError
-from service.settings import ServiceSettings, default_data_dir
+from service.server.settings import ServiceSettings, default_data_dir
 from service.bench.results import write_results
 
 CONFIGS = "512x1,512x2,128x1"

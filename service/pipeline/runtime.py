@@ -33,7 +33,7 @@ from service.pipeline.segmenter import ClosedWindow, StreamingSegmenter
 from service.pipeline.stages import FrameStages
 from service.pipeline.windows import WindowJob, job_for
 from service.scene import Scene
-from service.settings import ServiceSettings
+from service.server.settings import ServiceSettings
 from service.sources import FrameBatch, FrameSource
 
 log = logging.getLogger(__name__)

@@ -27,7 +27,7 @@ from service.pipeline.demo import demo_uri
 from service.pipeline.fitting import FitPool
 from service.pipeline.runtime import Pipeline, PipelineSink, PipelineStats
 from service.scene import Scene
-from service.settings import ServiceSettings, resolve_source
+from service.server.settings import ServiceSettings, resolve_source
 from service.sources import FrameSource, open_source
 
 log = logging.getLogger(__name__)

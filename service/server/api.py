@@ -22,7 +22,7 @@ from service.analysis.results import WindowResult
 from service.errors import MeniscopeError
 from service.pipeline.runtime import LatestFrame
 from service.server.components import Service
-from service.settings import Method, ServiceSettings, resolve_source
+from service.server.settings import Method, ServiceSettings, resolve_source
 from service.sources import probe_source
 
 #: Largest window id (SQLite's integers are signed 64-bit).
@@ -56,9 +56,9 @@ Svc = Annotated[Service, Depends(_service)]
 
 def require_token(request: Request, service: Svc) -> None:
     """Allow a change only with the configured bearer token, or on loopback when none is configured."""
-    token = service.settings.token
+    token = service.server.settings.token
     if token is None:
-        if service.settings.loopback:
+        if service.server.settings.loopback:
             return
         raise HTTPException(403, "changing settings on a service reachable from other machines needs a token: "
                                  "set MENISCOPE_TOKEN")
@@ -84,7 +84,7 @@ def readyz(service: Svc) -> JSONResponse:
 @router.get("/api/v1/status", tags=["status"])
 def status(service: Svc) -> dict[str, Any]:
     """Source, frame rates in and out, frame and window counts, model, uptime."""
-    health, s, settings = service.health(), service.stats, service.settings
+    health, s, settings = service.health(), service.stats, service.server.settings
     return {
         "ready": health.ready, "state": health.state, "reason": health.reason, "attempts": health.attempts,
         "source": health.source,
@@ -146,7 +146,7 @@ class ConfigChange(BaseModel):
 
 @router.get("/api/v1/config", tags=["config"])
 def get_config(service: Svc) -> dict[str, Any]:
-    return service.settings.public()
+    return service.server.settings.public()
 
 
 @router.put("/api/v1/config", tags=["config"], dependencies=[Depends(require_token)],
@@ -156,7 +156,7 @@ def put_config(change: ConfigChange, service: Svc) -> dict[str, Any]:
     first (its scheme, options and, for a recording, the file itself): one that cannot open is refused with 422
     and the running one kept. A camera or socket is opened only by the pipeline: when it then fails, the
     service says why in /readyz and retries it, as for any source."""
-    current: ServiceSettings = service.settings
+    current: ServiceSettings = service.server.settings
     updates = change.model_dump(exclude_unset=True)
     try:
         settings = ServiceSettings(**{**dict(current), **updates})

@@ -25,7 +25,7 @@ from service.server import api, dashboard
 from service.server.components import Service
 from service.server.guard import Guard, default_hosts
 from service.server.static_files import STATIC
-from service.settings import ServiceSettings
+from service.server.settings import ServiceSettings
 
 
 def create_app(settings: ServiceSettings) -> FastAPI:

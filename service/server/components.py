@@ -24,7 +24,7 @@ from service.server.history import History
 from service.server.hub import Hub
 from service.server.metrics import HistoryHealth, status_registry
 from service.server.pipeline_process import PipelineProcess
-from service.settings import ServiceSettings
+from service.server.settings import ServiceSettings
 
 
 @dataclass

@@ -18,7 +18,7 @@ from service.server.history import History
 from service.server.metrics import HistoryHealth, Metrics
 from service.server.publishers import Fanout, Publishers
 from service.server.zmq_publisher import ZmqPublisher
-from service.settings import ServiceSettings
+from service.server.settings import ServiceSettings
 
 #: The history database, in the data folder.
 HISTORY_FILE = "history.sqlite"

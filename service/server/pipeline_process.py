@@ -27,7 +27,7 @@ from service.errors import MeniscopeError
 from service.pipeline.supervisor import Health
 from service.server.engine import Engine, Report
 from service.server.hub import Hub
-from service.settings import ServiceSettings
+from service.server.settings import ServiceSettings
 
 log = logging.getLogger(__name__)
 

@@ -8,7 +8,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
-    from service.settings import ServiceSettings
+    from service.server.settings import ServiceSettings
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -33,7 +33,7 @@ def serve_settings(args: argparse.Namespace) -> ServiceSettings:
     """The settings ``args`` ask for, loaded and validated once with the options on top (an option mends a
     bad value of the config file); a recording named by ``--source`` makes its folder the recordings
     folder unless ``recordings_dir`` is set (the person at the console may name any recording)."""
-    from service.settings import load_settings, recording_folder
+    from service.server.settings import load_settings, recording_folder
 
     folder = None if args.source is None else recording_folder(args.source)
     return load_settings(args.config, {"recordings_dir": folder}, source=args.source, host=args.host,
