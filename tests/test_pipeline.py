@@ -236,3 +236,15 @@ def test_the_inference_cap_is_the_frames_the_measured_cost_allows_within_the_bud
     assert fast.frames() == 512  # never above ``most``
     fast.record(1e-6, 1000)
     assert fast.frames() == 512
+
+
+def test_a_window_whose_frames_show_no_highlight_is_unresolved_not_settled() -> None:
+    """A dark or unlit camera's window would fit as a flat, settled meniscus; without a highlight nothing of the
+    meniscus was seen, so it is unresolved and says why. A window with highlights is fitted as before."""
+    from service.analysis.segment import Window
+
+    flat = np.zeros(190)
+    unseen = fit_job(WindowJob(Window(0, 0, 190, True, True), flat, flat, highlight=0.03), 19000.0, FitSettings())
+    assert unseen.status == "unresolved" and "no highlight" in unseen.reason and not unseen.modes
+    seen = fit_job(WindowJob(Window(0, 0, 190, True, True), flat, flat, highlight=0.9), 19000.0, FitSettings())
+    assert seen.status == "settled"

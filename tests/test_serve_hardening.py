@@ -247,3 +247,19 @@ def test_a_body_over_64_kb_is_refused_before_it_is_read_whole(base: str) -> None
         chunk = b'{"source": "' + b"x" * 66_000 + b'"}'  # just over the limit
         s.sendall(f"{len(chunk):x}\r\n".encode() + chunk + b"\r\n0\r\n\r\n")
         assert s.recv(100).startswith(b"HTTP/1.1 413")
+
+
+def test_a_lit_camera_without_a_highlight_is_its_own_state(tmp_path: Path) -> None:
+    """Frames that carry a picture (grey with noise: not flat) but no highlight (the brightest pixel ~4 % of full
+    scale above the mean): the meniscus is not seen, so the service is not ready (the window-level rule is
+    test_pipeline.py's)."""
+    recordings = tmp_path / "recordings"
+    recordings.mkdir()
+    grey = 90 + np.random.default_rng(3).normal(0, 2, (2000, 96, 96))
+    with open_writer(recordings / "unlit.cine", 96, 96, 19000.0, bit_depth=8) as writer:
+        writer.write(np.clip(grey, 0, 255).astype(np.uint8))
+    with running_service(service_settings(tmp_path / "data", recordings, demo(recordings / "unlit.cine"))) as url:
+        reply = wait_for(lambda: (r := request("GET", url + "/readyz")).json()["state"] == "no_highlight" and r, 60,
+                         "no highlight")
+        assert reply.status == 503 and "no highlight" in reply.json()["reason"]
+        assert "meniscope_signal 0.0" in request("GET", url + "/metrics").body.decode()

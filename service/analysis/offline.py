@@ -145,7 +145,7 @@ def _replay(path: Path, scene: Scene, inverse: InverseMethod) -> Iterator[tuple[
     """The recording replayed at full speed in reads of :data:`READ_FRAMES`, each read's ROI with the stages of
     the stream."""
     with ReplaySource(path, speed=0.0) as source:
-        stages = FrameStages(scene, source.width, source.height, str(path), inverse)
+        stages = FrameStages(scene, source.format, str(path), inverse)
         while (batch := source.read(READ_FRAMES)) is not None:
             yield stages, stages.roi(batch)
 

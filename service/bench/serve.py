@@ -148,7 +148,7 @@ def stage_costs(recording: Path, configs: list[tuple[int, int]], frames: int = 3
         return max(own, process) / count * 1e6, out  # onnxruntime's own threads count through process time
 
     with open_source(f"file://{quote(str(recording))}?speed=max&loop=1") as source:
-        fps, size = source.fps, (source.width, source.height)
+        fps, stream = source.fps, source.format
         read_us, reads = cpu_us_per_frame(lambda: [source.read(128) for _ in range(frames // 128)])
     costs: dict = {"read_128": read_us}
     batch = FrameBatch.concatenate(reads)
@@ -156,7 +156,7 @@ def stage_costs(recording: Path, configs: list[tuple[int, int]], frames: int = 3
     stages = None
     for size_, threads in configs:
         method = NetworkMethod(DEFAULT_MODELS, scene, threads=threads, batch=size_)
-        stages = FrameStages(scene, *size, str(recording), method)
+        stages = FrameStages(scene, stream, str(recording), method)
         method.infer(batch.pixels[:size_])
         costs[f"infer_{size_}x{threads}"], _ = cpu_us_per_frame(lambda: method.infer(batch.pixels), len(batch))
     parts = [batch.select(slice(lo, lo + 512)) for lo in range(0, len(batch), 512)]

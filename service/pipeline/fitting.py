@@ -30,7 +30,7 @@ import numpy as np
 from service.analysis.results import FitSettings, WindowResult
 from service.analysis.segment import Window
 from service.errors import MeniscopeError
-from service.pipeline.windows import WindowJob, failed_result, fit_job
+from service.pipeline.windows import WindowJob, unfitted_result, fit_job
 
 #: What the pool calls with each finished fit: the job, its result (a failed one if the fit raised), and when
 #: (monotonic s: one clock for every process on the machine) its worker started and finished it (NaN if it raised).
@@ -138,7 +138,7 @@ class FitPool:
                         lost = ([worker.job] if worker.job is not None else []) + list(self._waiting)
                         self._waiting.clear()
                     for closed, _, on_fitted in lost:
-                        on_fitted(closed, failed_result(closed, "the fit worker process died"), math.nan, math.nan)
+                        on_fitted(closed, unfitted_result(closed, "the fit worker process died"), math.nan, math.nan)
                 return
             assert worker.job is not None
             (closed, _, on_fitted), worker.job = worker.job, None
@@ -151,9 +151,9 @@ class FitPool:
                     self._start(worker, following)
                 except MeniscopeError:
                     closed_next, _, on_next = following
-                    on_next(closed_next, failed_result(closed_next, "the fit worker process died"), math.nan, math.nan)
+                    on_next(closed_next, unfitted_result(closed_next, "the fit worker process died"), math.nan, math.nan)
             if isinstance(answer, str):
-                on_fitted(closed, failed_result(closed, f"the fit raised {answer}"), math.nan, math.nan)
+                on_fitted(closed, unfitted_result(closed, f"the fit raised {answer}"), math.nan, math.nan)
             else:
                 on_fitted(closed, *answer)
 

@@ -187,7 +187,7 @@ class Pipeline:
 
     def __init__(self, settings: ServiceSettings, scene: Scene, source: FrameSource, method: InverseMethod,
                  fits: FitPool, sink: PipelineSink, stats: PipelineStats) -> None:
-        self.stages = FrameStages(scene, source.width, source.height, source.uri, method)
+        self.stages = FrameStages(scene, source.format, source.uri, method)
         self.settings, self.source, self.method, self.fits = settings, source, method, fits
         self.sink, self.stats = sink, stats
         fps = source.fps

@@ -9,7 +9,9 @@ any other source that ends its stream is reconnected like one that failed.
 Ready means frames flow and carry a picture: a running source that has delivered nothing for
 :data:`SOURCE_SILENT_S` (a ZeroMQ sender that died) is ``stalled``, and one whose latest frame is flat
 (a dark or capped camera, a saturated sensor: its ROI spans under :data:`FLAT_FRACTION` of full scale)
-is ``no_signal``; both are not ready, and ready again as soon as that changes.
+is ``no_signal``, and one that shows no highlight (its brightest pixel under
+:data:`~service.pipeline.records.NO_HIGHLIGHT` of full scale above its mean: nothing of the meniscus is seen)
+is ``no_highlight``; these are not ready, and ready again as soon as that changes.
 """
 from __future__ import annotations
 
@@ -25,6 +27,7 @@ from service.errors import MeniscopeError
 from service.inverse.methods import open_method
 from service.pipeline.demo import demo_uri
 from service.pipeline.fitting import FitPool
+from service.pipeline.records import NO_HIGHLIGHT
 from service.pipeline.runtime import Pipeline, PipelineSink, PipelineStats
 from service.scene import Scene
 from service.server.settings import ServiceSettings, resolve_source
@@ -32,7 +35,8 @@ from service.sources import FrameSource, open_source
 
 log = logging.getLogger(__name__)
 
-State = Literal["starting", "running", "stalled", "no_signal", "degraded", "retrying", "ended", "stopped"]
+State = Literal["starting", "running", "stalled", "no_signal", "no_highlight", "degraded", "retrying", "ended",
+                "stopped"]
 #: A running source that has sent nothing for this long (s) is stalled (or 4 frame periods of a slow one).
 SOURCE_SILENT_S = 2.0
 #: A frame whose ROI pixels span less than this fraction of full scale shows nothing (dark, capped, saturated).
@@ -111,6 +115,10 @@ class Supervisor:
             if span < FLAT_FRACTION * full:
                 return "no_signal", (f"no signal: frame {latest.index} is flat (its pixels span {span} of {full}: a dark "
                                      "or capped camera, or a saturated one)")
+            highlight = (float(latest.pixels.max()) - float(latest.pixels.mean())) / full
+            if highlight < NO_HIGHLIGHT:
+                return "no_highlight", (f"no highlight: frame {latest.index}'s brightest pixel is {100 * highlight:.1f} %"
+                                        " of full scale above its mean (unlit, or the nozzle out of view)")
         return "running", None
 
     def _fit_pool(self, settings: ServiceSettings) -> FitPool:

@@ -13,21 +13,23 @@ from typing import Any, Callable
 
 import numpy as np
 
-from service.analysis.results import FitSettings, WindowResult
+from service.analysis.results import FitSettings, Status, WindowResult
 from service.analysis.segment import Window
 from service.analysis.steady import window_steady_centre
-from service.pipeline.records import coefficients_of
+from service.pipeline.records import NO_HIGHLIGHT, coefficients_of
 
 
 @dataclass(frozen=True)
 class WindowJob:
     """One window's fit to be done: the series it takes (the steady D(0, t), mm per frame, NaN where frames are
-    missing), its frames' mean brightness (where the fit takes its poles from the frames) and when (monotonic s)
+    missing), its frames' mean brightness (where the fit takes its poles from the frames), their median highlight
+    (:data:`~service.pipeline.records.FRAME`'s, fraction of full scale; NaN where unknown) and when (monotonic s)
     the frame that closed it was read (NaN offline)."""
 
     window: Window
     series: np.ndarray
     brightness: np.ndarray | None = None
+    highlight: float = math.nan
     closed_at: float = math.nan
 
 
@@ -36,23 +38,30 @@ def job_for(window: Window, records: np.ndarray, radius_mm: float, transient: in
     """The job of ``window`` from its frames' records: its steady D(0, t) (:mod:`service.analysis.steady`) and
     brightness."""
     series = window_steady_centre(coefficients_of(records), radius_mm, transient, window.starts_at_ejection)
-    return WindowJob(window, series, np.ascontiguousarray(records["brightness"]), closed_at)
+    highlight = records["highlight"][np.isfinite(records["highlight"])]
+    return WindowJob(window, series, np.ascontiguousarray(records["brightness"]),
+                     float(np.median(highlight)) if len(highlight) else math.nan, closed_at)
 
 
 def fit_job(job: WindowJob, fps: float, settings: FitSettings) -> WindowResult:
-    """The window fit (:func:`service.analysis.fit.fit_window`) of one job."""
+    """The window fit (:func:`service.analysis.fit.fit_window`) of one job; ``unresolved`` without a fit where its
+    frames show no highlight (a dark or unlit camera would otherwise pass for a settled meniscus)."""
     from service.analysis.fit import fit_window
 
     w = job.window
+    if job.highlight < NO_HIGHLIGHT:
+        return unfitted_result(job, f"no highlight in its frames (the brightest pixel {100 * job.highlight:.1f} % of "
+                               "full scale above the mean, median): a dark, capped or unlit camera shows nothing of "
+                               "the meniscus", "unresolved")
     return fit_window(job.series, fps, settings, index=w.index, start_frame=w.start,
                       starts_at_ejection=w.starts_at_ejection, ends_at_ejection=w.ends_at_ejection,
                       brightness=job.brightness)
 
 
-def failed_result(job: WindowJob, reason: str) -> WindowResult:
-    """The result of a job whose fit could not be done, saying why."""
+def unfitted_result(job: WindowJob, reason: str, status: Status = "failed") -> WindowResult:
+    """The result of a job that was not fitted, saying why: its fit failed, or (``unresolved``) had nothing to fit."""
     w, finite = job.window, np.isfinite(job.series)
-    return WindowResult(index=w.index, start_frame=w.start, end_frame=w.end, status="failed", reason=reason,
+    return WindowResult(index=w.index, start_frame=w.start, end_frame=w.end, status=status, reason=reason,
                         samples=int(finite.sum()), missing=int((~finite).sum()),
                         starts_at_ejection=w.starts_at_ejection, ends_at_ejection=w.ends_at_ejection)
 
@@ -127,7 +136,7 @@ def _fit_or_fail(job: WindowJob, fps: float, settings: FitSettings) -> WindowRes
     try:
         return fit_job(job, fps, settings)
     except Exception as exc:  # noqa: BLE001 - reported as the window's failed fit
-        return failed_result(job, f"the fit raised {type(exc).__name__}: {exc}")
+        return unfitted_result(job, f"the fit raised {type(exc).__name__}: {exc}")
 
 
 def _warm() -> None:

@@ -35,7 +35,7 @@ class _PipelineCollector(Collector):
     def collect(self) -> Iterator[Metric]:
         s, health = self.stats(), self.health()
         ready = float(health.ready)
-        flowing = float(health.state in ("running", "no_signal", "degraded")
+        flowing = float(health.state in ("running", "no_signal", "no_highlight", "degraded")
                         and time.monotonic() - s.last_frame_at < SOURCE_SILENT_S)
         clients, skipped = self.websocket()
         history = self.history()
@@ -57,8 +57,9 @@ class _PipelineCollector(Collector):
             ("input_frames_per_second", s.fps_in, "Frames per second read from the source (last second)."),
             ("output_frames_per_second", s.fps_out, "Frames per second inferred (last second)."),
             ("websocket_clients", clients, "Connected WebSocket clients."),
-            ("signal", float(flowing and health.state != "no_signal"),
-             "1 while the frames arriving show a picture, 0 while they are flat (dark, capped, saturated) or absent."),
+            ("signal", float(flowing and health.state not in ("no_signal", "no_highlight")),
+             "1 while the frames arriving show the meniscus' highlights, 0 while they are flat (dark, capped, "
+             "saturated), show no highlight, or are absent."),
             ("history_up", float(history.error is None), "1 while windows are stored in the history, else 0."),
             ("history_backlog_windows", history.backlog, "Sent windows waiting to be stored in the history."),
         ):
