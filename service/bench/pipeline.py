@@ -97,7 +97,7 @@ def measure_live(recording: Path, scene, method, workers: int | None) -> dict:  
     finally:
         pool.close()
     pool.join(10.0)
-    cpu = cpu_seconds() - cpu0  # the fit workers have ended: their CPU is counted
+    cpu = cpu_seconds() - cpu0  # the fit workers have ended (joined): their CPU is counted
     return {"seconds": seconds, "frames_per_s": stats.frames_inferred / seconds,
             "cpu_us_per_frame": 1e6 * cpu / max(stats.frames_inferred, 1),
             "inferred_frames_per_s": stats.frames_inferred / inferred, "frames_dropped": stats.frames_dropped,

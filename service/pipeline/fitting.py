@@ -175,8 +175,3 @@ class FitPool:
                 worker.conn.send(None)
             except OSError:  # already gone
                 pass
-
-    def join(self, timeout: float) -> None:
-        """Wait up to ``timeout`` s for each worker to exit after :meth:`close` (a benchmark then counts their CPU)."""
-        for worker in self._all:
-            worker.process.join(timeout)
