@@ -9,10 +9,12 @@ window's steady D(0, t) (:mod:`service.analysis.steady`) is fitted by :func:`ser
 """
 from __future__ import annotations
 
-from concurrent.futures import ThreadPoolExecutor
+from collections import deque
 from collections.abc import Iterator
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TypeVar
 
 import numpy as np
 from scipy.stats import norm
@@ -41,6 +43,8 @@ from service.render.renderer import Renderer
 from service.scene import Scene
 from service.sources import FrameBatch
 from service.sources.replay import ReplaySource
+
+_T = TypeVar("_T")
 
 #: Neighbours per frame among which the regularised fit chooses (the paper's 10).
 CANDIDATES = 10
@@ -93,8 +97,7 @@ def analyse_recording(
         # whole recording's changes, are known at its end, when the windows' fits start on both cores
         parts, found = [], []
         with tqdm(total=frames, unit="frame", desc=f"{inverse.name} {path.name}", disable=not progress) as bar:
-            for stages, batch in _replay(path, scene, inverse):
-                part = stages.measure(batch)
+            for stages, batch, part in _ahead(_measured(path, scene, inverse)):
                 if db is None:
                     stages.infer(batch.pixels, part)
                 else:  # the window fit picks every frame's values among these; one search serves
@@ -136,13 +139,29 @@ def fps_of(path: Path) -> float:
         return rec.fps
 
 
-def _replay(path: Path, scene: Scene, inverse: InverseMethod) -> Iterator[tuple[FrameStages, FrameBatch]]:
-    """The recording replayed at full speed in reads of :data:`READ_FRAMES`, each read's ROI with the stages of
-    the stream."""
+def _measured(path: Path, scene: Scene, inverse: InverseMethod) -> Iterator[tuple[FrameStages, FrameBatch,
+                                                                                     np.ndarray]]:
+    """The recording replayed at full speed in reads of :data:`READ_FRAMES`: each read's ROI and its records as
+    far as the pixels alone fill them (:meth:`FrameStages.measure`), with the stages of the stream."""
     with ReplaySource(path, speed=0.0) as source:
         stages = FrameStages(scene, source.width, source.height, str(path), inverse)
         while (batch := source.read(READ_FRAMES)) is not None:
-            yield stages, stages.roi(batch)
+            batch = stages.roi(batch)
+            yield stages, batch, stages.measure(batch)
+
+
+_END = object()
+
+
+def _ahead(items: Iterator[_T], depth: int = 2) -> Iterator[_T]:
+    """``items``, each made on a thread of its own up to ``depth`` ahead, in order: reading and measuring the next
+    frames overlaps the inference of these on two cores (the file reads, numpy, OpenCV and onnxruntime let go of
+    the interpreter lock)."""
+    with ThreadPoolExecutor(1) as thread:  # one thread: ``items`` is advanced by it alone, one step at a time
+        pending = deque(thread.submit(next, items, _END) for _ in range(depth))
+        while (item := pending.popleft().result()) is not _END:
+            pending.append(thread.submit(next, items, _END))
+            yield item
 
 
 def _set_coefficients(records: np.ndarray, coefficients: np.ndarray, centre: np.ndarray) -> None:
