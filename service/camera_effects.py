@@ -21,6 +21,8 @@ import cv2
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
+from service.noise_presets import NOISE_PRESETS
+
 BitDepth = Literal[8, 10, 12, 16]
 
 #: Below this many expected electrons shot noise is drawn exactly from a Poisson law; above it
@@ -102,17 +104,6 @@ class CameraEffects(BaseModel):
     def apply(self, linear: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         """Stored pixels (N, H, W), uint8 or uint16, of linear renders (N, H, W) in [0, 1]."""
         return apply_effects(linear, self.per_frame(len(linear)), self.bit_depth, rng)
-
-
-#: Noise presets for ``meniscope simulate --noise``: (full well e-, read noise e-, PSF sigma px,
-#: black level). "lab" is a guess at a Phantom CMOS sensor (~16k e- well, ~20 e- read noise),
-#: not a calibration.
-NOISE_PRESETS: dict[str, tuple[float, float, float, float]] = {
-    "none": (0.0, 0.0, 0.0, 0.0),
-    "low": (40000.0, 10.0, 0.5, 0.0),
-    "lab": (16000.0, 20.0, 0.7, 0.01),
-    "high": (4000.0, 30.0, 1.0, 0.02),
-}
 
 
 def noise_preset(name: str, bit_depth: BitDepth) -> CameraEffects:

@@ -9,10 +9,12 @@ window's steady D(0, t) (:mod:`service.analysis.steady`) is fitted by :func:`ser
 """
 from __future__ import annotations
 
-from concurrent.futures import ThreadPoolExecutor
+from collections import deque
 from collections.abc import Iterator
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TypeVar
 
 import numpy as np
 from scipy.stats import norm
@@ -31,16 +33,18 @@ from service.inverse.manifest import sha256_file
 from service.inverse.methods import open_method
 from service.inverse.nearest import NearestDatabase
 from service.physics import WindowTruth, centre_displacement
-from service.pipeline.records import COEFFICIENTS, coefficients_of
+from service.pipeline.records import COEFFICIENTS, FRAME, coefficients_of
 from service.pipeline.segmenter import StreamingSegmenter
 from service.pipeline.stages import FrameStages
-from service.pipeline.windows import JobRunner, gather, job_for
+from service.pipeline.windows import JobRunner, job_for
 from service.recordings import open_recording
 from service.recordings.roi import roi_frames
 from service.render.renderer import Renderer
 from service.scene import Scene
 from service.sources import FrameBatch
 from service.sources.replay import ReplaySource
+
+_T = TypeVar("_T")
 
 #: Neighbours per frame among which the regularised fit chooses (the paper's 10).
 CANDIDATES = 10
@@ -82,38 +86,34 @@ def analyse_recording(
     """
     if refine:
         settings = settings.model_copy(update={"poles": "series"})
-    fps = fps_of(path)
+    with open_recording(path) as rec:
+        fps, frames, width, height = rec.fps, len(rec), rec.width, rec.height
     inverse, db = opened or open_method(method, scene, models, database)
     db = db if method == "regularised" else None
     transient, radius = settings.transient_frames(fps), scene.nozzle.radius_mm
     with JobRunner(settings, scheduler, workers) as runner, ThreadPoolExecutor(1) as hasher:
         digest = hasher.submit(sha256_file, path)  # hashlib lets go of the interpreter lock: read while it hashes
-        # look ahead: every frame's change first (cheap), so that the ejections are known before the frames are
-        # inferred and each window's fit starts as soon as its frames are, alongside the inference
-        records = np.concatenate([stages.measure(batch) for stages, batch in _replay(path, scene, inverse)])
-        n = len(records)
-        if n < 2:
-            raise MeniscopeError(path, f"{n} frame(s): a window analysis needs at least 2")
-        cuts, _ = find_ejections(frame_activity(records["change"]), fps, ejections.file, ejections.hz)
-        segmenter = StreamingSegmenter(1, n, np.inf)  # cut at the ejections found: the whole recording looked ahead
-        at_once = db is None and not refine  # else the windows' per-frame values change once all are known
-        windows, futures, found = [], [], []
-        with tqdm(total=n, unit="frame", desc=f"{inverse.name} {path.name}", disable=not progress) as bar:
-            for stages, batch in _replay(path, scene, inverse):
-                part = records[batch.indices[0] : batch.indices[-1] + 1]  # a view: filled in place
+        # one pass over the frames (each read once: reading was a fifth of the CPU); the ejections, found over the
+        # whole recording's changes, are known at its end, when the windows' fits start on both cores
+        parts, found = [], []
+        with tqdm(total=frames, unit="frame", desc=f"{inverse.name} {path.name}", disable=not progress) as bar:
+            for stages, batch, part in _ahead(_measured(path, scene, inverse)):
                 if db is None:
                     stages.infer(batch.pixels, part)
                 else:  # the window fit picks every frame's values among these; one search serves
                     index = db.search(batch.pixels, k=CANDIDATES, exact=True).index
                     _set_coefficients(part, db.coeffs[index[:, 0]], db.centre[index[:, 0]])
                     found.append(index)
-                closed = segmenter.push(batch.indices, part, part["activity"], np.zeros(len(batch)), cuts)
-                windows += [c.window for c in closed]
-                futures += [runner.submit(job_for(c.window, c.values, radius, transient), fps) for c in closed
-                            if at_once]
+                parts.append(part)
                 bar.update(len(batch))
-        last = [c.window for c in segmenter.finish(np.nan)]
-        windows += last
+        records = np.concatenate(parts) if parts else np.empty(0, FRAME)
+        n = len(records)
+        if n < 2:
+            raise MeniscopeError(path, f"{n} frame(s): a window analysis needs at least 2")
+        cuts, _ = find_ejections(frame_activity(records["change"]), fps, ejections.file, ejections.hz)
+        segmenter = StreamingSegmenter(1, n, np.inf)  # cut at the ejections found: the whole recording looked ahead
+        closed = segmenter.push(np.arange(n), records, records["activity"], np.zeros(n), cuts)
+        windows = [c.window for c in closed + segmenter.finish(np.nan)]
         if db is not None:
             _set_coefficients(records, *_regularise(db, np.concatenate(found), windows, fps, settings, progress))
         motions = {}
@@ -121,11 +121,9 @@ def analyse_recording(
             coefficients, centre, motions = _refine(path, scene, coefficients_of(records), windows, fps, settings,
                                                     runner, progress)
             _set_coefficients(records, coefficients, centre)
-        jobs = [job_for(w, records[w.start : w.end], radius, transient) for w in (last if at_once else windows)]
-        results = gather(futures + [runner.submit(job, fps) for job in jobs], progress)
-        with open_recording(path) as rec:
-            source = Source(path=str(path), frames=n, fps=fps, width=rec.width, height=rec.height,
-                            sha256=digest.result())
+        results = runner.run([job_for(w, records[w.start : w.end], radius, transient) for w in windows], fps,
+                             progress)
+        source = Source(path=str(path), frames=n, fps=fps, width=width, height=height, sha256=digest.result())
     results = [_with_pixel_intervals(r, *motions[r.index], fps, settings.confidence) if r.index in motions else r
                for r in results]
     report = Report(source=source, method=method_label(method, refine), ejections=cuts.tolist(), windows=results,
@@ -141,13 +139,29 @@ def fps_of(path: Path) -> float:
         return rec.fps
 
 
-def _replay(path: Path, scene: Scene, inverse: InverseMethod) -> Iterator[tuple[FrameStages, FrameBatch]]:
-    """The recording replayed at full speed in reads of :data:`READ_FRAMES`, each read's ROI with the stages of
-    the stream."""
+def _measured(path: Path, scene: Scene, inverse: InverseMethod) -> Iterator[tuple[FrameStages, FrameBatch,
+                                                                                     np.ndarray]]:
+    """The recording replayed at full speed in reads of :data:`READ_FRAMES`: each read's ROI and its records as
+    far as the pixels alone fill them (:meth:`FrameStages.measure`), with the stages of the stream."""
     with ReplaySource(path, speed=0.0) as source:
         stages = FrameStages(scene, source.format, str(path), inverse)
         while (batch := source.read(READ_FRAMES)) is not None:
-            yield stages, stages.roi(batch)
+            batch = stages.roi(batch)
+            yield stages, batch, stages.measure(batch)
+
+
+_END = object()
+
+
+def _ahead(items: Iterator[_T], depth: int = 2) -> Iterator[_T]:
+    """``items``, each made on a thread of its own up to ``depth`` ahead, in order: reading and measuring the next
+    frames overlaps the inference of these on two cores (the file reads, numpy, OpenCV and onnxruntime let go of
+    the interpreter lock)."""
+    with ThreadPoolExecutor(1) as thread:  # one thread: ``items`` is advanced by it alone, one step at a time
+        pending = deque(thread.submit(next, items, _END) for _ in range(depth))
+        while (item := pending.popleft().result()) is not _END:
+            pending.append(thread.submit(next, items, _END))
+            yield item
 
 
 def _set_coefficients(records: np.ndarray, coefficients: np.ndarray, centre: np.ndarray) -> None:

@@ -87,11 +87,12 @@ class JobRunner:
             from concurrent.futures import ProcessPoolExecutor
 
             count = workers or os.cpu_count() or 1
+            _warm()  # here, once: the forked workers inherit the compiled fit instead of each loading it again
             # fork: a worker starts in milliseconds with everything imported (spawned ones took seconds of the two
             # cores the frames need). Safe here although the caller may run inference threads: a worker only fits
             # (numpy, numba) and never takes a lock those threads hold; the runner is made before the analysis
             # starts threads of its own.
-            self._pool = ProcessPoolExecutor(count, multiprocessing.get_context("fork"), initializer=_warm)
+            self._pool = ProcessPoolExecutor(count, multiprocessing.get_context("fork"))
             for _ in range(count):  # the pool starts its processes as work comes: start them all now
                 self._pool.submit(int)
 
@@ -140,7 +141,7 @@ def _fit_or_fail(job: WindowJob, fps: float, settings: FitSettings) -> WindowRes
 
 
 def _warm() -> None:
-    """Load the fit and its compiled kernels in a new worker process (from numba's cache)."""
+    """Load the fit and its compiled kernels (from numba's cache; milliseconds once loaded)."""
     from service.analysis.fit import warm
 
     warm()

@@ -5,9 +5,9 @@ import argparse
 import math
 from pathlib import Path
 
-from service.verbs import add_scene_option
-from service.camera_effects import NOISE_PRESETS, noise_preset, sensor_effects
 from service.errors import MeniscopeError
+from service.noise_presets import NOISE_PRESETS
+from service.verbs import add_scene_option
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -49,9 +49,13 @@ def _frame_size(text: str) -> tuple[int, int]:
 
 
 def run(args: argparse.Namespace) -> int:
+    from service.camera_effects import noise_preset, sensor_effects
     from service.scene import Scene
-
-    from service.simulate import check_output, simulate, truth_path  # the renderer loads only when a verb needs it
+    from service.simulate import (  # the renderer loads only when a verb needs it
+        check_output,
+        simulate,
+        truth_path,
+    )
 
     if args.windows < 1:
         raise MeniscopeError("--windows", f"must be at least 1, got {args.windows}")
