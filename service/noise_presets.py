@@ -1,5 +1,6 @@
 """The camera noise presets by name, apart from the noise model itself (:mod:`service.camera_effects`, which
 loads numpy, OpenCV and pydantic), so that ``meniscope --help`` can list them without loading it."""
+
 from __future__ import annotations
 
 #: Noise presets for ``meniscope simulate --noise``: (full well e-, read noise e-, PSF sigma px,

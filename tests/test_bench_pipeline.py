@@ -1,5 +1,6 @@
 """`meniscope bench pipeline` runs offline analysis and the live pipeline on one recording and reports, for each,
 frames/s and the CPU it spent per frame (its fit processes included), as the user runs it."""
+
 from __future__ import annotations
 
 import json
@@ -10,8 +11,25 @@ from pathlib import Path
 
 def test_bench_pipeline_reports_both_pipelines_with_their_cpu_per_frame(demo_cine: Path, tmp_path: Path) -> None:
     out = tmp_path / "pipeline.json"
-    subprocess.run([sys.executable, "-m", "service.cli", "bench", "pipeline", str(demo_cine), "--repeat", "1",
-                    "--workers", "1", "--out", str(out)], check=True, capture_output=True, timeout=300)
+    subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "service.cli",
+            "bench",
+            "pipeline",
+            str(demo_cine),
+            "--repeat",
+            "1",
+            "--workers",
+            "1",
+            "--out",
+            str(out),
+        ],
+        check=True,
+        capture_output=True,
+        timeout=300,
+    )
     results = json.loads(out.read_text())
     for name in ("offline", "live"):
         (run,) = results[name]

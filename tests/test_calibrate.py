@@ -1,4 +1,5 @@
 """meniscope calibrate: a recording of a known mismatched scene, made by our renderer, is calibrated back."""
+
 from __future__ import annotations
 
 import json

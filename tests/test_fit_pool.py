@@ -1,5 +1,6 @@
 """The fit workers (service.pipeline.fitting.FitPool): windows handed over and fitted in other processes, one
 in flight and one waiting per worker, and a worker that dies."""
+
 from __future__ import annotations
 
 import os
@@ -51,7 +52,7 @@ def test_a_window_is_fitted_in_its_worker_as_in_process_and_its_times_follow_eac
     submitted = time.monotonic()
     assert pool.submit(closed, FPS, results)
     assert results.done.wait(60)
-    (back, result, started, finished, delivered), = results.got
+    ((back, result, started, finished, delivered),) = results.got
     assert back is closed
     assert result == fit_job(closed, FPS, FitSettings())
     assert submitted <= started <= finished <= delivered  # one monotonic clock across the processes
@@ -75,13 +76,14 @@ def test_a_window_finding_every_worker_busy_waits_once_and_one_more_is_refused(p
 
 def kill_worker(pool: FitPool) -> None:
     """Kill the pool's one worker process, as the OOM killer would, and wait until it is gone."""
-    process = pool._all[0].process  # noqa: SLF001 - the test reaches for the process to kill it
+    process = pool._all[0].process
     os.kill(process.pid, signal.SIGKILL)
     process.join(10)
 
 
 def test_a_worker_that_dies_while_fitting_fails_its_window_and_the_one_waiting_and_the_pool_reports_itself_broken(
-        pool: FitPool) -> None:
+    pool: FitPool,
+) -> None:
     results = Results(2)
     n = 200_000  # a fit of seconds: still running when the worker is killed just after the hand-over
     long_window = WindowJob(Window(0, 0, n, True, True), damped(n))

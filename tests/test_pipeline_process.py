@@ -1,5 +1,6 @@
 """The frame path runs in a process of its own (service.server.pipeline_process): nothing the web side does, or
 fails to do, stalls it, and when it dies the service says so and starts it again (issue 18)."""
+
 from __future__ import annotations
 
 import asyncio
@@ -31,8 +32,11 @@ from tests.test_serve_hardening import demo
 def _window_ids(port: int, stop: threading.Event) -> list[tuple[float, int]]:
     """(arrival time, id) of each window the ZeroMQ publisher on ``port`` sends, in a thread, until ``stop``."""
     got: list[tuple[float, int]] = []
-    threading.Thread(target=subscribe, args=(port, stop, lambda parts: got.append(
-        (time.monotonic(), json.loads(parts[1])["id"]))), daemon=True).start()
+    threading.Thread(
+        target=subscribe,
+        args=(port, stop, lambda parts: got.append((time.monotonic(), json.loads(parts[1])["id"]))),
+        daemon=True,
+    ).start()
     return got
 
 
@@ -58,8 +62,14 @@ def test_a_stopped_web_process_does_not_stall_the_frame_path(tmp_path: Path, dem
             wait_for(lambda: _ready(base), 30, "readiness after SIGCONT")
         before = [i for t, i in ids if stopped_at - 3.0 <= t < stopped_at]
         during = [i for t, i in ids if stopped_at <= t < resumed_at]
-        stored = {w["id"] for w in request("GET", base + f"/api/v1/windows?since={during[0] - 1}&limit=1000").json()[
-            "windows"]} if during else set()
+        stored = (
+            {
+                w["id"]
+                for w in request("GET", base + f"/api/v1/windows?since={during[0] - 1}&limit=1000").json()["windows"]
+            }
+            if during
+            else set()
+        )
     finally:
         stop.set()
         proc.send_signal(signal.SIGCONT)
@@ -95,7 +105,9 @@ def _ready(base: str) -> bool:
 
 def test_a_pipeline_process_that_cannot_start_is_one_clear_error(tmp_path: Path) -> None:
     """A ZeroMQ endpoint that cannot be bound stops the service at start, naming it, as before the split."""
-    settings = service_settings(tmp_path / "data", tmp_path, None).model_copy(update={"zmq_publish": "tcp://256.1.1.1:5"})
+    settings = service_settings(tmp_path / "data", tmp_path, None).model_copy(
+        update={"zmq_publish": "tcp://256.1.1.1:5"}
+    )
     loop = asyncio.new_event_loop()
     try:
         with pytest.raises(MeniscopeError, match="cannot bind the ZeroMQ publisher"):

@@ -1,5 +1,6 @@
 """`meniscope --help` and `meniscope info REC` start fast (issue 14: under 0.3 s): they load no module that only
 running a verb needs. Checked by what they import, not by timing (times belong in benchmarks)."""
+
 from __future__ import annotations
 
 import subprocess
@@ -16,10 +17,12 @@ HEAVY = ("cv2", "scipy", "onnxruntime", "numba", "pydantic", "service.analysis.f
 
 def loaded_by(argv: list[str]) -> set[str]:
     """The heavy modules imported by ``meniscope ARGV`` (run in a fresh interpreter, its output discarded)."""
-    code = ("import sys, contextlib, io\nfrom service.cli import main\n"
-            f"with contextlib.redirect_stdout(io.StringIO()):\n    try:\n        main({argv!r})\n"
-            "    except SystemExit:\n        pass\n"
-            f"print(' '.join(m for m in {HEAVY!r} if m in sys.modules))")
+    code = (
+        "import sys, contextlib, io\nfrom service.cli import main\n"
+        f"with contextlib.redirect_stdout(io.StringIO()):\n    try:\n        main({argv!r})\n"
+        "    except SystemExit:\n        pass\n"
+        f"print(' '.join(m for m in {HEAVY!r} if m in sys.modules))"
+    )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True, timeout=60)
     return set(out.stdout.split())
 

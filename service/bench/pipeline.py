@@ -9,6 +9,7 @@ Each ``--repeat`` times, alternating, so that both see the same load; medians an
 and the CPU each spent per frame (this process and its fit processes), which a loaded machine changes less than it
 changes frames/s.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -18,8 +19,9 @@ from service.verbs import add_scene_option
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    p = subparsers.add_parser("pipeline", help="offline analysis and the live pipeline's capacity on one recording",
-                              description=__doc__)
+    p = subparsers.add_parser(
+        "pipeline", help="offline analysis and the live pipeline's capacity on one recording", description=__doc__
+    )
     p.add_argument("recording", type=Path, help="REC.cine or REC.avi, e.g. from `meniscope simulate --windows 200`")
     add_scene_option(p)
     p.add_argument("--repeat", type=int, default=3, help="runs of each (default 3)")
@@ -44,12 +46,17 @@ def measure_offline(recording: Path, scene, opened, workers: int | None) -> dict
     from service.analysis.offline import analyse_recording
 
     t0, cpu0 = time.perf_counter(), cpu_seconds()
-    analysis = analyse_recording(recording, scene, "network", DEFAULT_MODELS, progress=False, opened=opened,
-                                 workers=workers)
+    analysis = analyse_recording(
+        recording, scene, "network", DEFAULT_MODELS, progress=False, opened=opened, workers=workers
+    )
     seconds, cpu = time.perf_counter() - t0, cpu_seconds() - cpu0  # the fit pool has ended: its CPU is counted
     frames = analysis.report.source.frames
-    return {"seconds": seconds, "frames_per_s": frames / seconds, "cpu_us_per_frame": 1e6 * cpu / frames,
-            "windows": len(analysis.report.windows)}
+    return {
+        "seconds": seconds,
+        "frames_per_s": frames / seconds,
+        "cpu_us_per_frame": 1e6 * cpu / frames,
+        "windows": len(analysis.report.windows),
+    }
 
 
 def measure_live(recording: Path, scene, method, workers: int | None) -> dict:  # type: ignore[no-untyped-def]
@@ -65,8 +72,12 @@ def measure_live(recording: Path, scene, method, workers: int | None) -> dict:  
     from service.server.settings import ServiceSettings
     from service.sources import open_source
 
-    settings = ServiceSettings(source=f"file://{quote(str(recording))}?speed=max", recordings_dir=recording.parent,
-                               fit_workers=workers or os.cpu_count() or 1, queue_batches=1024)
+    settings = ServiceSettings(
+        source=f"file://{quote(str(recording))}?speed=max",
+        recordings_dir=recording.parent,
+        fit_workers=workers or os.cpu_count() or 1,
+        queue_batches=1024,
+    )
     fitted: list = []
     done = threading.Event()
 
@@ -98,25 +109,36 @@ def measure_live(recording: Path, scene, method, workers: int | None) -> dict:  
         pool.close()
     pool.join(10.0)
     cpu = cpu_seconds() - cpu0  # the fit workers have ended (joined): their CPU is counted
-    return {"seconds": seconds, "frames_per_s": stats.frames_inferred / seconds,
-            "cpu_us_per_frame": 1e6 * cpu / max(stats.frames_inferred, 1),
-            "inferred_frames_per_s": stats.frames_inferred / inferred, "frames_dropped": stats.frames_dropped,
-            "windows": len(fitted), "windows_skipped": stats.windows_skipped}
+    return {
+        "seconds": seconds,
+        "frames_per_s": stats.frames_inferred / seconds,
+        "cpu_us_per_frame": 1e6 * cpu / max(stats.frames_inferred, 1),
+        "inferred_frames_per_s": stats.frames_inferred / inferred,
+        "frames_dropped": stats.frames_dropped,
+        "windows": len(fitted),
+        "windows_skipped": stats.windows_skipped,
+    }
 
 
 def markdown(results: dict) -> str:
     """The side-by-side table."""
     fps = results["camera_fps"]
-    lines = ["| pipeline | frames/s (median) | x camera | CPU us/frame (median) | windows | runs (frames/s) |",
-             "|---|---:|---:|---:|---:|---|"]
+    lines = [
+        "| pipeline | frames/s (median) | x camera | CPU us/frame (median) | windows | runs (frames/s) |",
+        "|---|---:|---:|---:|---:|---|",
+    ]
     for name in ("offline", "live"):
         runs = results[name]
         median = results[f"{name}_median_frames_per_s"]
         each = ", ".join(f"{r['frames_per_s']:.0f}" for r in runs)
-        lines.append(f"| {name} | {median:.0f} | {median / fps:.2f} | {results[f'{name}_median_cpu_us_per_frame']:.0f} "
-                     f"| {runs[-1]['windows']} | {each} |")
-    lines.append(f"\noffline / live: {results['offline_over_live']:.2f} (medians of {len(results['offline'])} "
-                 f"alternating runs on {results['recording']})\n")
+        lines.append(
+            f"| {name} | {median:.0f} | {median / fps:.2f} | {results[f'{name}_median_cpu_us_per_frame']:.0f} "
+            f"| {runs[-1]['windows']} | {each} |"
+        )
+    lines.append(
+        f"\noffline / live: {results['offline_over_live']:.2f} (medians of {len(results['offline'])} "
+        f"alternating runs on {results['recording']})\n"
+    )
     return "\n".join(lines)
 
 

@@ -8,6 +8,7 @@ residuals depend on its own motion only), so a step costs one renderer per scene
 renders of all frames. Before the first stage each frame's motion starts at its nearest neighbour in a
 library rendered with the candidate scene; the ROI is found before the first stage and again after it.
 """
+
 from __future__ import annotations
 
 import math
@@ -88,7 +89,7 @@ class Problem:
         self.scale = np.concatenate([SCENE_SCALE, np.tile(MOTION_SCALE, self.k)])
 
     def unpack(self, x: np.ndarray) -> tuple[Scene, np.ndarray]:
-        return P.write(self.base, x[: self.n_scene]), x[self.n_scene:].reshape(self.k, 4)
+        return P.write(self.base, x[: self.n_scene]), x[self.n_scene :].reshape(self.k, 4)
 
     def residuals(self, x: np.ndarray) -> np.ndarray:
         scene, motion = self.unpack(x)
@@ -100,16 +101,24 @@ class Problem:
         m = lil_matrix((self.k * q, self.n_scene + 4 * self.k), dtype=np.int8)
         m[:, : self.n_scene] = 1
         for k in range(self.k):
-            m[k * q:(k + 1) * q, self.n_scene + 4 * k: self.n_scene + 4 * k + 4] = 1
+            m[k * q : (k + 1) * q, self.n_scene + 4 * k : self.n_scene + 4 * k + 4] = 1
         return m
 
     def solve(self, motion: np.ndarray, max_evaluations: int) -> tuple[np.ndarray, object]:
         """Least squares from the base scene and ``motion``, in units of ``scale`` around the start."""
         start = np.clip(np.concatenate([self.x0, motion.ravel()]), self.low, self.high)
         fun = lambda u: self.residuals(start + u * self.scale)
-        res = least_squares(fun, np.zeros_like(start), bounds=((self.low - start) / self.scale,
-                            (self.high - start) / self.scale), jac_sparsity=self.sparsity(), diff_step=DIFF_STEP,
-                            x_scale=1.0, max_nfev=max_evaluations, method="trf", tr_solver="lsmr")
+        res = least_squares(
+            fun,
+            np.zeros_like(start),
+            bounds=((self.low - start) / self.scale, (self.high - start) / self.scale),
+            jac_sparsity=self.sparsity(),
+            diff_step=DIFF_STEP,
+            x_scale=1.0,
+            max_nfev=max_evaluations,
+            method="trf",
+            tr_solver="lsmr",
+        )
         return start + res.x * self.scale, res
 
 
@@ -133,8 +142,14 @@ class Library:
         return self.coeffs[np.argsort(dist, axis=1)[:, :count].T]
 
 
-def motion_only(synth: Synthesis, scene: Scene, lab: np.ndarray, sigmas: tuple[float, ...], starts: int = 5,
-                max_evaluations: int = 15) -> np.ndarray:
+def motion_only(
+    synth: Synthesis,
+    scene: Scene,
+    lab: np.ndarray,
+    sigmas: tuple[float, ...],
+    starts: int = 5,
+    max_evaluations: int = 15,
+) -> np.ndarray:
     """Each frame's motion (K, 4) for a fixed scene: its ``starts`` nearest library neighbours each refined by
     least squares (scene fixed, so no renderer is built), the best kept per frame. Highlights make the motion
     landscape rugged; several starts per frame are cheap here and spare the joint fit a bad start."""
@@ -144,15 +159,22 @@ def motion_only(synth: Synthesis, scene: Scene, lab: np.ndarray, sigmas: tuple[f
     low, high = np.tile(MOTION_LOW, k), np.tile(MOTION_HIGH, k)
     sparsity = lil_matrix((k * q, 4 * k), dtype=np.int8)
     for i in range(k):
-        sparsity[i * q:(i + 1) * q, 4 * i:4 * i + 4] = 1
+        sparsity[i * q : (i + 1) * q, 4 * i : 4 * i + 4] = 1
     fixed = P.read(scene)
     best, best_cost = None, None
     for start in Library(synth, scene, sigmas, size=1500).nearest(lab, starts):
         x0 = np.clip(start.ravel(), low, high)
         fun = lambda u, x0=x0: problem.residuals(np.concatenate([fixed, x0 + u * scale]))
-        res = least_squares(fun, np.zeros_like(x0), bounds=((low - x0) / scale, (high - x0) / scale),
-                            jac_sparsity=sparsity, diff_step=DIFF_STEP, max_nfev=max_evaluations, method="trf",
-                            tr_solver="lsmr")
+        res = least_squares(
+            fun,
+            np.zeros_like(x0),
+            bounds=((low - x0) / scale, (high - x0) / scale),
+            jac_sparsity=sparsity,
+            diff_step=DIFF_STEP,
+            max_nfev=max_evaluations,
+            method="trf",
+            tr_solver="lsmr",
+        )
         motion = (x0 + res.x * scale).reshape(k, 4)
         cost = (res.fun.reshape(k, q) ** 2).sum(axis=1)
         if best is None:
@@ -171,7 +193,7 @@ def library_motion(synth: Synthesis, scene: Scene, lab: np.ndarray, sigmas: tupl
 def crop(frames: np.ndarray, scene: Scene) -> np.ndarray:
     """The ROI of full frames (N, H, W) at the scene's ``camera.roi``."""
     (x, y), cam = scene.camera.roi, scene.camera
-    return frames[:, y:y + cam.height_px, x:x + cam.width_px]
+    return frames[:, y : y + cam.height_px, x : x + cam.width_px]
 
 
 def locate(synth: Synthesis, scene: Scene, footage: Footage) -> tuple[Scene, np.ndarray, float]:
@@ -182,14 +204,15 @@ def locate(synth: Synthesis, scene: Scene, footage: Footage) -> tuple[Scene, np.
     mean = footage.stack.mean(axis=0)
     (height, width), cam = mean.shape, scene.camera
     if height < cam.height_px or width < cam.width_px:
-        raise MeniscopeError(footage.path, f"frames {width}x{height} are smaller than the scene's ROI "
-                             f"{cam.width_px}x{cam.height_px}")
+        raise MeniscopeError(
+            footage.path, f"frames {width}x{height} are smaller than the scene's ROI {cam.width_px}x{cam.height_px}"
+        )
     data = scene.as_dict()
     centred = ((width - cam.width_px) // 2, (height - cam.height_px) // 2)
     data["camera"]["roi"] = list(centred)
     big, (cx, cy) = canvas(Scene.from_dict(data), (width, height))
     coeffs = CoefficientRanges().sample(64, np.random.default_rng(1))
-    template = synth.stored(big, coeffs).mean(axis=0)[cy:cy + height, cx:cx + width]
+    template = synth.stored(big, coeffs).mean(axis=0)[cy : cy + height, cx : cx + width]
     shift, score = find_roi(mean, template, reach=max(width - cam.width_px, height - cam.height_px))
     corner = np.clip(np.array(centred) + shift, 0, [width - cam.width_px, height - cam.height_px])
     return _with_roi(scene, corner), corner, score
@@ -200,8 +223,13 @@ def rms_finest(synth: Synthesis, scene: Scene, motion: np.ndarray, lab: np.ndarr
     return float(np.sqrt(np.mean((synth.stored(scene, motion) - lab) ** 2)))
 
 
-def calibrate(footage: Footage, guess: Scene, schedule: tuple[Stage, ...] = SCHEDULE,
-              start_alphas: tuple[float, ...] = START_ALPHAS, progress: bool = True) -> Calibration:
+def calibrate(
+    footage: Footage,
+    guess: Scene,
+    schedule: tuple[Stage, ...] = SCHEDULE,
+    start_alphas: tuple[float, ...] = START_ALPHAS,
+    progress: bool = True,
+) -> Calibration:
     """Fit ``guess`` to ``footage``: ROI, scene parameters, per-frame motion, noise, artifact spheres."""
     began = time.perf_counter()
     synth = Synthesis(supersample=schedule[0].supersample)
@@ -225,8 +253,12 @@ def calibrate(footage: Footage, guess: Scene, schedule: tuple[Stage, ...] = SCHE
             best = (res.cost, problem.unpack(x))
         bar.update()
     scene, motion = best[1]
-    residual_before = rms_finest(synth, base, library_motion(synth, scene, crop(footage.frames, scene), first.sigmas),
-                                 crop(footage.frames, scene))
+    residual_before = rms_finest(
+        synth,
+        base,
+        library_motion(synth, scene, crop(footage.frames, scene), first.sigmas),
+        crop(footage.frames, scene),
+    )
     again, corner_again, score_again = locate(synth, scene, footage)  # with the scene as fitted so far
     if score_again > score:  # the better likeness decides: a fit on a wrong crop can mislead the second look
         scene, corner, score = again, corner_again, score_again
@@ -251,11 +283,21 @@ def calibrate(footage: Footage, guess: Scene, schedule: tuple[Stage, ...] = SCHE
     spheres = _spheres(synth, scene, lab_stack, moving, noise)
     scene = with_spheres(scene, spheres if spheres is not None else np.zeros((0, 4)))
     lab = crop(footage.frames, scene)
-    return Calibration(guess=guess, scene=scene, roi=(float(corner[0]), float(corner[1])), roi_score=score,
-                       motion=motion, sigma=sigma, residual_before=residual_before,
-                       residual_after=rms_finest(synth, scene, motion, lab), noise=noise,
-                       spheres_found=0 if spheres is None else len(spheres), seconds=time.perf_counter() - began,
-                       builds=synth.builds, starts=starts)
+    return Calibration(
+        guess=guess,
+        scene=scene,
+        roi=(float(corner[0]), float(corner[1])),
+        roi_score=score,
+        motion=motion,
+        sigma=sigma,
+        residual_before=residual_before,
+        residual_after=rms_finest(synth, scene, motion, lab),
+        noise=noise,
+        spheres_found=0 if spheres is None else len(spheres),
+        seconds=time.perf_counter() - began,
+        builds=synth.builds,
+        starts=starts,
+    )
 
 
 def _frame_costs(problem: Problem, scene: Scene, motion: np.ndarray) -> np.ndarray:
@@ -286,8 +328,10 @@ def _uncertainty(problem: Problem, x: np.ndarray, res: object) -> dict[str, floa
     s2 = 2.0 * res.cost / max(m - n, 1)
     cov = np.linalg.pinv(jac.T @ jac) * s2
     spread = np.sqrt(np.maximum(np.diag(cov)[: problem.n_scene], 0.0)) * SCENE_SCALE  # fitted coordinates
-    return {p.name: float(p.from_fit(xi) * math.log(10) * si) if p.log else float(si)
-            for p, xi, si in zip(P.PARAMETERS, x[: problem.n_scene], spread)}
+    return {
+        p.name: float(p.from_fit(xi) * math.log(10) * si) if p.log else float(si)
+        for p, xi, si in zip(P.PARAMETERS, x[: problem.n_scene], spread)
+    }
 
 
 def _moving(synth: Synthesis, scene: Scene) -> np.ndarray:

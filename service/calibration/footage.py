@@ -1,4 +1,5 @@
 """The lab frames a calibration looks at: a handful fitted one by one, and a larger stack for static statistics."""
+
 from __future__ import annotations
 
 from dataclasses import dataclass

@@ -5,6 +5,7 @@ The package ships it small (``service/demo/demo.avi``: 4 windows, 760 frames, 8-
 AVI at a few thousand frames/s, well under the camera's 19,000, so the first start copies it once
 into an 8-bit .cine in the data folder, which replays memory-mapped at any rate.
 """
+
 from __future__ import annotations
 
 import os

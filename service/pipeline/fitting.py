@@ -14,6 +14,7 @@ asleep in the pipe's read until the result comes, hands the result on. (A ``Proc
 each window through two threads of its own on the way in and one on the way out, each waiting for the
 interpreter lock: milliseconds per window on a busy machine.)
 """
+
 from __future__ import annotations
 
 import math
@@ -22,15 +23,15 @@ import os
 import threading
 import time
 from collections import deque
+from collections.abc import Callable
 from multiprocessing.connection import Connection
-from typing import Callable
 
 import numpy as np
 
 from service.analysis.results import FitSettings, WindowResult
 from service.analysis.segment import Window
 from service.errors import MeniscopeError
-from service.pipeline.windows import WindowJob, unfitted_result, fit_job
+from service.pipeline.windows import WindowJob, fit_job, unfitted_result
 
 #: What the pool calls with each finished fit: the job, its result (a failed one if the fit raised), and when
 #: (monotonic s: one clock for every process on the machine) its worker started and finished it (NaN if it raised).
@@ -53,9 +54,8 @@ def _fit_until_told(conn: Connection, settings: FitSettings) -> None:
         started = time.monotonic()
         job, fps = sent
         try:
-            answer: tuple[WindowResult, float, float] | str = (fit_job(job, fps, settings), started,
-                                                               time.monotonic())
-        except Exception as exc:  # noqa: BLE001 - reported as the window's failed fit
+            answer: tuple[WindowResult, float, float] | str = (fit_job(job, fps, settings), started, time.monotonic())
+        except Exception as exc:
             answer = f"{type(exc).__name__}: {exc}"
         conn.send(answer)
 
@@ -71,8 +71,7 @@ class _Worker:
         # spawn, not fork: forking a process whose other threads hold locks can deadlock the child
         context = multiprocessing.get_context("spawn")
         self.conn, child = context.Pipe()
-        self.process = context.Process(target=_serve, args=(child, settings, nice), name="meniscope-fit",
-                                       daemon=True)
+        self.process = context.Process(target=_serve, args=(child, settings, nice), name="meniscope-fit", daemon=True)
         self.process.start()
         child.close()
         self.job: Job | None = None
@@ -90,7 +89,9 @@ class FitPool:
         self._idle: list[_Worker] = []
         self._waiting: deque[Job] = deque()
         self._all = [_Worker(settings, nice) for _ in range(workers)]
-        warm = np.sin(np.arange(64) / 3.0)  # start the workers, import and load the compiled fit now, not at the first window
+        warm = np.sin(
+            np.arange(64) / 3.0
+        )  # start the workers, import and load the compiled fit now, not at the first window
         for worker in self._all:
             worker.conn.send((WindowJob(Window(0, 0, 64, False, False), warm, warm), 1.0))
         for worker in self._all:
@@ -151,7 +152,9 @@ class FitPool:
                     self._start(worker, following)
                 except MeniscopeError:
                     closed_next, _, on_next = following
-                    on_next(closed_next, unfitted_result(closed_next, "the fit worker process died"), math.nan, math.nan)
+                    on_next(
+                        closed_next, unfitted_result(closed_next, "the fit worker process died"), math.nan, math.nan
+                    )
             if isinstance(answer, str):
                 on_fitted(closed, unfitted_result(closed, f"the fit raised {answer}"), math.nan, math.nan)
             else:

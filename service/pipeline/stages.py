@@ -6,6 +6,7 @@ frame is handled lands here once. Each batch becomes per-frame records
 (:data:`service.pipeline.records.FRAME`), which the segmenter (:mod:`service.pipeline.segmenter`)
 cuts into windows for the window-level work (:mod:`service.pipeline.windows`).
 """
+
 from __future__ import annotations
 
 import numpy as np

@@ -4,12 +4,14 @@ A :class:`WindowJob` is self-contained (picklable, no handle on the stream), so 
 room: the live service's fit workers (:class:`service.pipeline.fitting.FitPool`), a local process pool or a
 Dask cluster for an offline analysis (:func:`run_jobs`).
 """
+
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from concurrent.futures import Future
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
@@ -33,14 +35,20 @@ class WindowJob:
     closed_at: float = math.nan
 
 
-def job_for(window: Window, records: np.ndarray, radius_mm: float, transient: int,
-            closed_at: float = math.nan) -> WindowJob:
+def job_for(
+    window: Window, records: np.ndarray, radius_mm: float, transient: int, closed_at: float = math.nan
+) -> WindowJob:
     """The job of ``window`` from its frames' records: its steady D(0, t) (:mod:`service.analysis.steady`) and
     brightness."""
     series = window_steady_centre(coefficients_of(records), radius_mm, transient, window.starts_at_ejection)
     highlight = records["highlight"][np.isfinite(records["highlight"])]
-    return WindowJob(window, series, np.ascontiguousarray(records["brightness"]),
-                     float(np.median(highlight)) if len(highlight) else math.nan, closed_at)
+    return WindowJob(
+        window,
+        series,
+        np.ascontiguousarray(records["brightness"]),
+        float(np.median(highlight)) if len(highlight) else math.nan,
+        closed_at,
+    )
 
 
 def fit_job(job: WindowJob, fps: float, settings: FitSettings) -> WindowResult:
@@ -50,20 +58,39 @@ def fit_job(job: WindowJob, fps: float, settings: FitSettings) -> WindowResult:
 
     w = job.window
     if job.highlight < NO_HIGHLIGHT:
-        return unfitted_result(job, f"no highlight in its frames (the brightest pixel {100 * job.highlight:.1f} % of "
-                               "full scale above the mean, median): a dark, capped or unlit camera shows nothing of "
-                               "the meniscus", "unresolved")
-    return fit_window(job.series, fps, settings, index=w.index, start_frame=w.start,
-                      starts_at_ejection=w.starts_at_ejection, ends_at_ejection=w.ends_at_ejection,
-                      brightness=job.brightness)
+        return unfitted_result(
+            job,
+            f"no highlight in its frames (the brightest pixel {100 * job.highlight:.1f} % of "
+            "full scale above the mean, median): a dark, capped or unlit camera shows nothing of "
+            "the meniscus",
+            "unresolved",
+        )
+    return fit_window(
+        job.series,
+        fps,
+        settings,
+        index=w.index,
+        start_frame=w.start,
+        starts_at_ejection=w.starts_at_ejection,
+        ends_at_ejection=w.ends_at_ejection,
+        brightness=job.brightness,
+    )
 
 
 def unfitted_result(job: WindowJob, reason: str, status: Status = "failed") -> WindowResult:
     """The result of a job that was not fitted, saying why: its fit failed, or (``unresolved``) had nothing to fit."""
     w, finite = job.window, np.isfinite(job.series)
-    return WindowResult(index=w.index, start_frame=w.start, end_frame=w.end, status=status, reason=reason,
-                        samples=int(finite.sum()), missing=int((~finite).sum()),
-                        starts_at_ejection=w.starts_at_ejection, ends_at_ejection=w.ends_at_ejection)
+    return WindowResult(
+        index=w.index,
+        start_frame=w.start,
+        end_frame=w.end,
+        status=status,
+        reason=reason,
+        samples=int(finite.sum()),
+        missing=int((~finite).sum()),
+        starts_at_ejection=w.starts_at_ejection,
+        ends_at_ejection=w.ends_at_ejection,
+    )
 
 
 #: Seconds to wait for a Dask scheduler to answer.
@@ -118,7 +145,7 @@ class JobRunner:
         if self._pool is not None:
             self._pool.shutdown()
 
-    def __enter__(self) -> "JobRunner":
+    def __enter__(self) -> JobRunner:
         return self
 
     def __exit__(self, *exc: object) -> None:
@@ -136,7 +163,7 @@ def _fit_or_fail(job: WindowJob, fps: float, settings: FitSettings) -> WindowRes
     """:func:`fit_job`, or the failed result naming what it raised (one window's fit never stops an analysis)."""
     try:
         return fit_job(job, fps, settings)
-    except Exception as exc:  # noqa: BLE001 - reported as the window's failed fit
+    except Exception as exc:
         return unfitted_result(job, f"the fit raised {type(exc).__name__}: {exc}")
 
 
@@ -154,7 +181,9 @@ def _dask_client(scheduler: str):  # type: ignore[no-untyped-def]
     try:
         from distributed import Client
     except ImportError:
-        raise MeniscopeError("--scheduler", "needs the Dask distributed package: pip install 'meniscope[scale]'") from None
+        raise MeniscopeError(
+            "--scheduler", "needs the Dask distributed package: pip install 'meniscope[scale]'"
+        ) from None
     try:
         return Client(scheduler, timeout=CONNECT_TIMEOUT_S, set_as_default=False)
     except (OSError, TimeoutError) as exc:

@@ -3,6 +3,7 @@
 ``open_recording`` and ``open_writer`` pick the format by file extension; every problem with a file
 (missing, empty, truncated, corrupt, unsupported) is one :class:`~service.errors.MeniscopeError` line.
 """
+
 from __future__ import annotations
 
 import importlib
@@ -32,8 +33,9 @@ def open_recording(path: str | Path) -> Recording:
     return reader(path)
 
 
-def open_writer(path: str | Path, width: int, height: int, fps: float, bit_depth: int = 8,
-                trigger_frame: int = 0) -> RecordingWriter:
+def open_writer(
+    path: str | Path, width: int, height: int, fps: float, bit_depth: int = 8, trigger_frame: int = 0
+) -> RecordingWriter:
     """A new recording of ``width`` x ``height`` px at ``fps`` frames/s, the format chosen by extension.
 
     ``bit_depth`` 8 stores uint8 words, 12 and 16 uint16 words (.cine only); ``trigger_frame`` is the

@@ -3,6 +3,7 @@
 Readers expose the file's own facts (frame rate, bit depth, per-frame times, trigger frame, header
 fields) and random access to frames; writers append frame batches and finish the file on close.
 """
+
 from __future__ import annotations
 
 import math
@@ -222,7 +223,9 @@ class RecordingWriter(ABC):
         if not (math.isfinite(fps) and fps > 0):
             raise MeniscopeError(self.path, f"frame rate {fps} is not a positive number")
         if bit_depth not in self.BIT_DEPTHS:
-            raise MeniscopeError(self.path, f"bit depth {bit_depth} is not one of {', '.join(map(str, self.BIT_DEPTHS))}")
+            raise MeniscopeError(
+                self.path, f"bit depth {bit_depth} is not one of {', '.join(map(str, self.BIT_DEPTHS))}"
+            )
         self.width, self.height = int(width), int(height)
         self.fps = float(fps)
         self.bit_depth = int(bit_depth)

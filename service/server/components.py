@@ -5,6 +5,7 @@ routes as ``request.app.state.service``. The frame path runs in the pipeline pro
 (:mod:`service.server.pipeline_process`); what the routes say of it comes from its latest report, and the
 window history from SQLite.
 """
+
 from __future__ import annotations
 
 import asyncio
@@ -93,8 +94,11 @@ class Service:
         self.pipeline = PipelineProcess(s, self.hub).start()
         # this thread (the event loop) and the request threads it starts from now on yield the CPU to the pipeline
         # process; the threads that restart it and read its pipe, started already, keep their priority
-        os.setpriority(os.PRIO_PROCESS, threading.get_native_id(),
-                       min(19, os.getpriority(os.PRIO_PROCESS, threading.get_native_id()) + s.web_nice))
+        os.setpriority(
+            os.PRIO_PROCESS,
+            threading.get_native_id(),
+            min(19, os.getpriority(os.PRIO_PROCESS, threading.get_native_id()) + s.web_nice),
+        )
 
     def stop(self) -> None:
         """The pipeline process stops (in its order: pipeline, publishers and ZeroMQ, history), then the reader."""

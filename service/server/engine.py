@@ -4,6 +4,7 @@
 process (:mod:`service.server.pipeline_process`) runs one, so that no web request or WebSocket client can take
 the interpreter from the frames. What the web side shows of it is a :class:`Report`, taken ten times a second.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -17,8 +18,8 @@ from service.pipeline.supervisor import Health, Supervisor
 from service.server.history import History
 from service.server.metrics import HistoryHealth, Metrics
 from service.server.publishers import Fanout, Publishers
-from service.server.zmq_publisher import ZmqPublisher
 from service.server.settings import ServiceSettings
+from service.server.zmq_publisher import ZmqPublisher
 
 #: The history database, in the data folder.
 HISTORY_FILE = "history.sqlite"
@@ -81,6 +82,12 @@ class Engine:
         return HistoryHealth(p.history_error, p.history_failures, p.backlog, p.history_lost)
 
     def report(self) -> Report:
-        return Report(self.health(), dataclasses.replace(self.stats, latest=None), self.history_health(),
-                      self.publishers.dropped, self.stats.latest, generate_latest(self.metrics.registry),
-                      time.monotonic())
+        return Report(
+            self.health(),
+            dataclasses.replace(self.stats, latest=None),
+            self.history_health(),
+            self.publishers.dropped,
+            self.stats.latest,
+            generate_latest(self.metrics.registry),
+            time.monotonic(),
+        )

@@ -11,6 +11,7 @@ waited for.
 :class:`PipelineProcess` is the web process's handle: it starts the pipeline process, passes settings changes
 on, notices when it dies (not ready, with the reason) and starts it again after 1, 2, 4, ... s.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -106,8 +107,9 @@ def serve_pipeline(settings: ServiceSettings, conn: Connection) -> None:
         return
     link.send(("started", engine.zmq.endpoint if engine.zmq is not None else None))
     engine.start()
-    threading.Thread(target=_commands, args=(conn, engine, fanout, stop), name="meniscope-commands",
-                     daemon=True).start()
+    threading.Thread(
+        target=_commands, args=(conn, engine, fanout, stop), name="meniscope-commands", daemon=True
+    ).start()
     while not stop.wait(REPORT_S):
         link.send(("report", dataclasses.replace(engine.report(), websocket_skipped=fanout.skipped)))
     engine.stop()
@@ -160,15 +162,23 @@ class PipelineProcess:
         self._spawn(self.settings)
         # after a crash of the web process its pipeline process drains and stops in a few seconds: until then it
         # holds the ZeroMQ port
-        while (self._wait_started() and self._failure is not None and "in use" in self._failure
-               and time.monotonic() < deadline):
+        while (
+            self._wait_started()
+            and self._failure is not None
+            and "in use" in self._failure
+            and time.monotonic() < deadline
+        ):
             self._end()
             time.sleep(0.5)
             self._spawn(self.settings)
         if not self._started.is_set() or self._failure is not None:
             self._end()
-            raise MeniscopeError(self.settings.data_dir, self._failure or "the pipeline process did not start: "
-                                 f"exit code {self._process.exitcode} (its error is in the log above)")
+            raise MeniscopeError(
+                self.settings.data_dir,
+                self._failure
+                or "the pipeline process did not start: "
+                f"exit code {self._process.exitcode} (its error is in the log above)",
+            )
         self._watcher.start()
         return self
 
@@ -184,8 +194,7 @@ class PipelineProcess:
         self._started.clear()
         self._failure = None
         ours, theirs = self._context.Pipe()
-        self._process = self._context.Process(target=serve_pipeline, args=(settings, theirs),
-                                              name="meniscope-pipeline")
+        self._process = self._context.Process(target=serve_pipeline, args=(settings, theirs), name="meniscope-pipeline")
         self._process.start()
         theirs.close()
         self._link = _Link(ours)
@@ -233,8 +242,11 @@ class PipelineProcess:
             if self._stopping.wait(delay):
                 break
             self.restarts += 1
-            settings = self.settings if self.endpoint is None else self.settings.model_copy(
-                update={"zmq_publish": self.endpoint})
+            settings = (
+                self.settings
+                if self.endpoint is None
+                else self.settings.model_copy(update={"zmq_publish": self.endpoint})
+            )
             self._spawn(settings)
 
     def health(self) -> Health:
@@ -246,15 +258,24 @@ class PipelineProcess:
             return Health("starting", "the pipeline process is starting", time.time(), 0)
         silent = time.monotonic() - report.taken
         if silent > SILENT_S:
-            return Health("stalled", f"the pipeline process has not reported for {silent:.1f} s", report.health.since,
-                          report.health.attempts, report.health.source)
+            return Health(
+                "stalled",
+                f"the pipeline process has not reported for {silent:.1f} s",
+                report.health.since,
+                report.health.attempts,
+                report.health.source,
+            )
         return report.health
 
     def reconfigure(self, settings: ServiceSettings) -> None:
         self.settings = settings
         if self._link is not None:
-            self._link.send(("config", settings if self.endpoint is None else settings.model_copy(
-                update={"zmq_publish": self.endpoint})))
+            self._link.send(
+                (
+                    "config",
+                    settings if self.endpoint is None else settings.model_copy(update={"zmq_publish": self.endpoint}),
+                )
+            )
 
     def stop(self) -> None:
         """Ask the pipeline process to stop (it stops the pipeline, drains the publishers, closes ZeroMQ and the

@@ -11,6 +11,7 @@ stored wait in a bounded backlog and are written, oldest first, once the databas
 (tried on every window and every second); the failure is counted, shown in readiness, and logged once
 when it starts and once when it ends, not once per window.
 """
+
 from __future__ import annotations
 
 import logging
@@ -61,7 +62,7 @@ class Publishers:
         self._queue: queue.Queue[tuple[StoredWindow, float] | TraceSnippet | None] = queue.Queue(QUEUE_ITEMS)
         self._thread = threading.Thread(target=self._run, name="meniscope-publish", daemon=True)
 
-    def start(self) -> "Publishers":
+    def start(self) -> Publishers:
         self._thread.start()
         return self
 
@@ -88,7 +89,7 @@ class Publishers:
                     self.dropped += 1
                     return
                 stored, sent = self._send(fitted)
-        except Exception:  # noqa: BLE001 - one bad window must not stop the fit results
+        except Exception:
             log.exception("publishing failed")
             return
         self._offer((stored, sent - fitted.closed_at))
@@ -136,7 +137,7 @@ class Publishers:
                         self._backlog.popleft()
                         self.history_lost += 1
                     self._store()
-            except Exception:  # noqa: BLE001 - one bad item must not stop publishing
+            except Exception:
                 log.exception("publishing failed")
         self._store()
 
@@ -146,11 +147,14 @@ class Publishers:
             stored = self._backlog[0]
             try:
                 self.history.add(stored.result, stored.source, stored.fps, stored.stored, stored.id)
-            except Exception as exc:  # noqa: BLE001 - sqlite3 and OS errors alike: keep the window, try later
+            except Exception as exc:
                 self.history_failures += 1
                 if self.history_error is None:
-                    log.warning("history: cannot store windows (%s); keeping up to %d in memory until it can",
-                                exc, BACKLOG_WINDOWS)
+                    log.warning(
+                        "history: cannot store windows (%s); keeping up to %d in memory until it can",
+                        exc,
+                        BACKLOG_WINDOWS,
+                    )
                 self.history_error = f"cannot store windows in the history: {exc}"
                 return
             self._backlog.popleft()

@@ -1,12 +1,12 @@
 """``meniscope calibrate``: a scene fitted to the lab's own video by analysis by synthesis, with its report."""
+
 from __future__ import annotations
 
 import argparse
 from pathlib import Path
 
-from service.verbs import add_scene_option
 from service.errors import MeniscopeError, require_folder_of
-from service.scene import Scene
+from service.verbs import add_scene_option
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -22,8 +22,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     add_scene_option(p)
     p.add_argument("--out", type=Path, required=True, help="calibrated scene to write (SCENE.json)")
     p.add_argument("--frames", type=int, default=12, help="frames whose motion is fitted (default 12)")
-    p.add_argument("--stack", type=int, default=120,
-                   help="frames spread over the recording for the median image and the noise (default 120)")
+    p.add_argument(
+        "--stack",
+        type=int,
+        default=120,
+        help="frames spread over the recording for the median image and the noise (default 120)",
+    )
     p.set_defaults(func=run)
 
 
@@ -37,10 +41,14 @@ def run(args: argparse.Namespace) -> int:
     if not 8 <= args.stack <= 5000:
         raise MeniscopeError("--stack", f"must be between 8 and 5000, got {args.stack}")
     require_folder_of(args.out)
+    from service.scene import Scene
+
     guess = Scene.load(args.scene)
     footage = read_footage(args.recording, args.frames, args.stack)
     cal = calibrate(footage, guess)
     doc, png = write_report(cal, footage, args.out)
-    print(f"{args.out}: calibrated in {cal.seconds:.0f} s, residual {cal.residual_before * footage.full_scale:.1f} "
-          f"-> {cal.residual_after * footage.full_scale:.1f} DN RMS; report {doc}, figure {png}")
+    print(
+        f"{args.out}: calibrated in {cal.seconds:.0f} s, residual {cal.residual_before * footage.full_scale:.1f} "
+        f"-> {cal.residual_after * footage.full_scale:.1f} DN RMS; report {doc}, figure {png}"
+    )
     return 0
