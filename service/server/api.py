@@ -62,9 +62,9 @@ Svc = Annotated[Service, Depends(_service)]
 
 def require_token(request: Request, service: Svc) -> None:
     """Allow a change only with the configured bearer token, or on loopback when none is configured."""
-    token = service.server.settings.token
+    token = service.settings.token
     if token is None:
-        if service.server.settings.loopback:
+        if service.settings.loopback:
             return
         raise HTTPException(
             403, "changing settings on a service reachable from other machines needs a token: set MENISCOPE_TOKEN"
@@ -93,7 +93,7 @@ def readyz(service: Svc) -> JSONResponse:
 @router.get("/api/v1/status", tags=["status"])
 def status(service: Svc) -> dict[str, Any]:
     """Source, frame rates in and out, frame and window counts, model, uptime."""
-    health, s, settings = service.health(), service.stats, service.server.settings
+    health, s, settings = service.health(), service.stats, service.settings
     return {
         "ready": health.ready,
         "state": health.state,
@@ -170,7 +170,7 @@ class ConfigChange(BaseModel):
 
 @router.get("/api/v1/config", tags=["config"])
 def get_config(service: Svc) -> dict[str, Any]:
-    return service.server.settings.public()
+    return service.settings.public()
 
 
 @router.put("/api/v1/config", tags=["config"], dependencies=[Depends(require_token)], responses=_documented(401, 403))
@@ -179,7 +179,7 @@ def put_config(change: ConfigChange, service: Svc) -> dict[str, Any]:
     first (its scheme, options and, for a recording, the file itself): one that cannot open is refused with 422
     and the running one kept. A camera or socket is opened only by the pipeline: when it then fails, the
     service says why in /readyz and retries it, as for any source."""
-    current: ServiceSettings = service.server.settings
+    current: ServiceSettings = service.settings
     updates = change.model_dump(exclude_unset=True)
     try:
         settings = ServiceSettings(**{**dict(current), **updates})
