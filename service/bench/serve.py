@@ -115,27 +115,23 @@ def measure(settings: ServiceSettings, seconds: float) -> dict:
                     raise MeniscopeError("bench serve", f"no frames inferred in 120 s: {supervisor.health().reason}")
                 time.sleep(0.05)
             time.sleep(1.0)  # past the start: fit workers warm, queues in their steady state
-            start = (
-                time.monotonic(),
-                os.getloadavg()[0],
-                stats.frames_acquired,
-                stats.frames_inferred,
-                stats.frames_dropped,
-                stats.windows_closed,
-                stats.windows_skipped,
-                len(stages),
-            )
+
+            def snapshot() -> tuple:
+                """When, the load, the counters and the stage timings taken so far: one end of the measured run."""
+                return (
+                    time.monotonic(),
+                    os.getloadavg()[0],
+                    stats.frames_acquired,
+                    stats.frames_inferred,
+                    stats.frames_dropped,
+                    stats.windows_closed,
+                    stats.windows_skipped,
+                    len(stages),
+                )
+
+            start = snapshot()
             time.sleep(seconds)
-            end = (
-                time.monotonic(),
-                os.getloadavg()[0],
-                stats.frames_acquired,
-                stats.frames_inferred,
-                stats.frames_dropped,
-                stats.windows_closed,
-                stats.windows_skipped,
-                len(stages),
-            )
+            end = snapshot()
         finally:
             supervisor.stop()
             publishers.stop()
