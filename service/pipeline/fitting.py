@@ -4,10 +4,11 @@ Processes rather than threads because the fit's Python around its compiled kerne
 per window) holds the interpreter lock, which inference, acquisition and the web server need; the workers run at a lower
 priority (``nice``, 10 by default) so that on a busy machine frames keep flowing and windows wait (``meniscope bench
 serve`` found no latency to gain at nice 0: the fit's p99 no lower, the frames' higher). One window per
-worker is in flight and at most one per worker waits for it (two windows closing close together, as after
-a spell the machine was busy, are both fitted, the second one fit later); a window that finds that backlog
-full is refused (the caller counts it), so a fit slower than the ejection rate costs windows, never memory
-or frames, and what is published is at most one fit behind.
+worker is in flight and up to ``BACKLOG`` more wait (a batch of 512 frames at 19,000 frames/s closes up to
+three windows at once, and a spell the machine was busy closes more: a backlog of one per worker left 1-4 %
+of the windows unfitted on a quiet machine); a window that finds that backlog full is refused (the caller
+counts it), so a fit slower than the ejection rate for longer than the backlog lasts costs windows, never
+memory or frames.
 
 Each worker has a pipe of its own: the caller writes the window straight into it and a thread per worker,
 asleep in the pipe's read until the result comes, hands the result on. (A ``ProcessPoolExecutor`` passes
@@ -36,6 +37,9 @@ from service.pipeline.windows import WindowJob, fit_job, unfitted_result
 #: What the pool calls with each finished fit: the job, its result (a failed one if the fit raised), and when
 #: (monotonic s: one clock for every process on the machine) its worker started and finished it (NaN if it raised).
 OnFitted = Callable[[WindowJob, WindowResult, float, float], None]
+
+#: Windows that may wait for a worker: 160 ms of windows at 100 ejections/s, a few kB each.
+BACKLOG = 16
 
 
 def _serve(conn: Connection, settings: FitSettings, nice: int) -> None:
@@ -101,13 +105,13 @@ class FitPool:
 
     def submit(self, closed: WindowJob, fps: float, on_fitted: OnFitted) -> bool:
         """Start fitting ``closed`` (sampled at ``fps``), or queue it behind the fits in flight; False (and
-        nothing done) when every worker is busy and as many windows already wait."""
+        nothing done) when every worker is busy and ``BACKLOG`` windows already wait."""
         if self.broken:
             raise MeniscopeError("fit workers", "a fit worker process died; starting new ones")
         job = (closed, fps, on_fitted)
         with self._lock:
             if not self._idle:
-                if len(self._waiting) >= self.workers:
+                if len(self._waiting) >= BACKLOG:
                     return False
                 self._waiting.append(job)
                 return True
