@@ -76,11 +76,14 @@ class ServiceSettings(BaseSettings):
     fit: FitSettings = FitSettings()
     fit_workers: Annotated[int, Field(ge=1, le=16)] = Field(1, description="processes fitting windows")
     fit_nice: Annotated[int, Field(ge=0, le=19)] = Field(
-        10, description="niceness of the fit workers: 0 favours fresh windows, higher favours frames"
+        5,
+        description="niceness of the fit workers, between the frames (0) and the web side (web_nice): lower "
+        "favours fresh windows, higher favours frames",
     )
     # --- publishing
     web_nice: Annotated[int, Field(ge=0, le=19)] = Field(
-        5, description="niceness of the web side's requests and WebSocket clients: higher favours frames"
+        15,
+        description="niceness of the web side's requests and WebSocket clients: higher favours frames and fits",
     )
     host: str = "127.0.0.1"
     port: Annotated[int, Field(ge=0, le=65535)] = 8000
