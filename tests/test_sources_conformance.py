@@ -473,3 +473,12 @@ class TestFrameBatch:
     def test_frames_of_a_batch_carry_index_and_time(self) -> None:
         batch = FrameBatch(np.arange(24, dtype=np.uint16).reshape(2, 3, 4), np.array([7, 9]), np.array([0.5, 0.6]))
         assert (batch[1].index, batch[1].timestamp, int(batch[1].pixels[0, 0])) == (9, 0.6, 12)
+
+
+def test_a_replay_uri_names_the_recording_absolutely_whatever_the_working_folder(tmp_path, monkeypatch) -> None:
+    from service.sources.replay import replay_uri
+
+    monkeypatch.chdir(tmp_path)
+    uri = replay_uri("rec with space.cine", speed="max", loop=1)
+    assert uri == f"{(tmp_path / 'rec with space.cine').as_uri()}?speed=max&loop=1"
+    assert "%20" in uri and uri.startswith("file:///")

@@ -32,6 +32,7 @@ from pathlib import Path
 
 from service.bench.live import ServeProcess, free_port, subscribe
 from service.errors import MeniscopeError
+from service.sources.replay import replay_uri
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -116,7 +117,7 @@ def replay_faults(tmp: Path, demo: Path) -> list[dict]:
     shutil.copy(demo, rec)
     service = ServeProcess(
         tmp / "data-replay",
-        {"MENISCOPE_SOURCE": f"file://{rec}?speed=1&loop=1", "MENISCOPE_RECORDINGS_DIR": str(recordings)},
+        {"MENISCOPE_SOURCE": replay_uri(rec, speed=1, loop=1), "MENISCOPE_RECORDINGS_DIR": str(recordings)},
         tmp / "replay.log",
     )
     try:

@@ -65,15 +65,15 @@ def measure_live(recording: Path, scene, method, workers: int | None) -> dict:  
     import os
     import threading
     import time
-    from urllib.parse import quote
 
     from service.pipeline.fitting import FitPool
     from service.pipeline.runtime import Pipeline, PipelineStats
     from service.server.settings import ServiceSettings
     from service.sources import open_source
+    from service.sources.replay import replay_uri
 
     settings = ServiceSettings(
-        source=f"file://{quote(str(recording))}?speed=max",
+        source=replay_uri(recording, speed="max"),
         recordings_dir=recording.parent,
         fit_workers=workers or os.cpu_count() or 1,
         queue_batches=1024,

@@ -28,7 +28,6 @@ import os
 import tempfile
 import time
 from pathlib import Path
-from urllib.parse import quote
 
 import numpy as np
 from pydantic import ValidationError
@@ -38,6 +37,7 @@ from service.bench import parse_pairs
 from service.bench.results import write_results
 from service.errors import MeniscopeError
 from service.server.settings import ServiceSettings, default_data_dir
+from service.sources.replay import replay_uri
 
 CONFIGS = "512x1,512x2,128x1"
 #: The issue's target: a window's result published within this many ms of its close.
@@ -187,7 +187,7 @@ def stage_costs(recording: Path, configs: list[tuple[int, int]], frames: int = 3
         own, process = time.thread_time() - t0, time.process_time() - t0_process
         return max(own, process) / count * 1e6, out  # onnxruntime's own threads count through process time
 
-    with open_source(f"file://{quote(str(recording))}?speed=max&loop=1") as source:
+    with open_source(replay_uri(recording, speed="max", loop=1)) as source:
         fps, stream = source.fps, source.format
         read_us, reads = cpu_us_per_frame(lambda: [source.read(128) for _ in range(frames // 128)])
     costs: dict = {"read_128": read_us}
@@ -311,7 +311,7 @@ def run(args: argparse.Namespace) -> int:
             try:
                 settings = ServiceSettings(
                     **{
-                        "source": f"file://{quote(str(recording))}?speed={speed}&loop=1",
+                        "source": replay_uri(recording, speed=speed, loop=1),
                         "recordings_dir": recording.parent,
                         "batch": batch,
                         "threads": threads,

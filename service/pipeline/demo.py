@@ -12,9 +12,9 @@ import os
 import shutil
 from importlib.resources import files
 from pathlib import Path
-from urllib.parse import quote
 
 from service.recordings import open_recording, open_writer
+from service.sources.replay import replay_uri
 
 #: The shipped recording and its ground truth (scene.md, "Recordings and ground truth").
 DEMO_AVI = Path(str(files("service") / "demo" / "demo.avi"))
@@ -38,4 +38,4 @@ def demo_recording(data_dir: Path) -> Path:
 
 def demo_uri(data_dir: Path) -> str:
     """The demo source: the recording replayed at the camera's rate, looping."""
-    return f"file://{quote(str(demo_recording(data_dir)))}?speed=1&loop=1"
+    return replay_uri(demo_recording(data_dir), speed=1, loop=1)

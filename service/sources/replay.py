@@ -11,7 +11,7 @@ import os
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
-from urllib.parse import SplitResult, unquote
+from urllib.parse import SplitResult, unquote, urlencode
 
 import numpy as np
 
@@ -19,6 +19,13 @@ from service.errors import MeniscopeError
 from service.recordings import Recording, open_recording
 from service.sources.base import FrameBatch, FrameSource, SourceOptions, StreamFormat, parse_options
 from service.sources.pacing import Pacer, Speed
+
+
+def replay_uri(path: Path | str, **options: Any) -> str:
+    """The source URI replaying the recording at ``path`` (relative paths made absolute, the path quoted) with
+    ``options`` (``speed``, ``loop``, ...) as its query."""
+    uri = Path(path).resolve().as_uri()
+    return f"{uri}?{urlencode(options)}" if options else uri
 
 
 class ReplayOptions(SourceOptions):
