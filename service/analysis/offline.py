@@ -24,7 +24,6 @@ from tqdm import tqdm
 from service.analysis.fit import fit_windows
 from service.analysis.results import FitSettings, Report, Source, WindowResult
 from service.analysis.segment import Window, find_ejections, frame_activity, series_activity, windows_between
-from service.analysis.steady import steady_centre
 from service.csvtable import write_columns
 from service.errors import MeniscopeError
 from service.inverse import regularised, synthesis
@@ -36,7 +35,7 @@ from service.physics import WindowTruth, centre_displacement
 from service.pipeline.records import COEFFICIENTS, FRAME, coefficients_of
 from service.pipeline.segmenter import StreamingSegmenter
 from service.pipeline.stages import FrameStages
-from service.pipeline.windows import JobRunner, job_for
+from service.pipeline.windows import JobRunner, job_for, window_model_for
 from service.recordings import open_recording
 from service.recordings.roi import roi_frames
 from service.render.renderer import Renderer
@@ -130,7 +129,9 @@ def analyse_recording(
                 path, scene, coefficients_of(records), windows, fps, settings, runner, progress
             )
             _set_coefficients(records, coefficients, centre)
-        results = runner.run([job_for(w, records[w.start : w.end], radius, transient) for w in windows], fps, progress)
+        model = window_model_for(settings, models)
+        jobs = [job_for(w, records[w.start : w.end], radius, transient, model=model) for w in windows]
+        results = runner.run(jobs, fps, progress)
         source = Source(path=str(path), frames=n, fps=fps, width=width, height=height, sha256=digest.result())
     results = [
         _with_pixel_intervals(r, *motions[r.index], fps, settings.confidence) if r.index in motions else r
@@ -139,9 +140,11 @@ def analyse_recording(
     report = Report(
         source=source, method=method_label(method, refine), ejections=cuts.tolist(), windows=results, fit=settings
     )
-    steady = steady_centre(coefficients_of(records), windows, radius, transient)
+    fitted = np.full(n, np.nan)
+    for job in jobs:
+        fitted[job.window.start : job.window.end] = job.series
     return Analysis(
-        report, InverseOutput(coefficients=coefficients_of(records), centre=records["centre"].copy()), steady
+        report, InverseOutput(coefficients=coefficients_of(records), centre=records["centre"].copy()), fitted
     )
 
 

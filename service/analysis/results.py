@@ -49,6 +49,10 @@ class FitSettings(_Frozen):
     #: far less noise than a per-frame estimate of the shape; it says nothing of amplitude or offset, which
     #: the series gives). A window whose frames show no resolved oscillation falls back to the series.
     poles: Literal["series", "frames"] = "frames"
+    #: The series each window is fitted to: the steady D(0, t) of its per-frame estimates ("steady"), or that
+    #: corrected by the model folder's window model (``window.onnx``, :mod:`service.inverse.window_model`), which
+    #: undoes the shrink of the per-frame amplitudes from the whole window's estimates and brightness.
+    series_model: Literal["steady", "window"] = "steady"
 
     def transient_frames(self, fps: float) -> int:
         """Frames after an ejection that :attr:`transient_s` covers (rounded up)."""

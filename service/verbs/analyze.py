@@ -84,6 +84,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "(default; amplitudes, phases and offset still from D(0, t)) or D(0, t) alone (always with --refine: "
         "the refined motion is the window's inversion, its poles its own)",
     )
+    p.add_argument(
+        "--series",
+        choices=("steady", "window"),
+        default="steady",
+        help="the series each window is fitted to: the steady D(0, t) of the per-frame estimates (default) or "
+        "that corrected by the model folder's window model (window.onnx; the network method only), which "
+        "undoes the shrink of the per-frame amplitudes",
+    )
     _common(p)
     p.set_defaults(func=run_analyze)
 
@@ -154,7 +162,14 @@ def run_analyze(args: argparse.Namespace) -> int:
         raise MeniscopeError("--poles", "frames cannot be used with --refine: a refined window's poles are its own")
     if args.workers is not None and args.workers < 1:
         raise MeniscopeError("--workers", f"must be at least 1, got {args.workers}")
+    if args.series == "window" and (args.method != "network" or args.refine):
+        raise MeniscopeError(
+            "--series",
+            "window reads the network method's per-frame values: not with --method "
+            f"{args.method}{' --refine' if args.refine else ''}",
+        )
     settings = _settings(args, args.poles or ("series" if args.refine else "frames"))
+    settings = settings.model_copy(update={"series_model": args.series})
     report_path, csv_path, png_path = _outputs(args.out)
     scene = Scene.load(args.scene)
     analysis = analyse_recording(
