@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -13,7 +15,9 @@ from hypothesis import strategies as st
 from service import DEFAULT_MODELS
 from service.analysis.results import FitSettings
 from service.analysis.segment import Window
+from service.errors import MeniscopeError
 from service.inverse import window_model as wm
+from service.inverse.manifest import sha256_file
 from service.pipeline.records import FRAME
 from service.pipeline.windows import job_for, window_model_for
 from training.window import WindowNet, export
@@ -39,6 +43,9 @@ def graph(tmp_path_factory: pytest.TempPathFactory) -> tuple[WindowNet, Path]:
     torch.nn.init.normal_(net.out.weight, std=0.3)
     path = tmp_path_factory.mktemp("window") / wm.FILE
     export(net.eval(), path)
+    network = path.with_name(wm.NETWORK)
+    network.write_bytes(b"a per-frame network")
+    path.with_name(wm.RECORD).write_text(json.dumps({"network_sha256": sha256_file(network)}))
     return net, path
 
 
@@ -86,6 +93,15 @@ def test_a_window_fitted_with_the_window_model_keeps_its_missing_frames_missing(
     corrected = job_for(window, r, 0.25, 6, model=wm.WindowModel(path))
     np.testing.assert_array_equal(np.isnan(plain.series), np.isnan(corrected.series))
     assert np.nanmax(np.abs(corrected.series - plain.series)) > 0
+
+
+def test_a_window_model_trained_on_another_per_frame_network_is_refused(graph, tmp_path: Path) -> None:
+    _, path = graph
+    for name in (wm.FILE, wm.RECORD):
+        shutil.copy(path.with_name(name), tmp_path / name)
+    (tmp_path / wm.NETWORK).write_bytes(b"a network trained again")
+    with pytest.raises(MeniscopeError, match="trained on another network.onnx"):
+        wm.WindowModel.of_folder(tmp_path)
 
 
 def test_the_settings_choose_the_shipped_window_model_for_analyze_and_serve_alike() -> None:

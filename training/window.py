@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import io
+import json
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -26,10 +27,12 @@ from service import DEFAULT_MODELS, DEFAULT_SCENE
 from service.analysis.results import FitSettings
 from service.analysis.steady import window_steady_centre
 from service.inverse import window_model as wm
+from service.inverse.manifest import sha256_file
 from service.inverse.methods import open_method
 from service.pipeline.records import FRAME, coefficients_of
 from service.pipeline.stages import FrameStages
 from service.scene import Scene
+from service.simulate import WindowRanges
 from service.sources.replay import ReplaySource
 from service.validation.truth import read_truth, truth_centre
 
@@ -48,6 +51,38 @@ class Examples:
     def select(self, windows: np.ndarray) -> Examples:
         """These examples' ``windows`` (indices)."""
         return Examples(self.features[windows], self.targets[windows], self.scored[windows])
+
+
+#: The motion of the training windows: the simulator's ranges (:class:`service.simulate.WindowRanges`) widened down
+#: to windows that barely move or settle within a few periods, which the live service sees too (a model never
+#: shown one makes up an oscillation there).
+TRAINING_RANGES = WindowRanges(A1=(0.0, 0.025), A2=(0.0, 0.012), g1=(100.0, 5000.0))
+#: Camera noise presets the training windows are rendered at, so that the model holds at each.
+TRAINING_NOISE = ("low", "lab", "high")
+
+
+def render_training(folder: Path, scene: Scene, windows: int, seed: int) -> list[Path]:
+    """Recordings of ``windows`` windows each at every :data:`TRAINING_NOISE` preset (12-bit, our renderer, motion
+    from :data:`TRAINING_RANGES`), written to ``folder`` (kept: reused when there) with their truth."""
+    from service.camera_effects import noise_preset
+    from service.simulate import simulate, truth_path
+
+    folder.mkdir(parents=True, exist_ok=True)
+    paths = []
+    for k, noise in enumerate(TRAINING_NOISE):
+        path = folder / f"window-{noise}-{seed + k}.cine"
+        if not truth_path(path).exists():
+            simulate(
+                scene,
+                path,
+                windows=windows,
+                seed=seed + k,
+                effects=noise_preset(noise, 12),
+                noise=noise,
+                ranges=TRAINING_RANGES,
+            )
+        paths.append(path)
+    return paths
 
 
 def recording_records(path: Path, scene: Scene, models: Path) -> np.ndarray:
@@ -181,14 +216,25 @@ def export(net: WindowNet, path: Path) -> None:
 
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(prog="python -m training.window", description=__doc__.splitlines()[0])
-    p.add_argument("recordings", nargs="+", type=Path, help="simulated recordings (with .truth.json) to train on")
+    p.add_argument("recordings", nargs="*", type=Path, help="simulated recordings (with .truth.json) to train on")
+    p.add_argument(
+        "--render",
+        type=int,
+        default=0,
+        metavar="N",
+        help="also render N training windows per noise preset (low, lab, high) into --data first",
+    )
+    p.add_argument("--data", type=Path, default=Path("data/window"), help="folder of the rendered training windows")
     p.add_argument("--models", type=Path, default=DEFAULT_MODELS, help="model folder: its network, and the output")
     p.add_argument("--epochs", type=int, default=300)
     p.add_argument("--seed", type=int, default=0)
     args = p.parse_args(argv)
     torch.set_num_threads(1)
     scene = Scene.load(DEFAULT_SCENE)
-    data = concat([recording_examples(r, scene, args.models) for r in tqdm(args.recordings, desc="replay")])
+    recordings = args.recordings + (render_training(args.data, scene, args.render, args.seed) if args.render else [])
+    if not recordings:
+        p.error("no recordings: name some or --render N")
+    data = concat([recording_examples(r, scene, args.models) for r in tqdm(recordings, desc="replay")])
     order = np.random.default_rng(args.seed).permutation(len(data.features))
     held = order[: max(1, len(order) // 10)]
     rest = order[len(held) :]
@@ -196,7 +242,18 @@ def main(argv: list[str] | None = None) -> None:
     baseline = float((data.targets[held] ** 2)[data.scored[held]].mean())
     print(f"{len(rest)} windows trained on, {len(held)} checked: scored MSE {min(history):.4g} (steady {baseline:.4g})")
     export(net, args.models / wm.FILE)
-    print(f"wrote {args.models / wm.FILE}")
+    record = {
+        "network_sha256": sha256_file(args.models / wm.NETWORK),
+        "recordings": [str(r) for r in recordings],
+        "windows_trained": int(len(rest)),
+        "windows_checked": int(len(held)),
+        "epochs": args.epochs,
+        "seed": args.seed,
+        "check_mse": float(min(history)),
+        "check_mse_steady": baseline,
+    }
+    (args.models / wm.RECORD).write_text(json.dumps(record, indent=1) + "\n")
+    print(f"wrote {args.models / wm.FILE} and {wm.RECORD}")
 
 
 if __name__ == "__main__":

@@ -10,14 +10,20 @@ window fit then takes as before. Its graph is ``window.onnx`` beside the per-fra
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
 
 from service.errors import MeniscopeError
+from service.inverse.manifest import sha256_file
 
 #: File name of the window model in a model folder (it reads that folder's per-frame network's outputs).
 FILE = "window.onnx"
+#: Its record beside it: the sha256 of the per-frame network whose outputs it was trained on, and how it was trained.
+RECORD = "window.json"
+#: The per-frame graph whose outputs the window model reads.
+NETWORK = "network.onnx"
 #: Input and output names of the graph: features (1, FEATURES, m) -> correction (1, m), in units of SCALE_MM.
 INPUT, OUTPUT = "features", "correction"
 #: Scales (mm, 1, mm, mm) that bring d, p, a, b to order one; D(0, t) and its correction are in SCALE_MM.
@@ -62,6 +68,17 @@ class WindowModel:
 
         if not path.is_file():
             raise MeniscopeError(path, "no window model here: `python -m training.window` makes one")
+        record = path.with_name(RECORD)
+        network = path.with_name(NETWORK)
+        if not record.is_file() or not network.is_file():
+            raise MeniscopeError(path, f"needs {RECORD} and {NETWORK} beside it (`python -m training.window`)")
+        trained_on = json.loads(record.read_text()).get("network_sha256")
+        if trained_on != sha256_file(network):
+            raise MeniscopeError(
+                path,
+                f"trained on another {NETWORK} than the one beside it: its corrections would be wrong "
+                "(train it again: `python -m training.window`)",
+            )
         self.path = path
         self._session = ort.InferenceSession(str(path), session_options(1), providers=["CPUExecutionProvider"])
 
