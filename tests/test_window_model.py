@@ -105,8 +105,9 @@ def test_a_window_model_trained_on_another_per_frame_network_is_refused(graph, t
 
 
 def test_the_settings_choose_the_shipped_window_model_for_analyze_and_serve_alike() -> None:
-    assert window_model_for(FitSettings(), DEFAULT_MODELS) is None
+    assert window_model_for(FitSettings(series_model="steady"), DEFAULT_MODELS, "network") is None
+    assert window_model_for(FitSettings(series_model="window"), DEFAULT_MODELS, "nearest") is None
     if not (DEFAULT_MODELS / wm.FILE).is_file():
         pytest.skip(f"no {wm.FILE} in {DEFAULT_MODELS}")
-    model = window_model_for(FitSettings(series_model="window"), DEFAULT_MODELS)
+    model = window_model_for(FitSettings(series_model="window"), DEFAULT_MODELS, "network")
     assert model is not None and model.path == DEFAULT_MODELS / wm.FILE

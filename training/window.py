@@ -119,6 +119,20 @@ def recording_examples(path: Path, scene: Scene, models: Path, settings: FitSett
     return pad(feats, targets, scored)
 
 
+def cached_examples(path: Path, scene: Scene, models: Path) -> Examples:
+    """:func:`recording_examples`, kept beside the recording (``REC.window-examples.npz``) and reused while the
+    per-frame network it came from is the same."""
+    cache = path.with_name(path.name + ".window-examples.npz")
+    network = sha256_file(models / wm.NETWORK)
+    if cache.is_file():
+        with np.load(cache) as stored:
+            if str(stored["network_sha256"]) == network:
+                return Examples(stored["features"], stored["targets"], stored["scored"])
+    examples = recording_examples(path, scene, models)
+    np.savez(cache, network_sha256=network, **examples.__dict__)
+    return examples
+
+
 def pad(feats: list[np.ndarray], targets: list[np.ndarray], scored: list[np.ndarray]) -> Examples:
     """Windows of different lengths zero-padded (not scored) to the longest."""
     m = max(f.shape[1] for f in feats)
@@ -234,7 +248,7 @@ def main(argv: list[str] | None = None) -> None:
     recordings = args.recordings + (render_training(args.data, scene, args.render, args.seed) if args.render else [])
     if not recordings:
         p.error("no recordings: name some or --render N")
-    data = concat([recording_examples(r, scene, args.models) for r in tqdm(recordings, desc="replay")])
+    data = concat([cached_examples(r, scene, args.models) for r in tqdm(recordings, desc="replay")])
     order = np.random.default_rng(args.seed).permutation(len(data.features))
     held = order[: max(1, len(order) // 10)]
     rest = order[len(held) :]

@@ -93,6 +93,8 @@ def analyse_recording(
     """
     if refine:
         settings = settings.model_copy(update={"poles": "series"})
+    if refine or method != "network":  # the window model reads the network's per-frame values, not refined ones
+        settings = settings.model_copy(update={"series_model": "steady"})
     with open_recording(path) as rec:
         fps, frames, width, height = rec.fps, len(rec), rec.width, rec.height
     inverse, db = opened or open_method(method, scene, models, database)
@@ -129,7 +131,7 @@ def analyse_recording(
                 path, scene, coefficients_of(records), windows, fps, settings, runner, progress
             )
             _set_coefficients(records, coefficients, centre)
-        model = window_model_for(settings, models)
+        model = window_model_for(settings, models, method)
         jobs = [job_for(w, records[w.start : w.end], radius, transient, model=model) for w in windows]
         results = runner.run(jobs, fps, progress)
         source = Source(path=str(path), frames=n, fps=fps, width=width, height=height, sha256=digest.result())

@@ -70,7 +70,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     p.add_argument(
         "--series",
-        default="steady",
+        default="steady,window",
         help="comma-separated, of steady, window: the series each window is fitted to (analyze --series); "
         "window rows are the network method's only",
     )

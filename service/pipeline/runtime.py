@@ -213,7 +213,7 @@ class Pipeline:
         self._error: BaseException | None = None
         self._fps = fps
         self._radius, self._transient = scene.nozzle.radius_mm, settings.fit.transient_frames(fps)
-        self._window_model = window_model_for(settings.fit, settings.models)
+        self._window_model = window_model_for(settings.fit, settings.models, settings.method)
         self._reported = (time.monotonic(), stats.frames_dropped, stats.windows_skipped)
 
     def run(self, stop: threading.Event) -> bool:

@@ -62,9 +62,11 @@ def job_for(
     )
 
 
-def window_model_for(settings: FitSettings, models: Path) -> WindowModel | None:
-    """The window model of the model folder ``models`` when ``settings`` ask for it (``series_model``)."""
-    return WindowModel.of_folder(models) if settings.series_model == "window" else None
+def window_model_for(settings: FitSettings, models: Path, method: str) -> WindowModel | None:
+    """The window model of the model folder ``models`` when ``settings`` ask for it (``series_model``) and the
+    per-frame ``method`` is the network whose outputs it reads (the other methods' windows keep their steady
+    series)."""
+    return WindowModel.of_folder(models) if settings.series_model == "window" and method == "network" else None
 
 
 def fit_job(job: WindowJob, fps: float, settings: FitSettings) -> WindowResult:

@@ -87,10 +87,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--series",
         choices=("steady", "window"),
-        default="steady",
-        help="the series each window is fitted to: the steady D(0, t) of the per-frame estimates (default) or "
-        "that corrected by the model folder's window model (window.onnx; the network method only), which "
-        "undoes the shrink of the per-frame amplitudes",
+        help="the series each window is fitted to: the steady D(0, t) of the per-frame estimates or that "
+        "corrected by the model folder's window model (window.onnx), which undoes the shrink of the per-frame "
+        "amplitudes; window is the network method's only (default: window with it, steady otherwise)",
     )
     _common(p)
     p.set_defaults(func=run_analyze)
@@ -169,7 +168,8 @@ def run_analyze(args: argparse.Namespace) -> int:
             f"{args.method}{' --refine' if args.refine else ''}",
         )
     settings = _settings(args, args.poles or ("series" if args.refine else "frames"))
-    settings = settings.model_copy(update={"series_model": args.series})
+    if args.series:
+        settings = settings.model_copy(update={"series_model": args.series})
     report_path, csv_path, png_path = _outputs(args.out)
     scene = Scene.load(args.scene)
     analysis = analyse_recording(
