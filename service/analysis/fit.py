@@ -174,13 +174,21 @@ class _Window:
         slow = _slow_swing(without.params, self.n[-1] - self.n[0] + 1)
         if not slow and kernels.step_z(self.n, self.y, self.scale, self.robust, without.params, 1) < _DRIFT_TEST:
             return without
-        with_drift = self._judge(order, _canonical(self._refine(start, np.ones(start.size, np.bool_))))
+        with_drift = self._judge(order, _canonical(self._refine(without.params, np.ones(start.size, np.bool_))))
         return min(without, with_drift, key=lambda f: f.bic)
 
     def _refine(self, start: np.ndarray, free: np.ndarray) -> np.ndarray:
         """The LM optimum from ``start`` over the ``free`` parameters."""
         return kernels.levenberg_marquardt(
-            self.n, self.y, self.scale, self.robust, start, _LM_TOLERANCE, _LM_EVALUATIONS * (start.size + 1), free
+            self.n,
+            self.y,
+            self.scale,
+            self.robust,
+            start,
+            _LM_TOLERANCE,
+            _LM_EVALUATIONS * (start.size + 1),
+            free,
+            _MAX_DECAY,
         )
 
     def pinned(self, poles: _OrderFit) -> _OrderFit:
