@@ -32,7 +32,7 @@ from service.inverse.base import InverseMethod, InverseOutput
 from service.inverse.manifest import sha256_file
 from service.inverse.methods import open_method
 from service.inverse.nearest import NearestDatabase
-from service.physics import WindowTruth, centre_displacement
+from service.physics import WindowMotion, centre_displacement
 from service.pipeline.records import COEFFICIENTS, FRAME, coefficients_of
 from service.pipeline.segmenter import StreamingSegmenter
 from service.pipeline.stages import FrameStages
@@ -215,7 +215,7 @@ def _refine(
     settings: FitSettings,
     runner: JobRunner,
     progress: bool,
-) -> tuple[np.ndarray, np.ndarray, dict[int, tuple[WindowTruth, np.ndarray]]]:
+) -> tuple[np.ndarray, np.ndarray, dict[int, tuple[WindowMotion, np.ndarray]]]:
     """Per frame, the coefficients of its window's motion refined on the window's frames (after the ejection's
     transient; windows too short for the search keep their per-frame values), and per refined window (by index)
     its motion and the standard errors of the pixel fit (:func:`synthesis.standard_errors`). Each window is an
@@ -246,8 +246,8 @@ _RENDERERS: dict[str, Renderer] = {}
 
 
 def refine_task(
-    scene: Scene, frames: np.ndarray, t: np.ndarray, start: WindowTruth
-) -> tuple[np.ndarray, WindowTruth, np.ndarray]:
+    scene: Scene, frames: np.ndarray, t: np.ndarray, start: WindowMotion
+) -> tuple[np.ndarray, WindowMotion, np.ndarray]:
     """One window's refinement by synthesis (a task that runs wherever the runner sends it): the refined motion's
     coefficients at times ``t`` (m, 4), the motion, and the pixel fit's standard errors."""
     key = scene.model_dump_json()
@@ -261,7 +261,7 @@ def refine_task(
 
 
 def _with_pixel_intervals(
-    result: WindowResult, motion: WindowTruth, errors: np.ndarray, fps: float, confidence: float
+    result: WindowResult, motion: WindowMotion, errors: np.ndarray, fps: float, confidence: float
 ) -> WindowResult:
     """A refined window's result with each mode's frequency and decay intervals from the pixel fit's standard
     errors (the mode of the motion nearest in frequency), not from the window fit of its noise-free D(0, t)."""
