@@ -29,7 +29,6 @@ from service.csvtable import write_columns
 from service.errors import MeniscopeError
 from service.inverse import regularised, synthesis
 from service.inverse.base import InverseMethod, InverseOutput
-from service.inverse.manifest import sha256_file
 from service.inverse.methods import open_method
 from service.inverse.nearest import NearestDatabase
 from service.physics import WindowMotion, centre_displacement
@@ -38,6 +37,7 @@ from service.pipeline.segmenter import StreamingSegmenter
 from service.pipeline.stages import FrameStages
 from service.pipeline.windows import JobRunner, job_for
 from service.recordings import open_recording
+from service.recordings.digest import blake3_file
 from service.recordings.roi import roi_frames
 from service.render.renderer import Renderer
 from service.scene import Scene
@@ -100,7 +100,7 @@ def analyse_recording(
     db = db if method == "regularised" else None
     transient, radius = settings.transient_frames(fps), scene.nozzle.radius_mm
     with JobRunner(settings, scheduler, workers) as runner, ThreadPoolExecutor(1) as hasher:
-        digest = hasher.submit(sha256_file, path)  # hashlib lets go of the interpreter lock: read while it hashes
+        digest = hasher.submit(blake3_file, path)  # the hash lets go of the interpreter lock: read while it hashes
         # one pass over the frames (each read once: reading was a fifth of the CPU); the ejections, found over the
         # whole recording's changes, are known at its end, when the windows' fits start on both cores
         parts, found = [], []
@@ -131,7 +131,7 @@ def analyse_recording(
             )
             _set_coefficients(records, coefficients, centre)
         results = runner.run([job_for(w, records[w.start : w.end], radius, transient) for w in windows], fps, progress)
-        source = Source(path=str(path), frames=n, fps=fps, width=width, height=height, sha256=digest.result())
+        source = Source(path=str(path), frames=n, fps=fps, width=width, height=height, blake3=digest.result())
     results = [
         _with_pixel_intervals(r, *motions[r.index], fps, settings.confidence) if r.index in motions else r
         for r in results
