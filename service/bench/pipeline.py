@@ -142,7 +142,7 @@ def markdown(results: dict) -> str:
         each = ", ".join(f"{r['frames_per_s']:.0f}" for r in runs)
         lines.append(
             f"| {name} | {median:.0f} | {median / fps:.2f} | {results[f'{name}_median_cpu_us_per_frame']:.0f} "
-            f"| {runs[-1]['windows']} | {each} |"
+            f"| {results[f'{name}_median_fit_cpu_us_per_frame']:.0f} | {runs[-1]['windows']} | {each} |"
         )
     lines.append(
         f"\noffline / live: {results['offline_over_live']:.2f} (medians of {len(results['offline'])} "
