@@ -10,6 +10,7 @@ import pytest
 from service.analysis.segment import windows_between
 from service.pipeline.activity import ActivityTracker
 from service.pipeline.demo import DEMO_AVI, DEMO_TRUTH
+from service.pipeline.measures import PixelMeasures
 from service.pipeline.segmenter import StreamingSegmenter
 from service.recordings import open_recording
 
@@ -30,9 +31,12 @@ def test_the_demo_recording_is_cut_at_its_true_ejections_whatever_the_batching(b
         frames = rec.read(0, len(rec))
     frames = np.concatenate([frames, frames])  # as the looping replay delivers them
     indices = np.arange(len(frames))
-    tracker = ActivityTracker()
+    tracker, measures = ActivityTracker(), PixelMeasures()
     activity = np.concatenate(
-        [tracker.update(frames[i : i + batch], indices[i : i + batch])[1] for i in range(0, len(frames), batch)]
+        [
+            tracker.score(measures.update(frames[i : i + batch], indices[i : i + batch])[0])
+            for i in range(0, len(frames), batch)
+        ]
     )
     closed = segment(StreamingSegmenter(95, 950, 8.0), indices, indices.astype(float), activity, batch)
     truth = json.loads(DEMO_TRUTH.read_text())["ejections"]

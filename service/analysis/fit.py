@@ -615,19 +615,14 @@ def fit_windows(
     progress: bool = True,
     brightness: ArrayLike | None = None,
 ) -> list[WindowResult]:
-    """One :func:`fit_window` per window of ``series`` (mm per frame), with a progress bar over windows;
-    ``brightness`` (same shape, the frames' mean brightness) as :func:`fit_window` takes it."""
+    """One window fit per window of ``series`` (mm per frame), as every front door runs it
+    (:func:`service.pipeline.windows.fit_job`), with a progress bar over windows; ``brightness`` (same shape, the
+    frames' mean brightness) as :func:`fit_window` takes it."""
+    from service.pipeline.windows import WindowJob, fit_job  # the pipeline's job calls this module's fit_window
+
     x = np.asarray(series, dtype=np.float64).reshape(-1)
+    b = None if brightness is None else np.asarray(brightness, dtype=np.float64).reshape(-1)
     return [
-        fit_window(
-            x[w.start : w.end],
-            fps,
-            settings,
-            index=w.index,
-            start_frame=w.start,
-            starts_at_ejection=w.starts_at_ejection,
-            ends_at_ejection=w.ends_at_ejection,
-            brightness=None if brightness is None else np.asarray(brightness)[w.start : w.end],
-        )
+        fit_job(WindowJob(w, x[w.start : w.end], None if b is None else b[w.start : w.end]), fps, settings)
         for w in tqdm(windows, desc="fit", unit="window", disable=not progress)
     ]

@@ -28,15 +28,15 @@ from service.csvtable import write_columns
 from service.errors import MeniscopeError
 from service.inverse import regularised, synthesis
 from service.inverse.base import InverseMethod, InverseOutput
-from service.inverse.manifest import sha256_file
 from service.inverse.methods import open_method
 from service.inverse.nearest import NearestDatabase
-from service.physics import WindowTruth, centre_displacement
+from service.physics import WindowMotion, centre_displacement
 from service.pipeline.records import COEFFICIENTS, FRAME, coefficients_of
 from service.pipeline.segmenter import StreamingSegmenter
 from service.pipeline.stages import FrameStages
 from service.pipeline.windows import JobRunner, job_for, window_model_for
 from service.recordings import open_recording
+from service.recordings.digest import blake3_file
 from service.recordings.roi import roi_frames
 from service.render.renderer import Renderer
 from service.scene import Scene
@@ -101,7 +101,7 @@ def analyse_recording(
     db = db if method == "regularised" else None
     transient, radius = settings.transient_frames(fps), scene.nozzle.radius_mm
     with JobRunner(settings, scheduler, workers) as runner, ThreadPoolExecutor(1) as hasher:
-        digest = hasher.submit(sha256_file, path)  # hashlib lets go of the interpreter lock: read while it hashes
+        digest = hasher.submit(blake3_file, path)  # the hash lets go of the interpreter lock: read while it hashes
         # one pass over the frames (each read once: reading was a fifth of the CPU); the ejections, found over the
         # whole recording's changes, are known at its end, when the windows' fits start on both cores
         parts, found = [], []
@@ -134,7 +134,7 @@ def analyse_recording(
         model = window_model_for(settings, models, method)
         jobs = [job_for(w, records[w.start : w.end], radius, transient, model=model) for w in windows]
         results = runner.run(jobs, fps, progress)
-        source = Source(path=str(path), frames=n, fps=fps, width=width, height=height, sha256=digest.result())
+        source = Source(path=str(path), frames=n, fps=fps, width=width, height=height, blake3=digest.result())
     results = [
         _with_pixel_intervals(r, *motions[r.index], fps, settings.confidence) if r.index in motions else r
         for r in results
@@ -220,7 +220,7 @@ def _refine(
     settings: FitSettings,
     runner: JobRunner,
     progress: bool,
-) -> tuple[np.ndarray, np.ndarray, dict[int, tuple[WindowTruth, np.ndarray]]]:
+) -> tuple[np.ndarray, np.ndarray, dict[int, tuple[WindowMotion, np.ndarray]]]:
     """Per frame, the coefficients of its window's motion refined on the window's frames (after the ejection's
     transient; windows too short for the search keep their per-frame values), and per refined window (by index)
     its motion and the standard errors of the pixel fit (:func:`synthesis.standard_errors`). Each window is an
@@ -251,8 +251,8 @@ _RENDERERS: dict[str, Renderer] = {}
 
 
 def refine_task(
-    scene: Scene, frames: np.ndarray, t: np.ndarray, start: WindowTruth
-) -> tuple[np.ndarray, WindowTruth, np.ndarray]:
+    scene: Scene, frames: np.ndarray, t: np.ndarray, start: WindowMotion
+) -> tuple[np.ndarray, WindowMotion, np.ndarray]:
     """One window's refinement by synthesis (a task that runs wherever the runner sends it): the refined motion's
     coefficients at times ``t`` (m, 4), the motion, and the pixel fit's standard errors."""
     key = scene.model_dump_json()
@@ -266,7 +266,7 @@ def refine_task(
 
 
 def _with_pixel_intervals(
-    result: WindowResult, motion: WindowTruth, errors: np.ndarray, fps: float, confidence: float
+    result: WindowResult, motion: WindowMotion, errors: np.ndarray, fps: float, confidence: float
 ) -> WindowResult:
     """A refined window's result with each mode's frequency and decay intervals from the pixel fit's standard
     errors (the mode of the motion nearest in frequency), not from the window fit of its noise-free D(0, t)."""
