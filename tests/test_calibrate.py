@@ -6,9 +6,18 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
 from service import DEFAULT_SCENE
-from service.calibration.fit import SCHEDULE, Stage, calibrate
+from service.calibration.fit import (
+    MOTION_HIGH,
+    MOTION_LOW,
+    SCHEDULE,
+    Motion,
+    Stage,
+    calibrate,
+)
 from service.calibration.footage import read_footage
 from service.calibration.report import document
 from service.camera_effects import CameraEffects
@@ -40,7 +49,8 @@ def lab(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 def test_a_known_mismatch_is_recovered(lab: Path) -> None:
-    footage = read_footage(lab, frames=8, stack=38)
+    footage = read_footage(lab, frames=8, stack=38, ejection_hz=1000.0)
+    assert len(np.unique(footage.windows)) == 2  # the frames fall in both windows; d, p are fitted once in each
     quick = tuple(Stage(stage.sigmas, 1, 10) for stage in SCHEDULE)
     cal = calibrate(footage, _scene(), schedule=quick, start_alphas=(), progress=False)
     found = cal.scene
@@ -70,3 +80,17 @@ def test_a_larger_frame_shows_the_scene_around_the_roi() -> None:
     outside = np.ones(frame.shape[1:], bool)
     outside[2:42, 5:45] = False
     assert frame[0][outside].max() > 0.01  # and the frame around it is the nozzle's face, not black
+
+
+@given(st.lists(st.integers(0, 3), min_size=1, max_size=12), st.integers(0, 2**31))
+def test_motion_ties_d_and_p_within_a_window(windows: list[int], seed: int) -> None:
+    motion = Motion(np.array(windows))
+    coeffs = np.random.default_rng(seed).uniform(MOTION_LOW, MOTION_HIGH, (len(windows), 4))
+    tied = motion.expand(motion.pack(coeffs))
+    np.testing.assert_array_equal(tied[:, 2:], coeffs[:, 2:])  # a and b stay each frame's own
+    for w in set(windows):
+        rows = tied[np.array(windows) == w, :2]
+        np.testing.assert_array_equal(rows, np.broadcast_to(np.median(coeffs[np.array(windows) == w, :2], axis=0), rows.shape))
+    assert motion.size == 2 * len(set(windows)) + 2 * len(windows)
+    dense = motion.sparsity(5, 3).toarray()
+    assert dense[:, :3].all() and (dense[:, 3:].sum(axis=1) == 4).all()  # the scene, its window's d, p, its own a, b

@@ -1,10 +1,10 @@
 """Analysis by synthesis: the scene and the motion of K lab frames fitted jointly, coarse to fine, from several starts.
 
-Unknowns: the scene parameters of :data:`.parameters.PARAMETERS` and Eq. 1's (d, p, a, b) of every fitted
-frame (motion per frame: it needs no segmentation and holds in the ejection's transient too). Each stage
-is one bounded least-squares problem (scipy's trust-region reflective) on the blurred pyramid of
-:mod:`.synthesis`, its Jacobian by finite differences with the frames' independence declared (a frame's
-residuals depend on its own motion only), so a step costs one renderer per scene parameter plus four
+Unknowns: the scene parameters of :data:`.parameters.PARAMETERS` and the motion (:class:`Motion`): Eq. 1's
+d and p once per window between ejections (constant there), a and b per fitted frame (free, so the
+ejection's transient bulge needs no model). Each stage is one bounded least-squares problem (scipy's
+trust-region reflective) on the blurred pyramid of :mod:`.synthesis`, its Jacobian by finite differences
+with the sparsity declared (a frame's residuals depend on its window's d, p and its own a, b), so a step costs one renderer per scene parameter plus four
 renders of all frames. Before the first stage each frame's motion starts at its nearest neighbour in a
 library rendered with the candidate scene; the ROI is found before the first stage and again after it.
 """
@@ -73,42 +73,78 @@ class Calibration:
     starts: list[dict] = field(default_factory=list)
 
 
-class Problem:
-    """The least-squares problem of one stage: lab pyramid, synthesis, the scene parameters and K frames' motion."""
+class Motion:
+    """The motion unknowns of K frames: Eq. 1's d and p once per window between ejections (they are constant in a
+    window), a and b per frame. Tying d and p (p is the surface's curvature) across a window's frames stops
+    each frame's curvature trading with the light's angle, the fluid's roughness and the blur. Each frame its
+    own window is the untied case (d, p, a, b per frame)."""
 
-    def __init__(self, synth: Synthesis, base: Scene, lab: np.ndarray, sigmas: tuple[float, ...]) -> None:
+    def __init__(self, windows: np.ndarray) -> None:
+        self.group = np.unique(np.asarray(windows), return_inverse=True)[1]
+        self.k, self.g = len(self.group), int(self.group.max()) + 1
+        self.size = 2 * self.g + 2 * self.k
+        self.low = np.concatenate([np.tile(MOTION_LOW[:2], self.g), np.tile(MOTION_LOW[2:], self.k)])
+        self.high = np.concatenate([np.tile(MOTION_HIGH[:2], self.g), np.tile(MOTION_HIGH[2:], self.k)])
+        self.scale = np.concatenate([np.tile(MOTION_SCALE[:2], self.g), np.tile(MOTION_SCALE[2:], self.k)])
+
+    def expand(self, v: np.ndarray) -> np.ndarray:
+        """Per-frame coefficients (K, 4) of the unknowns ``v``."""
+        dp = v[: 2 * self.g].reshape(self.g, 2)[self.group]
+        return np.hstack([dp, v[2 * self.g:].reshape(self.k, 2)])
+
+    def pack(self, motion: np.ndarray) -> np.ndarray:
+        """The unknowns of per-frame coefficients (K, 4): each window's d and p the median of its frames'."""
+        dp = np.stack([np.median(motion[self.group == i, :2], axis=0) for i in range(self.g)])
+        return np.concatenate([dp.ravel(), motion[:, 2:].ravel()])
+
+    def sparsity(self, q: int, n_scene: int) -> lil_matrix:
+        """Which residual (K*q of them) depends on which unknown: all on the ``n_scene`` scene parameters, frame
+        k's on its window's d, p and its own a, b."""
+        m = lil_matrix((self.k * q, n_scene + self.size), dtype=np.int8)
+        m[:, :n_scene] = 1
+        for k, g in enumerate(self.group):
+            rows = slice(k * q, (k + 1) * q)
+            m[rows, n_scene + 2 * g: n_scene + 2 * g + 2] = 1
+            m[rows, n_scene + 2 * self.g + 2 * k: n_scene + 2 * self.g + 2 * k + 2] = 1
+        return m
+
+
+class Problem:
+    """The least-squares problem of one stage: lab pyramid, synthesis, the scene parameters and K frames' motion
+    (:class:`Motion`, tied within the ``windows`` (K,) the frames belong to; untied when omitted)."""
+
+    def __init__(self, synth: Synthesis, base: Scene, lab: np.ndarray, sigmas: tuple[float, ...],
+                 windows: np.ndarray | None = None) -> None:
         self.synth, self.base, self.sigmas = synth, base, sigmas
         self.target = pyramid(lab, sigmas)  # (K, Q)
         self.k = len(lab)
+        self.motion = Motion(np.arange(self.k) if windows is None else windows)
         self.n_scene = len(P.PARAMETERS)
         self.x0 = P.read(base)
         lo, hi = P.bounds(base)
-        self.low = np.concatenate([lo, np.tile(MOTION_LOW, self.k)])
-        self.high = np.concatenate([hi, np.tile(MOTION_HIGH, self.k)])
-        self.scale = np.concatenate([SCENE_SCALE, np.tile(MOTION_SCALE, self.k)])
+        self.low = np.concatenate([lo, self.motion.low])
+        self.high = np.concatenate([hi, self.motion.high])
+        self.scale = np.concatenate([SCENE_SCALE, self.motion.scale])
 
     def unpack(self, x: np.ndarray) -> tuple[Scene, np.ndarray]:
-        return P.write(self.base, x[: self.n_scene]), x[self.n_scene:].reshape(self.k, 4)
+        return P.write(self.base, x[: self.n_scene]), self.motion.expand(x[self.n_scene:])
 
     def residuals(self, x: np.ndarray) -> np.ndarray:
         scene, motion = self.unpack(x)
         return (self.synth.levels(scene, motion, self.sigmas) - self.target).ravel()
 
-    def sparsity(self) -> lil_matrix:
-        """Which residual depends on which unknown: all on the scene, frame k's on its own motion only."""
-        q = self.target.shape[1]
-        m = lil_matrix((self.k * q, self.n_scene + 4 * self.k), dtype=np.int8)
-        m[:, : self.n_scene] = 1
-        for k in range(self.k):
-            m[k * q:(k + 1) * q, self.n_scene + 4 * k: self.n_scene + 4 * k + 4] = 1
-        return m
+    def frame_costs(self, scene: Scene, motion: np.ndarray) -> np.ndarray:
+        """Each frame's squared residual (K,) for per-frame ``motion`` (K, 4) in ``scene``."""
+        r = self.synth.levels(scene, motion, self.sigmas) - self.target
+        return (r**2).sum(axis=1)
 
     def solve(self, motion: np.ndarray, max_evaluations: int) -> tuple[np.ndarray, object]:
-        """Least squares from the base scene and ``motion``, in units of ``scale`` around the start."""
-        start = np.clip(np.concatenate([self.x0, motion.ravel()]), self.low, self.high)
+        """Least squares from the base scene and ``motion`` (K, 4), in units of ``scale`` around the start."""
+        start = np.clip(np.concatenate([self.x0, self.motion.pack(motion)]), self.low, self.high)
         fun = lambda u: self.residuals(start + u * self.scale)
         res = least_squares(fun, np.zeros_like(start), bounds=((self.low - start) / self.scale,
-                            (self.high - start) / self.scale), jac_sparsity=self.sparsity(), diff_step=DIFF_STEP,
+                            (self.high - start) / self.scale),
+                            jac_sparsity=self.motion.sparsity(self.target.shape[1], self.n_scene), diff_step=DIFF_STEP,
                             x_scale=1.0, max_nfev=max_evaluations, method="trf", tr_solver="lsmr")
         return start + res.x * self.scale, res
 
@@ -138,22 +174,19 @@ def motion_only(synth: Synthesis, scene: Scene, lab: np.ndarray, sigmas: tuple[f
     """Each frame's motion (K, 4) for a fixed scene: its ``starts`` nearest library neighbours each refined by
     least squares (scene fixed, so no renderer is built), the best kept per frame. Highlights make the motion
     landscape rugged; several starts per frame are cheap here and spare the joint fit a bad start."""
-    problem = Problem(synth, scene, lab, sigmas)
+    problem = Problem(synth, scene, lab, sigmas)  # untied: each frame its own motion
     k, q = problem.target.shape
-    scale = np.tile(MOTION_SCALE, k)
-    low, high = np.tile(MOTION_LOW, k), np.tile(MOTION_HIGH, k)
-    sparsity = lil_matrix((k * q, 4 * k), dtype=np.int8)
-    for i in range(k):
-        sparsity[i * q:(i + 1) * q, 4 * i:4 * i + 4] = 1
+    mot = problem.motion
+    sparsity = mot.sparsity(q, 0)
     fixed = P.read(scene)
     best, best_cost = None, None
     for start in Library(synth, scene, sigmas, size=1500).nearest(lab, starts):
-        x0 = np.clip(start.ravel(), low, high)
-        fun = lambda u, x0=x0: problem.residuals(np.concatenate([fixed, x0 + u * scale]))
-        res = least_squares(fun, np.zeros_like(x0), bounds=((low - x0) / scale, (high - x0) / scale),
+        x0 = np.clip(mot.pack(start), mot.low, mot.high)
+        fun = lambda u, x0=x0: problem.residuals(np.concatenate([fixed, x0 + u * mot.scale]))
+        res = least_squares(fun, np.zeros_like(x0), bounds=((mot.low - x0) / mot.scale, (mot.high - x0) / mot.scale),
                             jac_sparsity=sparsity, diff_step=DIFF_STEP, max_nfev=max_evaluations, method="trf",
                             tr_solver="lsmr")
-        motion = (x0 + res.x * scale).reshape(k, 4)
+        motion = mot.expand(x0 + res.x * mot.scale)
         cost = (res.fun.reshape(k, q) ** 2).sum(axis=1)
         if best is None:
             best, best_cost = motion, cost
@@ -218,7 +251,7 @@ def calibrate(footage: Footage, guess: Scene, schedule: tuple[Stage, ...] = SCHE
         start = scene if alpha is None else P.write(scene, _set(P.read(scene), "fluid.roughness", math.log10(alpha)))
         lab = crop(footage.frames, start)
         motion = motion_only(synth, start, lab, first.sigmas)
-        problem = Problem(synth, start, lab, first.sigmas)
+        problem = Problem(synth, start, lab, first.sigmas, footage.windows)
         x, res = problem.solve(motion, first.max_evaluations)
         starts.append({"fluid.roughness": start.fluid.roughness, "cost": float(res.cost)})
         if best is None or res.cost < best[0]:
@@ -235,9 +268,9 @@ def calibrate(footage: Footage, guess: Scene, schedule: tuple[Stage, ...] = SCHE
     for stage in schedule[1:]:
         synth.quality["supersample"] = stage.supersample
         lab = crop(footage.frames, scene)
-        problem = Problem(synth, scene, lab, stage.sigmas)
+        problem = Problem(synth, scene, lab, stage.sigmas, footage.windows)
         fresh = motion_only(synth, scene, lab, stage.sigmas)
-        keep = _frame_costs(problem, scene, motion) <= _frame_costs(problem, scene, fresh)
+        keep = problem.frame_costs(scene, motion) <= problem.frame_costs(scene, fresh)
         motion = np.where(keep[:, None], motion, fresh)
         x, res = problem.solve(motion, stage.max_evaluations)
         scene, motion = problem.unpack(x)
@@ -256,12 +289,6 @@ def calibrate(footage: Footage, guess: Scene, schedule: tuple[Stage, ...] = SCHE
                        residual_after=rms_finest(synth, scene, motion, lab), noise=noise,
                        spheres_found=0 if spheres is None else len(spheres), seconds=time.perf_counter() - began,
                        builds=synth.builds, starts=starts)
-
-
-def _frame_costs(problem: Problem, scene: Scene, motion: np.ndarray) -> np.ndarray:
-    """Each frame's squared residual (K,) for ``motion`` in ``scene``."""
-    r = problem.residuals(np.concatenate([P.read(scene), motion.ravel()]))
-    return (r.reshape(problem.k, -1) ** 2).sum(axis=1)
 
 
 def _with_roi(scene: Scene, corner: np.ndarray) -> Scene:

@@ -2,11 +2,12 @@
 from __future__ import annotations
 
 import argparse
+import math
 from pathlib import Path
 
-from service.verbs import add_scene_option
 from service.errors import MeniscopeError, require_folder_of
 from service.scene import Scene
+from service.verbs import add_scene_option
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -24,6 +25,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--frames", type=int, default=12, help="frames whose motion is fitted (default 12)")
     p.add_argument("--stack", type=int, default=120,
                    help="frames spread over the recording for the median image and the noise (default 120)")
+    cut = p.add_mutually_exclusive_group()
+    cut.add_argument("--ejection-hz", type=float,
+                     help="ejections per second, phase found from the data (d and p are fitted once per window "
+                     "between ejections; default: ejections detected from the video)")
+    cut.add_argument("--ejections", type=Path,
+                     help="file of ejection frame indices (one per line) or CSV with a 'frame' or 'time_s' column")
     p.set_defaults(func=run)
 
 
@@ -36,9 +43,11 @@ def run(args: argparse.Namespace) -> int:
         raise MeniscopeError("--frames", f"must be between 2 and 200, got {args.frames}")
     if not 8 <= args.stack <= 5000:
         raise MeniscopeError("--stack", f"must be between 8 and 5000, got {args.stack}")
+    if args.ejection_hz is not None and not (math.isfinite(args.ejection_hz) and args.ejection_hz > 0):
+        raise MeniscopeError("--ejection-hz", f"must be a positive number, got {args.ejection_hz}")
     require_folder_of(args.out)
     guess = Scene.load(args.scene)
-    footage = read_footage(args.recording, args.frames, args.stack)
+    footage = read_footage(args.recording, args.frames, args.stack, args.ejections, args.ejection_hz)
     cal = calibrate(footage, guess)
     doc, png = write_report(cal, footage, args.out)
     print(f"{args.out}: calibrated in {cal.seconds:.0f} s, residual {cal.residual_before * footage.full_scale:.1f} "
