@@ -4,6 +4,7 @@ One calibrated camera set-up: nozzle geometry, fluid material, artifact spheres,
 pinhole camera and sun light. Everything that renders, trains or analyses takes one.
 Units: millimetres, seconds, degrees in the file (radians inside code).
 """
+
 from __future__ import annotations
 
 import hashlib
@@ -45,9 +46,7 @@ class Nozzle(_Strict):
     @model_validator(mode="after")
     def _outer_beyond_bore(self) -> Nozzle:
         if self.outer_radius_mm <= self.radius_mm:
-            raise ValueError(
-                f"outer_radius_mm ({self.outer_radius_mm}) must exceed radius_mm ({self.radius_mm})"
-            )
+            raise ValueError(f"outer_radius_mm ({self.outer_radius_mm}) must exceed radius_mm ({self.radius_mm})")
         return self
 
 
@@ -146,8 +145,10 @@ class Scene(_Strict):
     @model_validator(mode="after")
     def _artifacts_on_face(self) -> Scene:
         lo, hi = self.artifacts.ring_mm
-        if self.artifacts.spheres is None and self.artifacts.count and (
-            lo < self.nozzle.radius_mm or hi > self.nozzle.outer_radius_mm
+        if (
+            self.artifacts.spheres is None
+            and self.artifacts.count
+            and (lo < self.nozzle.radius_mm or hi > self.nozzle.outer_radius_mm)
         ):
             raise ValueError(
                 f"artifacts.ring_mm {[lo, hi]} must lie on the nozzle face "

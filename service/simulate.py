@@ -10,6 +10,7 @@ the meniscus bulges out towards the camera and snaps back as the droplet leaves,
 extra mode-1 amplitude ``bulge_mm * sin(pi (i + 0.5) / transient_frames)`` on frame ``i`` of the
 transient, on top of the window's true motion, which holds on every frame of the window.
 """
+
 from __future__ import annotations
 
 import json
@@ -194,8 +195,9 @@ def canvas(scene: Scene, frame: tuple[int, int]) -> tuple[Scene, tuple[int, int]
     width, height = w + 2 * mx, h + 2 * my
     focal = 0.5 * w / math.tan(math.radians(cam.fov_deg) / 2)
     data = scene.as_dict()
-    data["camera"].update(width_px=width, height_px=height, roi=[0, 0],
-                          fov_deg=math.degrees(2 * math.atan(0.5 * width / focal)))
+    data["camera"].update(
+        width_px=width, height_px=height, roi=[0, 0], fov_deg=math.degrees(2 * math.atan(0.5 * width / focal))
+    )
     return Scene.from_dict(data), (mx - x, my - y)
 
 
@@ -206,8 +208,14 @@ class CameraFrames:
     then through the camera's ``effects``.
     """
 
-    def __init__(self, scene: Scene, renderer: Renderer, effects: CameraEffects,
-                 frame: tuple[int, int] | None = None, corner: tuple[int, int] = (0, 0)) -> None:
+    def __init__(
+        self,
+        scene: Scene,
+        renderer: Renderer,
+        effects: CameraEffects,
+        frame: tuple[int, int] | None = None,
+        corner: tuple[int, int] = (0, 0),
+    ) -> None:
         cam = scene.camera
         x, y = cam.roi
         self.renderer, self.effects = renderer, effects
@@ -237,9 +245,17 @@ def truth_path(recording: str | Path) -> Path:
     return recording.with_name(recording.stem + ".truth.json")
 
 
-def truth_document(plan: Plan, scene: Scene, recording: Path, effects: CameraEffects, seed: int,
-                   ejection_hz: float, noise: str | None, renderer: str,
-                   frame: tuple[int, int] | None = None) -> dict[str, Any]:
+def truth_document(
+    plan: Plan,
+    scene: Scene,
+    recording: Path,
+    effects: CameraEffects,
+    seed: int,
+    ejection_hz: float,
+    noise: str | None,
+    renderer: str,
+    frame: tuple[int, int] | None = None,
+) -> dict[str, Any]:
     """The sidecar's content (scene.md, "Recordings and ground truth"): JSON-safe, finite numbers."""
     x, y = scene.camera.roi
     width, height = frame or (x + scene.camera.width_px, y + scene.camera.height_px)
@@ -264,7 +280,7 @@ def truth_document(plan: Plan, scene: Scene, recording: Path, effects: CameraEff
             "frames": plan.transient_frames,
             "duration_s": plan.transient.duration_s,
             "model": "a += bulge_mm * sin(pi * (frame - start_frame + 0.5) / frames) on the first `frames` "
-                     "frames of each window, on top of the true motion",
+            "frames of each window, on top of the true motion",
         },
         "ranges": {name: list(lohi) for name, lohi in asdict(plan.ranges).items()},
         "camera_effects": effects.model_dump(mode="json"),
@@ -325,9 +341,10 @@ def simulate(
     camera = CameraFrames(scene, renderer, effects, frame, corner)
     sidecar = truth_path(out)
     try:
-        with open_writer(out, camera.width, camera.height, cam.fps, bit_depth=effects.bit_depth) as writer, tqdm(
-            total=plan.frame_count, unit="frame", desc=f"simulate {out.name}", disable=None
-        ) as bar:
+        with (
+            open_writer(out, camera.width, camera.height, cam.fps, bit_depth=effects.bit_depth) as writer,
+            tqdm(total=plan.frame_count, unit="frame", desc=f"simulate {out.name}", disable=None) as bar,
+        ):
             for k, window_seed in enumerate(noise_seed.spawn(windows)):
                 rng = np.random.default_rng(window_seed)
                 length = int(plan.ejections[k + 1] - plan.ejections[k])
@@ -335,8 +352,9 @@ def simulate(
                     stop = min(length, start + BATCH_FRAMES)
                     writer.write(camera.take(plan.coefficients(k, start, stop), rng), None)
                     bar.update(stop - start)
-        truth = truth_document(plan, scene, out, effects, seed, ejection_hz, noise, type(renderer).__name__,
-                               (camera.width, camera.height))
+        truth = truth_document(
+            plan, scene, out, effects, seed, ejection_hz, noise, type(renderer).__name__, (camera.width, camera.height)
+        )
         try:
             sidecar.write_text(json.dumps(truth, indent=1, allow_nan=False) + "\n")
         except OSError as exc:

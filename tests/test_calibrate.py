@@ -1,4 +1,5 @@
 """meniscope calibrate: a recording of a known mismatched scene, made by our renderer, is calibrated back."""
+
 from __future__ import annotations
 
 import json
@@ -90,7 +91,9 @@ def test_motion_ties_d_and_p_within_a_window(windows: list[int], seed: int) -> N
     np.testing.assert_array_equal(tied[:, 2:], coeffs[:, 2:])  # a and b stay each frame's own
     for w in set(windows):
         rows = tied[np.array(windows) == w, :2]
-        np.testing.assert_array_equal(rows, np.broadcast_to(np.median(coeffs[np.array(windows) == w, :2], axis=0), rows.shape))
+        np.testing.assert_array_equal(
+            rows, np.broadcast_to(np.median(coeffs[np.array(windows) == w, :2], axis=0), rows.shape)
+        )
     assert motion.size == 2 * len(set(windows)) + 2 * len(windows)
     dense = motion.sparsity(5, 3).toarray()
     assert dense[:, :3].all() and (dense[:, 3:].sum(axis=1) == 4).all()  # the scene, its window's d, p, its own a, b

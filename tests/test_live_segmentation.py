@@ -1,4 +1,5 @@
 """Live segmentation: frame activity and the streaming segmenter cut a stream as the offline analysis would."""
+
 from __future__ import annotations
 
 import json
@@ -13,8 +14,9 @@ from service.pipeline.segmenter import StreamingSegmenter
 from service.recordings import open_recording
 
 
-def segment(segmenter: StreamingSegmenter, indices: np.ndarray, values: np.ndarray, activity: np.ndarray,
-            batch: int) -> list:
+def segment(
+    segmenter: StreamingSegmenter, indices: np.ndarray, values: np.ndarray, activity: np.ndarray, batch: int
+) -> list:
     closed = []
     for lo in range(0, len(indices), batch):
         part = slice(lo, lo + batch)
@@ -29,8 +31,9 @@ def test_the_demo_recording_is_cut_at_its_true_ejections_whatever_the_batching(b
     frames = np.concatenate([frames, frames])  # as the looping replay delivers them
     indices = np.arange(len(frames))
     tracker = ActivityTracker()
-    activity = np.concatenate([tracker.update(frames[i:i + batch], indices[i:i + batch])[1]
-                               for i in range(0, len(frames), batch)])
+    activity = np.concatenate(
+        [tracker.update(frames[i : i + batch], indices[i : i + batch])[1] for i in range(0, len(frames), batch)]
+    )
     closed = segment(StreamingSegmenter(95, 950, 8.0), indices, indices.astype(float), activity, batch)
     truth = json.loads(DEMO_TRUTH.read_text())["ejections"]
     expected = truth[1:] + [t + len(frames) // 2 for t in truth]

@@ -1,4 +1,5 @@
 """The scene file: validated with messages that name the field and the problem."""
+
 from __future__ import annotations
 
 import json
@@ -126,7 +127,11 @@ def test_the_artifacts_material_is_what_their_highlights_show() -> None:
         s = Scene.from_dict(data)
         col, row = project(s, [-0.3, 0.0, 0.0])
         frame = Renderer(s, supersample=2).render(np.zeros((1, 4)))[0]
-        out.append(frame[int(round(float(row))) - 3: int(round(float(row))) + 4,
-                         int(round(float(col))) - 3: int(round(float(col))) + 4])
+        out.append(
+            frame[
+                int(round(float(row))) - 3 : int(round(float(row))) + 4,
+                int(round(float(col))) - 3 : int(round(float(col))) + 4,
+            ]
+        )
     # a rough defect spreads the sun's glint over more of the sphere than a mirror does
     assert (rough[0] > 0.02).sum() > (mirror[0] > 0.02).sum()

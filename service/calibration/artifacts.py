@@ -6,6 +6,7 @@ pixel fixes the centre once the radius is known: the ray through the pixel meets
 ``z = radius h_z`` at the glint. The radius follows from the glint's flux (a mirror ball's radiant
 intensity grows as radius^2; shading.py), measured against a render of a sphere of known size.
 """
+
 from __future__ import annotations
 
 import cv2
@@ -38,7 +39,7 @@ def face_pixels(scene: Scene) -> np.ndarray:
     """Pixels (h, w) bool whose ray meets the plane z = 0 on the nozzle's bottom face (R < r < outer radius):
     where a defect's glint can be."""
     cam, nz = scene.camera, scene.nozzle
-    rows, cols = np.mgrid[0:cam.height_px, 0:cam.width_px]
+    rows, cols = np.mgrid[0 : cam.height_px, 0 : cam.width_px]
     location, d = pixel_ray(scene, cols.ravel().astype(float), rows.ravel().astype(float))
     t = -location[2] / d[..., 2]
     r = np.hypot(*(location[:2, None] + t * d[..., :2].T))
@@ -53,8 +54,9 @@ def detect(residual: np.ndarray, allowed: np.ndarray, noise: float) -> np.ndarra
     res = residual.astype(np.float32)
     speck = cv2.morphologyEx(res, cv2.MORPH_TOPHAT, np.ones((5, 5), np.uint8))
     spread = 1.4826 * float(np.median(np.abs(speck[allowed] - np.median(speck[allowed])))) if allowed.any() else 0.0
-    peak = ((speck == cv2.dilate(speck, np.ones((3, 3), np.uint8))) & allowed
-            & (speck > DETECT_SIGMAS * max(noise, spread)))
+    peak = (
+        (speck == cv2.dilate(speck, np.ones((3, 3), np.uint8))) & allowed & (speck > DETECT_SIGMAS * max(noise, spread))
+    )
     out = []
     h, w = res.shape
     for row, col in zip(*np.nonzero(peak)):
@@ -63,7 +65,9 @@ def detect(residual: np.ndarray, allowed: np.ndarray, noise: float) -> np.ndarra
         patch = np.maximum(speck[r0:r1, c0:c1], 0.0)
         total = float(patch.sum())
         rows, cols = np.mgrid[r0:r1, c0:c1]
-        out.append(((cols * patch).sum() / total, (rows * patch).sum() / total, float(np.maximum(res[r0:r1, c0:c1], 0).sum())))
+        out.append(
+            ((cols * patch).sum() / total, (rows * patch).sum() / total, float(np.maximum(res[r0:r1, c0:c1], 0).sum()))
+        )
     return np.array(out, dtype=np.float64).reshape(-1, 3)
 
 
@@ -91,14 +95,18 @@ def with_spheres(scene: Scene, spheres: np.ndarray) -> Scene:
 def glint_flux(scene: Scene, spheres: np.ndarray, at: np.ndarray, supersample: int = 3) -> np.ndarray:
     """Flux (G,) over the FLUX_HALF_PX square around each point ``at`` (G, 2) of a render of ``scene`` with
     ``spheres`` minus one without them (the fluid at rest)."""
-    frames = [Renderer(with_spheres(scene, s), supersample=supersample).render(np.zeros((1, 4)))[0]
-              for s in (spheres, np.zeros((0, 4)))]
+    frames = [
+        Renderer(with_spheres(scene, s), supersample=supersample).render(np.zeros((1, 4)))[0]
+        for s in (spheres, np.zeros((0, 4)))
+    ]
     diff = frames[0] - frames[1]
     h, w = diff.shape
     out = []
     for col, row in np.rint(at).astype(int):
-        patch = diff[max(0, row - FLUX_HALF_PX):min(h, row + FLUX_HALF_PX + 1),
-                     max(0, col - FLUX_HALF_PX):min(w, col + FLUX_HALF_PX + 1)]
+        patch = diff[
+            max(0, row - FLUX_HALF_PX) : min(h, row + FLUX_HALF_PX + 1),
+            max(0, col - FLUX_HALF_PX) : min(w, col + FLUX_HALF_PX + 1),
+        ]
         out.append(max(float(patch.sum()), 1e-9))
     return np.array(out)
 

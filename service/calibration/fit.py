@@ -8,6 +8,7 @@ with the sparsity declared (a frame's residuals depend on its window's d, p and 
 renders of all frames. Before the first stage each frame's motion starts at its nearest neighbour in a
 library rendered with the candidate scene; the ROI is found before the first stage and again after it.
 """
+
 from __future__ import annotations
 
 import math
@@ -90,7 +91,7 @@ class Motion:
     def expand(self, v: np.ndarray) -> np.ndarray:
         """Per-frame coefficients (K, 4) of the unknowns ``v``."""
         dp = v[: 2 * self.g].reshape(self.g, 2)[self.group]
-        return np.hstack([dp, v[2 * self.g:].reshape(self.k, 2)])
+        return np.hstack([dp, v[2 * self.g :].reshape(self.k, 2)])
 
     def pack(self, motion: np.ndarray) -> np.ndarray:
         """The unknowns of per-frame coefficients (K, 4): each window's d and p the median of its frames'."""
@@ -104,8 +105,8 @@ class Motion:
         m[:, :n_scene] = 1
         for k, g in enumerate(self.group):
             rows = slice(k * q, (k + 1) * q)
-            m[rows, n_scene + 2 * g: n_scene + 2 * g + 2] = 1
-            m[rows, n_scene + 2 * self.g + 2 * k: n_scene + 2 * self.g + 2 * k + 2] = 1
+            m[rows, n_scene + 2 * g : n_scene + 2 * g + 2] = 1
+            m[rows, n_scene + 2 * self.g + 2 * k : n_scene + 2 * self.g + 2 * k + 2] = 1
         return m
 
 
@@ -113,8 +114,14 @@ class Problem:
     """The least-squares problem of one stage: lab pyramid, synthesis, the scene parameters and K frames' motion
     (:class:`Motion`, tied within the ``windows`` (K,) the frames belong to; untied when omitted)."""
 
-    def __init__(self, synth: Synthesis, base: Scene, lab: np.ndarray, sigmas: tuple[float, ...],
-                 windows: np.ndarray | None = None) -> None:
+    def __init__(
+        self,
+        synth: Synthesis,
+        base: Scene,
+        lab: np.ndarray,
+        sigmas: tuple[float, ...],
+        windows: np.ndarray | None = None,
+    ) -> None:
         self.synth, self.base, self.sigmas = synth, base, sigmas
         self.target = pyramid(lab, sigmas)  # (K, Q)
         self.k = len(lab)
@@ -127,7 +134,7 @@ class Problem:
         self.scale = np.concatenate([SCENE_SCALE, self.motion.scale])
 
     def unpack(self, x: np.ndarray) -> tuple[Scene, np.ndarray]:
-        return P.write(self.base, x[: self.n_scene]), self.motion.expand(x[self.n_scene:])
+        return P.write(self.base, x[: self.n_scene]), self.motion.expand(x[self.n_scene :])
 
     def residuals(self, x: np.ndarray) -> np.ndarray:
         scene, motion = self.unpack(x)
@@ -142,10 +149,17 @@ class Problem:
         """Least squares from the base scene and ``motion`` (K, 4), in units of ``scale`` around the start."""
         start = np.clip(np.concatenate([self.x0, self.motion.pack(motion)]), self.low, self.high)
         fun = lambda u: self.residuals(start + u * self.scale)
-        res = least_squares(fun, np.zeros_like(start), bounds=((self.low - start) / self.scale,
-                            (self.high - start) / self.scale),
-                            jac_sparsity=self.motion.sparsity(self.target.shape[1], self.n_scene), diff_step=DIFF_STEP,
-                            x_scale=1.0, max_nfev=max_evaluations, method="trf", tr_solver="lsmr")
+        res = least_squares(
+            fun,
+            np.zeros_like(start),
+            bounds=((self.low - start) / self.scale, (self.high - start) / self.scale),
+            jac_sparsity=self.motion.sparsity(self.target.shape[1], self.n_scene),
+            diff_step=DIFF_STEP,
+            x_scale=1.0,
+            max_nfev=max_evaluations,
+            method="trf",
+            tr_solver="lsmr",
+        )
         return start + res.x * self.scale, res
 
 
@@ -169,8 +183,14 @@ class Library:
         return self.coeffs[np.argsort(dist, axis=1)[:, :count].T]
 
 
-def motion_only(synth: Synthesis, scene: Scene, lab: np.ndarray, sigmas: tuple[float, ...], starts: int = 5,
-                max_evaluations: int = 15) -> np.ndarray:
+def motion_only(
+    synth: Synthesis,
+    scene: Scene,
+    lab: np.ndarray,
+    sigmas: tuple[float, ...],
+    starts: int = 5,
+    max_evaluations: int = 15,
+) -> np.ndarray:
     """Each frame's motion (K, 4) for a fixed scene: its ``starts`` nearest library neighbours each refined by
     least squares (scene fixed, so no renderer is built), the best kept per frame. Highlights make the motion
     landscape rugged; several starts per frame are cheap here and spare the joint fit a bad start."""
@@ -183,9 +203,16 @@ def motion_only(synth: Synthesis, scene: Scene, lab: np.ndarray, sigmas: tuple[f
     for start in Library(synth, scene, sigmas, size=1500).nearest(lab, starts):
         x0 = np.clip(mot.pack(start), mot.low, mot.high)
         fun = lambda u, x0=x0: problem.residuals(np.concatenate([fixed, x0 + u * mot.scale]))
-        res = least_squares(fun, np.zeros_like(x0), bounds=((mot.low - x0) / mot.scale, (mot.high - x0) / mot.scale),
-                            jac_sparsity=sparsity, diff_step=DIFF_STEP, max_nfev=max_evaluations, method="trf",
-                            tr_solver="lsmr")
+        res = least_squares(
+            fun,
+            np.zeros_like(x0),
+            bounds=((mot.low - x0) / mot.scale, (mot.high - x0) / mot.scale),
+            jac_sparsity=sparsity,
+            diff_step=DIFF_STEP,
+            max_nfev=max_evaluations,
+            method="trf",
+            tr_solver="lsmr",
+        )
         motion = mot.expand(x0 + res.x * mot.scale)
         cost = (res.fun.reshape(k, q) ** 2).sum(axis=1)
         if best is None:
@@ -204,7 +231,7 @@ def library_motion(synth: Synthesis, scene: Scene, lab: np.ndarray, sigmas: tupl
 def crop(frames: np.ndarray, scene: Scene) -> np.ndarray:
     """The ROI of full frames (N, H, W) at the scene's ``camera.roi``."""
     (x, y), cam = scene.camera.roi, scene.camera
-    return frames[:, y:y + cam.height_px, x:x + cam.width_px]
+    return frames[:, y : y + cam.height_px, x : x + cam.width_px]
 
 
 def locate(synth: Synthesis, scene: Scene, footage: Footage) -> tuple[Scene, np.ndarray, float]:
@@ -215,14 +242,15 @@ def locate(synth: Synthesis, scene: Scene, footage: Footage) -> tuple[Scene, np.
     mean = footage.stack.mean(axis=0)
     (height, width), cam = mean.shape, scene.camera
     if height < cam.height_px or width < cam.width_px:
-        raise MeniscopeError(footage.path, f"frames {width}x{height} are smaller than the scene's ROI "
-                             f"{cam.width_px}x{cam.height_px}")
+        raise MeniscopeError(
+            footage.path, f"frames {width}x{height} are smaller than the scene's ROI {cam.width_px}x{cam.height_px}"
+        )
     data = scene.as_dict()
     centred = ((width - cam.width_px) // 2, (height - cam.height_px) // 2)
     data["camera"]["roi"] = list(centred)
     big, (cx, cy) = canvas(Scene.from_dict(data), (width, height))
     coeffs = CoefficientRanges().sample(64, np.random.default_rng(1))
-    template = synth.stored(big, coeffs).mean(axis=0)[cy:cy + height, cx:cx + width]
+    template = synth.stored(big, coeffs).mean(axis=0)[cy : cy + height, cx : cx + width]
     shift, score = find_roi(mean, template, reach=max(width - cam.width_px, height - cam.height_px))
     corner = np.clip(np.array(centred) + shift, 0, [width - cam.width_px, height - cam.height_px])
     return _with_roi(scene, corner), corner, score
@@ -233,8 +261,13 @@ def rms_finest(synth: Synthesis, scene: Scene, motion: np.ndarray, lab: np.ndarr
     return float(np.sqrt(np.mean((synth.stored(scene, motion) - lab) ** 2)))
 
 
-def calibrate(footage: Footage, guess: Scene, schedule: tuple[Stage, ...] = SCHEDULE,
-              start_alphas: tuple[float, ...] = START_ALPHAS, progress: bool = True) -> Calibration:
+def calibrate(
+    footage: Footage,
+    guess: Scene,
+    schedule: tuple[Stage, ...] = SCHEDULE,
+    start_alphas: tuple[float, ...] = START_ALPHAS,
+    progress: bool = True,
+) -> Calibration:
     """Fit ``guess`` to ``footage``: ROI, scene parameters, per-frame motion, noise, artifact spheres."""
     began = time.perf_counter()
     synth = Synthesis(supersample=schedule[0].supersample)
@@ -258,8 +291,12 @@ def calibrate(footage: Footage, guess: Scene, schedule: tuple[Stage, ...] = SCHE
             best = (res.cost, problem.unpack(x))
         bar.update()
     scene, motion = best[1]
-    residual_before = rms_finest(synth, base, library_motion(synth, scene, crop(footage.frames, scene), first.sigmas),
-                                 crop(footage.frames, scene))
+    residual_before = rms_finest(
+        synth,
+        base,
+        library_motion(synth, scene, crop(footage.frames, scene), first.sigmas),
+        crop(footage.frames, scene),
+    )
     again, corner_again, score_again = locate(synth, scene, footage)  # with the scene as fitted so far
     if score_again > score:  # the better likeness decides: a fit on a wrong crop can mislead the second look
         scene, corner, score = again, corner_again, score_again
@@ -284,11 +321,21 @@ def calibrate(footage: Footage, guess: Scene, schedule: tuple[Stage, ...] = SCHE
     spheres = _spheres(synth, scene, lab_stack, moving, noise)
     scene = with_spheres(scene, spheres if spheres is not None else np.zeros((0, 4)))
     lab = crop(footage.frames, scene)
-    return Calibration(guess=guess, scene=scene, roi=(float(corner[0]), float(corner[1])), roi_score=score,
-                       motion=motion, sigma=sigma, residual_before=residual_before,
-                       residual_after=rms_finest(synth, scene, motion, lab), noise=noise,
-                       spheres_found=0 if spheres is None else len(spheres), seconds=time.perf_counter() - began,
-                       builds=synth.builds, starts=starts)
+    return Calibration(
+        guess=guess,
+        scene=scene,
+        roi=(float(corner[0]), float(corner[1])),
+        roi_score=score,
+        motion=motion,
+        sigma=sigma,
+        residual_before=residual_before,
+        residual_after=rms_finest(synth, scene, motion, lab),
+        noise=noise,
+        spheres_found=0 if spheres is None else len(spheres),
+        seconds=time.perf_counter() - began,
+        builds=synth.builds,
+        starts=starts,
+    )
 
 
 def _with_roi(scene: Scene, corner: np.ndarray) -> Scene:
@@ -313,8 +360,10 @@ def _uncertainty(problem: Problem, x: np.ndarray, res: object) -> dict[str, floa
     s2 = 2.0 * res.cost / max(m - n, 1)
     cov = np.linalg.pinv(jac.T @ jac) * s2
     spread = np.sqrt(np.maximum(np.diag(cov)[: problem.n_scene], 0.0)) * SCENE_SCALE  # fitted coordinates
-    return {p.name: float(p.from_fit(xi) * math.log(10) * si) if p.log else float(si)
-            for p, xi, si in zip(P.PARAMETERS, x[: problem.n_scene], spread)}
+    return {
+        p.name: float(p.from_fit(xi) * math.log(10) * si) if p.log else float(si)
+        for p, xi, si in zip(P.PARAMETERS, x[: problem.n_scene], spread)
+    }
 
 
 def _moving(synth: Synthesis, scene: Scene) -> np.ndarray:

@@ -1,4 +1,5 @@
 """The lab frames a calibration looks at: a handful fitted one by one, and a larger stack for static statistics."""
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -42,8 +43,13 @@ def spread(count: int, total: int) -> np.ndarray:
     return np.unique(np.floor(((np.arange(min(count, total)) + 0.5) * golden) % 1.0 * total).astype(np.int64))
 
 
-def read_footage(path: str | Path, frames: int, stack: int = 120, ejections_file: str | Path | None = None,
-                 ejection_hz: float | None = None) -> Footage:
+def read_footage(
+    path: str | Path,
+    frames: int,
+    stack: int = 120,
+    ejections_file: str | Path | None = None,
+    ejection_hz: float | None = None,
+) -> Footage:
     """Read ``frames`` frames to fit and a ``stack`` for statistics from a recording (any format we read); the
     ejections from ``ejections_file``, at ``ejection_hz``, or detected (as ``analyze`` takes them)."""
     path = Path(path)
@@ -59,8 +65,9 @@ def read_footage(path: str | Path, frames: int, stack: int = 120, ejections_file
         return Footage(path, read(indices), indices, read(stack_idx), rec.bit_depth, rec.fps, windows)
 
 
-def _ejections(rec, total: int, ejections_file: str | Path | None, ejection_hz: float | None,
-               chunk: int = 256) -> np.ndarray:
+def _ejections(
+    rec, total: int, ejections_file: str | Path | None, ejection_hz: float | None, chunk: int = 256
+) -> np.ndarray:
     """Ejection frames of an open recording, detected from its frame-to-frame change as ``analyze`` does."""
     steps, previous = [], None
     for lo in range(0, total, chunk):

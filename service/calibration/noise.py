@@ -4,6 +4,7 @@ Outside the bore nothing moves, so a static pixel's spread over time is the came
 ``var = read^2 + (mean - black) / full_well`` in fractions of full scale (shot noise grows with the
 signal, read noise does not; a quantisation step adds 1/12 of a step squared).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass

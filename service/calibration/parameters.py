@@ -4,6 +4,7 @@ A parameter is fitted in a coordinate where a step means about the same everywhe
 roughness, the light's angle and the exposure). Parameters the video cannot tell apart from others
 are not fitted but named with the reason (:data:`UNIDENTIFIABLE`).
 """
+
 from __future__ import annotations
 
 import math
@@ -61,20 +62,20 @@ PARAMETERS: tuple[Parameter, ...] = (
 UNIDENTIFIABLE: dict[str, str] = {
     "light.strength": "only exposure x strength reaches the pixels (fitted as camera.exposure, strength kept)",
     "nozzle.albedo": "only albedo x strength x exposure reaches the pixels; the fluid's reflectance is fitted "
-                     "relative to it",
+    "relative to it",
     "camera.azimuth_deg": "rotating camera, light and defects together about the nozzle axis changes nothing "
-                          "(the gauge: kept, the light's azimuth is fitted relative to it)",
+    "(the gauge: kept, the light's azimuth is fitted relative to it)",
     "camera.distance_mm": "with fov_deg only their ratio (the scale in px/mm) is seen; kept",
     "artifacts.material.roughness": "a defect is 1-3 px across: its glint's spread over the sphere is below "
-                                    "the blur; kept",
+    "the blur; kept",
 }
 
 
 #: Fitted, but what the video says about them is weak whatever their statistical sigma: reported as not identified.
 WEAK: dict[str, str] = {
     "light.angle_deg": "a near-mirror's highlight is the sun's image through the curved surface, its size the sun's "
-                       "angle over the curvature, and the curvature is each frame's free motion: the fit trades "
-                       "one for the other (on Blender recordings -63 % to +25 % of the truth)",
+    "angle over the curvature, and the curvature is each frame's free motion: the fit trades "
+    "one for the other (on Blender recordings -63 % to +25 % of the truth)",
 }
 
 

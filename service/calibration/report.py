@@ -1,6 +1,7 @@
 """The calibration report beside the scene: every parameter before and after with its uncertainty, the
 residual, the noise and the defects as JSON, and a PNG of lab frames beside their synthesis (the paper's
 Figs. 7 and 15) over frames from several phases of the oscillation."""
+
 from __future__ import annotations
 
 import json
@@ -53,11 +54,21 @@ def document(cal: Calibration, footage: Footage) -> dict[str, Any]:
     for p in P.PARAMETERS:
         value, sigma = _value(after, p.name), cal.sigma.get(p.name, math.inf)
         tol, kind = PRECISION[p.name]
-        identified = (math.isfinite(sigma) and sigma <= (tol * abs(value) if kind == "rel" else tol)
-                      and p.name not in P.WEAK)
-        rows.append({"name": p.name, "before": _value(before, p.name), "after": value,
-                     "sigma": sigma if math.isfinite(sigma) else None, "identified": bool(identified),
-                     "precision_needed": tol, "precision_kind": kind, "note": P.WEAK.get(p.name)})
+        identified = (
+            math.isfinite(sigma) and sigma <= (tol * abs(value) if kind == "rel" else tol) and p.name not in P.WEAK
+        )
+        rows.append(
+            {
+                "name": p.name,
+                "before": _value(before, p.name),
+                "after": value,
+                "sigma": sigma if math.isfinite(sigma) else None,
+                "identified": bool(identified),
+                "precision_needed": tol,
+                "precision_kind": kind,
+                "note": P.WEAK.get(p.name),
+            }
+        )
     top = footage.full_scale
     return {
         "schema": SCHEMA,
@@ -68,22 +79,34 @@ def document(cal: Calibration, footage: Footage) -> dict[str, Any]:
         "scene_sha256": cal.scene.sha256,
         "parameters": rows,
         "kept_unidentifiable": P.UNIDENTIFIABLE,
-        "roi": {"before": list(cal.guess.camera.roi), "after": list(cal.scene.camera.roi),
-                "subpixel": [round(v, 3) for v in cal.roi], "correlation": round(cal.roi_score, 4)},
+        "roi": {
+            "before": list(cal.guess.camera.roi),
+            "after": list(cal.scene.camera.roi),
+            "subpixel": [round(v, 3) for v in cal.roi],
+            "correlation": round(cal.roi_score, 4),
+        },
         "residual_rms_dn": {"before": cal.residual_before * top, "after": cal.residual_after * top},
-        "noise": {"full_well_e": cal.noise.full_well_e, "read_noise_e": cal.noise.read_noise_e,
-                  "read_noise_dn": cal.noise.read_noise_fraction * top, "static_pixels": cal.noise.pixels,
-                  "shot_noise_seen": cal.noise.full_well_e > 0},
-        "artifacts": {"found": cal.spheres_found, "guess_spheres": len(cal.guess.spheres),
-                      "spheres": [dict(zip(("x", "y", "z", "radius"), map(float, s))) for s in cal.scene.spheres]
-                      if cal.spheres_found else None},
+        "noise": {
+            "full_well_e": cal.noise.full_well_e,
+            "read_noise_e": cal.noise.read_noise_e,
+            "read_noise_dn": cal.noise.read_noise_fraction * top,
+            "static_pixels": cal.noise.pixels,
+            "shot_noise_seen": cal.noise.full_well_e > 0,
+        },
+        "artifacts": {
+            "found": cal.spheres_found,
+            "guess_spheres": len(cal.guess.spheres),
+            "spheres": [dict(zip(("x", "y", "z", "radius"), map(float, s))) for s in cal.scene.spheres]
+            if cal.spheres_found
+            else None,
+        },
         "motion": {"columns": ["d", "p", "a", "b"], "frames": [[float(v) for v in m] for m in cal.motion]},
         "starts": cal.starts,
         "seconds": cal.seconds,
         "renderer_builds": cal.builds,
         "versus_truth": None if truth is None else score(cal.scene, truth),
         "uncertainty_note": "1 sigma from the final stage's Gauss-Newton covariance with the motion marginalised; "
-                            "blurred pixels are correlated, so read these as lower bounds",
+        "blurred pixels are correlated, so read these as lower bounds",
     }
 
 
@@ -98,8 +121,13 @@ def figure(cal: Calibration, footage: Footage, path: Path) -> None:
     top = max(float(lab.max()), float(synth.max()), 1e-6)
     fig, axes = plt.subplots(3, len(pick), figsize=(2.2 * len(pick), 6.8), squeeze=False)
     for j, k in enumerate(pick):
-        for i, (img, cmap, lim) in enumerate(((lab[j], "gray", (0, top)), (synth[j], "gray", (0, top)),
-                                             (lab[j] - synth[j], "coolwarm", (-top / 2, top / 2)))):
+        for i, (img, cmap, lim) in enumerate(
+            (
+                (lab[j], "gray", (0, top)),
+                (synth[j], "gray", (0, top)),
+                (lab[j] - synth[j], "coolwarm", (-top / 2, top / 2)),
+            )
+        ):
             ax = axes[i, j]
             ax.imshow(img, cmap=cmap, vmin=lim[0], vmax=lim[1])
             ax.set_xticks([]), ax.set_yticks([])
@@ -107,8 +135,11 @@ def figure(cal: Calibration, footage: Footage, path: Path) -> None:
         axes[0, j].set_title(f"frame {int(footage.indices[k])}\na={a * 1e3:.0f} b={b * 1e3:.0f} um", fontsize=8)
     for i, label in enumerate(("lab", "calibrated render", "lab - render")):
         axes[i, 0].set_ylabel(label)
-    fig.suptitle(f"{footage.path.name}: residual RMS {cal.residual_before * footage.full_scale:.1f} -> "
-                 f"{cal.residual_after * footage.full_scale:.1f} DN", fontsize=9)
+    fig.suptitle(
+        f"{footage.path.name}: residual RMS {cal.residual_before * footage.full_scale:.1f} -> "
+        f"{cal.residual_after * footage.full_scale:.1f} DN",
+        fontsize=9,
+    )
     fig.tight_layout()
     fig.savefig(path, dpi=90)
     plt.close(fig)

@@ -4,6 +4,7 @@ The fluid's highlights move with the unknown material and light, the nozzle's ou
 lab's mean frame and a render of the whole frame are compared by their edges (the magnitude of the
 Laplacian of the blurred image): the face's outer edge and the bore's rim.
 """
+
 from __future__ import annotations
 
 import cv2

@@ -5,6 +5,7 @@ frames are compared as a blurred pyramid: each level blurs lab and synthesis ali
 keeps every ``ceil(sigma)``-th pixel; a square root first evens out bright highlights and dim detail
 (and is close to what shot noise makes uniform). Coarse levels see far, fine levels see sharp.
 """
+
 from __future__ import annotations
 
 import math
@@ -44,7 +45,7 @@ def pyramid(frames: np.ndarray, sigmas: tuple[float, ...], extra_blur: float = 0
     levels = []
     for sigma in sigmas:
         step = max(1, math.ceil(sigma))
-        blurred = gaussian(frames, math.hypot(sigma, extra_blur))[:, step // 2::step, step // 2::step]
+        blurred = gaussian(frames, math.hypot(sigma, extra_blur))[:, step // 2 :: step, step // 2 :: step]
         levels.append(stretch(blurred).reshape(len(frames), -1) * step)
     return np.concatenate(levels, axis=1)
 
@@ -53,8 +54,14 @@ class Synthesis:
     """Renders candidate scenes, keeping the last few renderers (a renderer shades its static scene once, the
     expensive part; the sensor's blur and black level are applied afterwards and never need a new one)."""
 
-    def __init__(self, supersample: int = 1, sun_samples: int = SUN_SAMPLES, static_sun_samples: int = 8, keep: int = 3) -> None:
-        self.quality = {"supersample": supersample, "sun_samples": sun_samples, "static_sun_samples": static_sun_samples}
+    def __init__(
+        self, supersample: int = 1, sun_samples: int = SUN_SAMPLES, static_sun_samples: int = 8, keep: int = 3
+    ) -> None:
+        self.quality = {
+            "supersample": supersample,
+            "sun_samples": sun_samples,
+            "static_sun_samples": static_sun_samples,
+        }
         self._cache: OrderedDict[str, Renderer] = OrderedDict()
         self.keep = keep
         self.builds = 0

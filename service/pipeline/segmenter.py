@@ -10,6 +10,7 @@ by the same code. Frames lost on the way (source gaps, frames the service droppe
 records, which the fit skips; a window that outgrows ``max_frames`` or a gap that long is cut there
 (its end is then not an ejection), so memory stays bounded.
 """
+
 from __future__ import annotations
 
 from collections import deque
@@ -56,8 +57,14 @@ class StreamingSegmenter:
         self._above = False  # whether the last frame's activity was above the threshold
         self._last_ejection: int | None = None
 
-    def push(self, indices: np.ndarray, values: np.ndarray, activity: np.ndarray, arrival: np.ndarray,
-             ejections: np.ndarray | None = None) -> list[ClosedWindow]:
+    def push(
+        self,
+        indices: np.ndarray,
+        values: np.ndarray,
+        activity: np.ndarray,
+        arrival: np.ndarray,
+        ejections: np.ndarray | None = None,
+    ) -> list[ClosedWindow]:
         """Add a batch (indices, activity, arrival (N,), increasing; values (N, ...)); the windows it closes.
 
         ``ejections``: the ejection frames among ``indices`` when they are known already (offline, which looks

@@ -8,6 +8,7 @@ metal of their own (``scene.sphere_material``). The sun's visibility from a stat
 and the spheres; the fluid's shadow on the static scene is not modelled (it would be per
 frame and falls on the dark nozzle, under 2 % of full scale).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -61,8 +62,9 @@ def cylinder_interval(origin: np.ndarray, direction: np.ndarray, radius: float) 
     return _roots(a, b, c)
 
 
-def _plane(origin: np.ndarray, direction: np.ndarray, z: float, r_lo: float, r_hi: float,
-           t_min: np.ndarray) -> np.ndarray:
+def _plane(
+    origin: np.ndarray, direction: np.ndarray, z: float, r_lo: float, r_hi: float, t_min: np.ndarray
+) -> np.ndarray:
     """Parameter where rays cross the plane ``z`` inside the annulus [r_lo, r_hi] after t_min; inf else."""
     dz = direction[:, 2]
     t = np.where(dz != 0, (z - origin[:, 2]) / np.where(dz != 0, dz, 1.0), np.inf)
@@ -81,8 +83,9 @@ def _wall(origin: np.ndarray, direction: np.ndarray, radius: float, z_hi: float,
     return best
 
 
-def _spheres(origin: np.ndarray, direction: np.ndarray, spheres: np.ndarray,
-             t_min: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _spheres(
+    origin: np.ndarray, direction: np.ndarray, spheres: np.ndarray, t_min: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """Nearest sphere hit after t_min: parameter (P,) (inf if none) and sphere index (P,) (-1 if none)."""
     if spheres.shape[0] == 0:
         return np.full(origin.shape[0], np.inf), np.full(origin.shape[0], -1)
@@ -144,7 +147,7 @@ def shade(scene: Scene, origin: np.ndarray, direction: np.ndarray, hits: StaticH
     """Radiance (P,) of each ray's static hit under the sun (0 where it met nothing or the liquid column)."""
     radiance = np.zeros(origin.shape[0])
     point = origin + np.where(np.isfinite(hits.t), hits.t, 0.0)[:, None] * direction
-    inside_bore = (point[:, 0] ** 2 + point[:, 1] ** 2) < scene.nozzle.radius_mm ** 2
+    inside_bore = (point[:, 0] ** 2 + point[:, 1] ** 2) < scene.nozzle.radius_mm**2
     diffuse = np.isin(hits.kind, (Hit.FACE, Hit.BORE, Hit.OUTER, Hit.TOP)) & ~((hits.kind == Hit.TOP) & inside_bore)
     if diffuse.any():
         vis = sun_visibility(scene, point[diffuse], hits.normal[diffuse], suns)
@@ -153,6 +156,7 @@ def shade(scene: Scene, origin: np.ndarray, direction: np.ndarray, hits: StaticH
     if glossy.any():
         vis = sun_visibility(scene, point[glossy], hits.normal[glossy], suns)
         metal = scene.sphere_material
-        radiance[glossy] = specular_sun(hits.normal[glossy], -direction[glossy], suns, vis,
-                                        metal.roughness, metal.reflectance, scene.light.strength)
+        radiance[glossy] = specular_sun(
+            hits.normal[glossy], -direction[glossy], suns, vis, metal.roughness, metal.reflectance, scene.light.strength
+        )
     return radiance

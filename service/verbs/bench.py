@@ -1,5 +1,6 @@
 """``meniscope bench BENCHMARK``: measuring front door; every module of ``service.bench`` with a ``register``
 function adds one benchmark, imported only when it is the one asked for (so that help stays fast)."""
+
 from __future__ import annotations
 
 import argparse

@@ -1,4 +1,5 @@
 """``meniscope calibrate``: a scene fitted to the lab's own video by analysis by synthesis, with its report."""
+
 from __future__ import annotations
 
 import argparse
@@ -6,7 +7,6 @@ import math
 from pathlib import Path
 
 from service.errors import MeniscopeError, require_folder_of
-from service.scene import Scene
 from service.verbs import add_scene_option
 
 
@@ -23,14 +23,24 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     add_scene_option(p)
     p.add_argument("--out", type=Path, required=True, help="calibrated scene to write (SCENE.json)")
     p.add_argument("--frames", type=int, default=12, help="frames whose motion is fitted (default 12)")
-    p.add_argument("--stack", type=int, default=120,
-                   help="frames spread over the recording for the median image and the noise (default 120)")
+    p.add_argument(
+        "--stack",
+        type=int,
+        default=120,
+        help="frames spread over the recording for the median image and the noise (default 120)",
+    )
     cut = p.add_mutually_exclusive_group()
-    cut.add_argument("--ejection-hz", type=float,
-                     help="ejections per second, phase found from the data (d and p are fitted once per window "
-                     "between ejections; default: ejections detected from the video)")
-    cut.add_argument("--ejections", type=Path,
-                     help="file of ejection frame indices (one per line) or CSV with a 'frame' or 'time_s' column")
+    cut.add_argument(
+        "--ejection-hz",
+        type=float,
+        help="ejections per second, phase found from the data (d and p are fitted once per window "
+        "between ejections; default: ejections detected from the video)",
+    )
+    cut.add_argument(
+        "--ejections",
+        type=Path,
+        help="file of ejection frame indices (one per line) or CSV with a 'frame' or 'time_s' column",
+    )
     p.set_defaults(func=run)
 
 
@@ -46,10 +56,14 @@ def run(args: argparse.Namespace) -> int:
     if args.ejection_hz is not None and not (math.isfinite(args.ejection_hz) and args.ejection_hz > 0):
         raise MeniscopeError("--ejection-hz", f"must be a positive number, got {args.ejection_hz}")
     require_folder_of(args.out)
+    from service.scene import Scene
+
     guess = Scene.load(args.scene)
     footage = read_footage(args.recording, args.frames, args.stack, args.ejections, args.ejection_hz)
     cal = calibrate(footage, guess)
     doc, png = write_report(cal, footage, args.out)
-    print(f"{args.out}: calibrated in {cal.seconds:.0f} s, residual {cal.residual_before * footage.full_scale:.1f} "
-          f"-> {cal.residual_after * footage.full_scale:.1f} DN RMS; report {doc}, figure {png}")
+    print(
+        f"{args.out}: calibrated in {cal.seconds:.0f} s, residual {cal.residual_before * footage.full_scale:.1f} "
+        f"-> {cal.residual_after * footage.full_scale:.1f} DN RMS; report {doc}, figure {png}"
+    )
     return 0
