@@ -83,17 +83,21 @@ def test_a_larger_frame_shows_the_scene_around_the_roi() -> None:
     assert frame[0][outside].max() > 0.01  # and the frame around it is the nozzle's face, not black
 
 
-@given(st.lists(st.integers(0, 3), min_size=1, max_size=12), st.integers(0, 2**31))
-def test_motion_ties_d_and_p_within_a_window(windows: list[int], seed: int) -> None:
-    motion = Motion(np.array(windows))
+@given(
+    st.lists(st.integers(0, 3), min_size=1, max_size=12),
+    st.sets(st.integers(0, 3), max_size=4).map(lambda c: tuple(sorted(c))),
+    st.integers(0, 2**31),
+)
+def test_motion_ties_its_columns_within_a_window(windows: list[int], tied: tuple[int, ...], seed: int) -> None:
+    motion = Motion(np.array(windows), tied)
     coeffs = np.random.default_rng(seed).uniform(MOTION_LOW, MOTION_HIGH, (len(windows), 4))
-    tied = motion.expand(motion.pack(coeffs))
-    np.testing.assert_array_equal(tied[:, 2:], coeffs[:, 2:])  # a and b stay each frame's own
+    packed = motion.expand(motion.pack(coeffs))
+    free = [c for c in range(4) if c not in tied]
+    np.testing.assert_array_equal(packed[:, free], coeffs[:, free])  # the free columns stay each frame's own
     for w in set(windows):
-        rows = tied[np.array(windows) == w, :2]
-        np.testing.assert_array_equal(
-            rows, np.broadcast_to(np.median(coeffs[np.array(windows) == w, :2], axis=0), rows.shape)
-        )
-    assert motion.size == 2 * len(set(windows)) + 2 * len(windows)
+        rows = packed[np.array(windows) == w][:, list(tied)]
+        median = np.median(coeffs[np.array(windows) == w][:, list(tied)], axis=0)
+        np.testing.assert_array_equal(rows, np.broadcast_to(median, rows.shape))
+    assert motion.size == len(tied) * len(set(windows)) + len(free) * len(windows)
     dense = motion.sparsity(5, 3).toarray()
-    assert dense[:, :3].all() and (dense[:, 3:].sum(axis=1) == 4).all()  # the scene, its window's d, p, its own a, b
+    assert dense[:, :3].all() and (dense[:, 3:].sum(axis=1) == 4).all()  # the scene, its window's tied, its own free

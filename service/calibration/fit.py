@@ -74,39 +74,54 @@ class Calibration:
     starts: list[dict] = field(default_factory=list)
 
 
-class Motion:
-    """The motion unknowns of K frames: Eq. 1's d and p once per window between ejections (they are constant in a
-    window), a and b per frame. Tying d and p (p is the surface's curvature) across a window's frames stops
-    each frame's curvature trading with the light's angle, the fluid's roughness and the blur. Each frame its
-    own window is the untied case (d, p, a, b per frame)."""
+#: Columns of (d, p, a, b) tied across a window's frames by default: the curvature p (see :class:`Motion`).
+TIED = (1,)
 
-    def __init__(self, windows: np.ndarray) -> None:
+
+class Motion:
+    """The motion unknowns of K frames: the ``tied`` columns of Eq. 1's (d, p, a, b) once per window between
+    ejections (d and p are constant in a window), the others per frame. Tying the curvature p across a window's
+    frames stops each frame's curvature trading with the light's angle, the fluid's roughness and the blur. d
+    stays per frame by default: it trades with a (both lift the surface), so a window's median d forced on
+    frames fitted one by one throws their a off and the tied fit stalls there (on a near-mirror Blender
+    recording, with the true scene: fine-level cost 2 untied, 80-104 with d and p tied, 1.3 for the truth).
+    Each frame its own window is the untied case."""
+
+    def __init__(self, windows: np.ndarray, tied: tuple[int, ...] = TIED) -> None:
         self.group = np.unique(np.asarray(windows), return_inverse=True)[1]
         self.k, self.g = len(self.group), int(self.group.max()) + 1
-        self.size = 2 * self.g + 2 * self.k
-        self.low = np.concatenate([np.tile(MOTION_LOW[:2], self.g), np.tile(MOTION_LOW[2:], self.k)])
-        self.high = np.concatenate([np.tile(MOTION_HIGH[:2], self.g), np.tile(MOTION_HIGH[2:], self.k)])
-        self.scale = np.concatenate([np.tile(MOTION_SCALE[:2], self.g), np.tile(MOTION_SCALE[2:], self.k)])
+        self.tied = np.array(sorted(tied), dtype=int)
+        self.free = np.setdiff1d(np.arange(4), self.tied)
+        nt, nf = len(self.tied), len(self.free)
+        self.size = nt * self.g + nf * self.k
+        self.low, self.high, self.scale = (
+            np.concatenate([np.tile(v[self.tied], self.g), np.tile(v[self.free], self.k)])
+            for v in (MOTION_LOW, MOTION_HIGH, MOTION_SCALE)
+        )
 
     def expand(self, v: np.ndarray) -> np.ndarray:
         """Per-frame coefficients (K, 4) of the unknowns ``v``."""
-        dp = v[: 2 * self.g].reshape(self.g, 2)[self.group]
-        return np.hstack([dp, v[2 * self.g :].reshape(self.k, 2)])
+        nt = len(self.tied) * self.g
+        out = np.empty((self.k, 4))
+        out[:, self.tied] = v[:nt].reshape(self.g, len(self.tied))[self.group]
+        out[:, self.free] = v[nt:].reshape(self.k, len(self.free))
+        return out
 
     def pack(self, motion: np.ndarray) -> np.ndarray:
-        """The unknowns of per-frame coefficients (K, 4): each window's d and p the median of its frames'."""
-        dp = np.stack([np.median(motion[self.group == i, :2], axis=0) for i in range(self.g)])
-        return np.concatenate([dp.ravel(), motion[:, 2:].ravel()])
+        """The unknowns of per-frame coefficients (K, 4): each window's tied values the median of its frames'."""
+        tied = np.stack([np.median(motion[self.group == i][:, self.tied], axis=0) for i in range(self.g)])
+        return np.concatenate([tied.ravel(), motion[:, self.free].ravel()])
 
     def sparsity(self, q: int, n_scene: int) -> lil_matrix:
         """Which residual (K*q of them) depends on which unknown: all on the ``n_scene`` scene parameters, frame
-        k's on its window's d, p and its own a, b."""
+        k's on its window's tied values and its own free ones."""
         m = lil_matrix((self.k * q, n_scene + self.size), dtype=np.int8)
         m[:, :n_scene] = 1
+        nt, nf = len(self.tied), len(self.free)
         for k, g in enumerate(self.group):
             rows = slice(k * q, (k + 1) * q)
-            m[rows, n_scene + 2 * g : n_scene + 2 * g + 2] = 1
-            m[rows, n_scene + 2 * self.g + 2 * k : n_scene + 2 * self.g + 2 * k + 2] = 1
+            m[rows, n_scene + nt * g : n_scene + nt * (g + 1)] = 1
+            m[rows, n_scene + nt * self.g + nf * k : n_scene + nt * self.g + nf * (k + 1)] = 1
         return m
 
 
@@ -121,11 +136,12 @@ class Problem:
         lab: np.ndarray,
         sigmas: tuple[float, ...],
         windows: np.ndarray | None = None,
+        tied: tuple[int, ...] = TIED,
     ) -> None:
         self.synth, self.base, self.sigmas = synth, base, sigmas
         self.target = pyramid(lab, sigmas)  # (K, Q)
         self.k = len(lab)
-        self.motion = Motion(np.arange(self.k) if windows is None else windows)
+        self.motion = Motion(np.arange(self.k) if windows is None else windows, tied)
         self.n_scene = len(P.PARAMETERS)
         self.x0 = P.read(base)
         lo, hi = P.bounds(base)
@@ -223,6 +239,53 @@ def motion_only(
     return best
 
 
+#: Curvatures tried for each window's tied p besides the median of its frames' (the training range is +-0.2).
+P_GRID = (-0.15, -0.05, 0.05, 0.15)
+
+
+def tie(
+    synth: Synthesis,
+    scene: Scene,
+    lab: np.ndarray,
+    sigmas: tuple[float, ...],
+    windows: np.ndarray,
+    motion: np.ndarray,
+    max_evaluations: int = 10,
+) -> np.ndarray:
+    """Per-frame motion (K, 4) with one curvature p per window: the median of its frames' p in ``motion`` and each
+    of :data:`P_GRID` are tried, d, a and b refitted per frame with p held (scene fixed), and the candidate with the
+    lowest summed cost kept per window. One frame sees p weakly (its frames fitted one by one disagree by 0.06-0.1
+    on Blender recordings), so their median alone is a poor start that the joint fit does not leave."""
+    problem = Problem(synth, scene, lab, sigmas, windows, (1,))
+    mot, fixed = problem.motion, P.read(scene)
+    k, q = problem.target.shape
+    sparsity = mot.sparsity(q, 0).tocsc()[:, mot.g :]
+    packed = np.clip(mot.pack(motion), mot.low, mot.high)
+    lo, hi, scale = mot.low[mot.g :], mot.high[mot.g :], mot.scale[mot.g :]
+    best, best_cost = None, None
+    for curvature in (packed[: mot.g], *(np.full(mot.g, v) for v in P_GRID)):
+        free = packed[mot.g :]
+        fun = lambda u, c=curvature, f=free: problem.residuals(np.concatenate([fixed, c, f + u * scale]))
+        res = least_squares(
+            fun,
+            np.zeros_like(free),
+            bounds=((lo - free) / scale, (hi - free) / scale),
+            jac_sparsity=sparsity,
+            diff_step=DIFF_STEP,
+            max_nfev=max_evaluations,
+            method="trf",
+            tr_solver="lsmr",
+        )
+        candidate = mot.expand(np.concatenate([curvature, free + res.x * scale]))
+        cost = np.bincount(mot.group, (res.fun.reshape(k, q) ** 2).sum(axis=1), minlength=mot.g)
+        if best is None:
+            best, best_cost = candidate, cost
+        else:
+            better = cost < best_cost
+            best[better[mot.group]], best_cost[better] = candidate[better[mot.group]], cost[better]
+    return best
+
+
 def library_motion(synth: Synthesis, scene: Scene, lab: np.ndarray, sigmas: tuple[float, ...]) -> np.ndarray:
     """Each lab frame's nearest neighbour (K, 4) in a :class:`Library` of ``scene``."""
     return Library(synth, scene, sigmas).nearest(lab)[0]
@@ -283,7 +346,7 @@ def calibrate(
     for alpha in (None, *start_alphas):
         start = scene if alpha is None else P.write(scene, _set(P.read(scene), "fluid.roughness", math.log10(alpha)))
         lab = crop(footage.frames, start)
-        motion = motion_only(synth, start, lab, first.sigmas)
+        motion = tie(synth, start, lab, first.sigmas, footage.windows, motion_only(synth, start, lab, first.sigmas))
         problem = Problem(synth, start, lab, first.sigmas, footage.windows)
         x, res = problem.solve(motion, first.max_evaluations)
         starts.append({"fluid.roughness": start.fluid.roughness, "cost": float(res.cost)})
@@ -306,8 +369,9 @@ def calibrate(
         synth.quality["supersample"] = stage.supersample
         lab = crop(footage.frames, scene)
         problem = Problem(synth, scene, lab, stage.sigmas, footage.windows)
-        fresh = motion_only(synth, scene, lab, stage.sigmas)
-        keep = problem.frame_costs(scene, motion) <= problem.frame_costs(scene, fresh)
+        fresh = tie(synth, scene, lab, stage.sigmas, footage.windows, motion_only(synth, scene, lab, stage.sigmas))
+        window_costs = [np.bincount(problem.motion.group, problem.frame_costs(scene, m)) for m in (motion, fresh)]
+        keep = (window_costs[0] <= window_costs[1])[problem.motion.group]  # whole windows: p is tied in each
         motion = np.where(keep[:, None], motion, fresh)
         x, res = problem.solve(motion, stage.max_evaluations)
         scene, motion = problem.unpack(x)
