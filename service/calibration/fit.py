@@ -24,7 +24,7 @@ from service.calibration import parameters as P
 from service.calibration.artifacts import face_pixels, recover, with_spheres
 from service.calibration.footage import Footage
 from service.calibration.noise import NoiseFit, fit_noise
-from service.calibration.roi import find_roi
+from service.calibration.roi import find_roi, refine_shift
 from service.calibration.synthesis import Synthesis, pyramid
 from service.errors import MeniscopeError
 from service.physics import CoefficientRanges
@@ -319,6 +319,35 @@ def locate(synth: Synthesis, scene: Scene, footage: Footage) -> tuple[Scene, np.
     return _with_roi(scene, corner), corner, score
 
 
+#: Pixels round the fluid's reach left out of :func:`settle_roi`'s match (its highlights' blur).
+FLUID_MARGIN_PX = 3
+
+
+def settle_roi(synth: Synthesis, scene: Scene, footage: Footage, corner: np.ndarray) -> tuple[Scene, np.ndarray, float]:
+    """The calibrated ``scene``'s ROI placed by its static pixels (:func:`.roi.refine_shift`: the lab's mean frame
+    against the scene's static frame on the whole recorded frame, the fluid's reach and its margin masked); the
+    sub-pixel corner and the correlation (0 and ``corner`` unchanged when the match fails)."""
+    import cv2
+
+    from service.simulate import canvas
+
+    mean = footage.stack.mean(axis=0)
+    height, width = mean.shape
+    big, (cx, cy) = canvas(with_spheres(scene, np.zeros((0, 4))), (width, height))
+    model = synth.stored(big, np.zeros((1, 4)))[0][cy : cy + height, cx : cx + width]
+    renderer = synth.renderer(big)
+    fluid = np.zeros(renderer.shape, np.uint8)
+    fluid.ravel()[np.unique(renderer.fluid_rays.pixel)] = 1
+    grow = 2 * FLUID_MARGIN_PX + 1
+    static = cv2.dilate(fluid, np.ones((grow, grow), np.uint8))[cy : cy + height, cx : cx + width] == 0
+    found = refine_shift(mean, model, static)
+    if found is None:
+        return scene, corner, 0.0
+    cam = scene.camera
+    sub = np.clip(np.array(cam.roi, dtype=np.float64) + found[0], 0, [width - cam.width_px, height - cam.height_px])
+    return _with_roi(scene, sub), sub, found[1]
+
+
 def rms_finest(synth: Synthesis, scene: Scene, motion: np.ndarray, lab: np.ndarray) -> float:
     """RMS difference (fraction of full scale) of lab frames and their synthesis, pixel by pixel."""
     return float(np.sqrt(np.mean((synth.stored(scene, motion) - lab) ** 2)))
@@ -378,6 +407,13 @@ def calibrate(
         sigma = _uncertainty(problem, x, res)
         bar.update()
     bar.close()
+    settled, sub, corr = settle_roi(synth, scene, footage, corner)
+    if corr > 0:
+        corner, score = sub, corr
+        if settled.camera.roi != scene.camera.roi:  # the frames' motion again, on the crop where the nozzle is
+            scene, lab = settled, crop(footage.frames, settled)
+            last = schedule[-1].sigmas
+            motion = tie(synth, scene, lab, last, footage.windows, motion_only(synth, scene, lab, last))
     lab_stack = crop(footage.stack, scene)
     moving = _moving(synth, scene)
     noise = fit_noise(lab_stack, ~moving, scene.sensor.offset, footage.full_scale)
