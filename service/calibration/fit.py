@@ -74,17 +74,18 @@ class Calibration:
     starts: list[dict] = field(default_factory=list)
 
 
-#: Columns of (d, p, a, b) tied across a window's frames by default: the curvature p (see :class:`Motion`).
-TIED = (1,)
+#: Columns of (d, p, a, b) tied across a window's frames by default: d and p (see :class:`Motion`).
+TIED = (0, 1)
 
 
 class Motion:
     """The motion unknowns of K frames: the ``tied`` columns of Eq. 1's (d, p, a, b) once per window between
-    ejections (d and p are constant in a window), the others per frame. Tying the curvature p across a window's
-    frames stops each frame's curvature trading with the light's angle, the fluid's roughness and the blur. d
-    stays per frame by default: it trades with a (both lift the surface), so a window's median d forced on
-    frames fitted one by one throws their a off and the tied fit stalls there (on a near-mirror Blender
-    recording, with the true scene: fine-level cost 2 untied, 80-104 with d and p tied, 1.3 for the truth).
+    ejections (d and p are constant in a window), the others per frame. Tying d and p across a window's frames
+    stops each frame's curvature trading with the fluid's roughness, the light's angle and the blur (Blender
+    rough and all-at-once recordings: alpha -2 % and +11 % tied, -37 % and +70 % untied). Tying p alone fits
+    each frame's motion better for a given scene (d trades with a: with the true scene on the near-mirror
+    recording, fine-level cost 4.4 with p tied, 80-104 with d and p tied from their frames' medians, 1.3 for
+    the true motion), but the joint calibration then trades alpha again (-38 %, +60 %, mirror +589 %).
     Each frame its own window is the untied case."""
 
     def __init__(self, windows: np.ndarray, tied: tuple[int, ...] = TIED) -> None:
@@ -239,53 +240,6 @@ def motion_only(
     return best
 
 
-#: Curvatures tried for each window's tied p besides the median of its frames' (the training range is +-0.2).
-P_GRID = (-0.15, -0.05, 0.05, 0.15)
-
-
-def tie(
-    synth: Synthesis,
-    scene: Scene,
-    lab: np.ndarray,
-    sigmas: tuple[float, ...],
-    windows: np.ndarray,
-    motion: np.ndarray,
-    max_evaluations: int = 10,
-) -> np.ndarray:
-    """Per-frame motion (K, 4) with one curvature p per window: the median of its frames' p in ``motion`` and each
-    of :data:`P_GRID` are tried, d, a and b refitted per frame with p held (scene fixed), and the candidate with the
-    lowest summed cost kept per window. One frame sees p weakly (its frames fitted one by one disagree by 0.06-0.1
-    on Blender recordings), so their median alone is a poor start that the joint fit does not leave."""
-    problem = Problem(synth, scene, lab, sigmas, windows, (1,))
-    mot, fixed = problem.motion, P.read(scene)
-    k, q = problem.target.shape
-    sparsity = mot.sparsity(q, 0).tocsc()[:, mot.g :]
-    packed = np.clip(mot.pack(motion), mot.low, mot.high)
-    lo, hi, scale = mot.low[mot.g :], mot.high[mot.g :], mot.scale[mot.g :]
-    best, best_cost = None, None
-    for curvature in (packed[: mot.g], *(np.full(mot.g, v) for v in P_GRID)):
-        free = packed[mot.g :]
-        fun = lambda u, c=curvature, f=free: problem.residuals(np.concatenate([fixed, c, f + u * scale]))
-        res = least_squares(
-            fun,
-            np.zeros_like(free),
-            bounds=((lo - free) / scale, (hi - free) / scale),
-            jac_sparsity=sparsity,
-            diff_step=DIFF_STEP,
-            max_nfev=max_evaluations,
-            method="trf",
-            tr_solver="lsmr",
-        )
-        candidate = mot.expand(np.concatenate([curvature, free + res.x * scale]))
-        cost = np.bincount(mot.group, (res.fun.reshape(k, q) ** 2).sum(axis=1), minlength=mot.g)
-        if best is None:
-            best, best_cost = candidate, cost
-        else:
-            better = cost < best_cost
-            best[better[mot.group]], best_cost[better] = candidate[better[mot.group]], cost[better]
-    return best
-
-
 def library_motion(synth: Synthesis, scene: Scene, lab: np.ndarray, sigmas: tuple[float, ...]) -> np.ndarray:
     """Each lab frame's nearest neighbour (K, 4) in a :class:`Library` of ``scene``."""
     return Library(synth, scene, sigmas).nearest(lab)[0]
@@ -375,7 +329,7 @@ def calibrate(
     for alpha in (None, *start_alphas):
         start = scene if alpha is None else P.write(scene, _set(P.read(scene), "fluid.roughness", math.log10(alpha)))
         lab = crop(footage.frames, start)
-        motion = tie(synth, start, lab, first.sigmas, footage.windows, motion_only(synth, start, lab, first.sigmas))
+        motion = motion_only(synth, start, lab, first.sigmas)
         problem = Problem(synth, start, lab, first.sigmas, footage.windows)
         x, res = problem.solve(motion, first.max_evaluations)
         starts.append({"fluid.roughness": start.fluid.roughness, "cost": float(res.cost)})
@@ -398,9 +352,8 @@ def calibrate(
         synth.quality["supersample"] = stage.supersample
         lab = crop(footage.frames, scene)
         problem = Problem(synth, scene, lab, stage.sigmas, footage.windows)
-        fresh = tie(synth, scene, lab, stage.sigmas, footage.windows, motion_only(synth, scene, lab, stage.sigmas))
-        window_costs = [np.bincount(problem.motion.group, problem.frame_costs(scene, m)) for m in (motion, fresh)]
-        keep = (window_costs[0] <= window_costs[1])[problem.motion.group]  # whole windows: p is tied in each
+        fresh = motion_only(synth, scene, lab, stage.sigmas)
+        keep = problem.frame_costs(scene, motion) <= problem.frame_costs(scene, fresh)
         motion = np.where(keep[:, None], motion, fresh)
         x, res = problem.solve(motion, stage.max_evaluations)
         scene, motion = problem.unpack(x)
@@ -413,7 +366,7 @@ def calibrate(
         if settled.camera.roi != scene.camera.roi:  # the frames' motion again, on the crop where the nozzle is
             scene, lab = settled, crop(footage.frames, settled)
             last = schedule[-1].sigmas
-            motion = tie(synth, scene, lab, last, footage.windows, motion_only(synth, scene, lab, last))
+            motion = motion_only(synth, scene, lab, last)
     lab_stack = crop(footage.stack, scene)
     moving = _moving(synth, scene)
     noise = fit_noise(lab_stack, ~moving, scene.sensor.offset, footage.full_scale)
