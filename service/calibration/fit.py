@@ -323,7 +323,7 @@ def calibrate(
     base = with_spheres(P.write(guess, P.read(guess)), np.zeros((0, 4)))
     scene, corner, score = locate(synth, base, footage)
     first = schedule[0]
-    bar = tqdm(total=len(start_alphas) + 1 + len(schedule) - 1, desc="calibrate", unit="stage", disable=not progress)
+    bar = tqdm(total=len(start_alphas) + 1 + len(schedule), desc="calibrate", unit="stage", disable=not progress)
     # several starts on the coarsest stage: the guess's roughness and the extra ones
     starts, best = [], None
     for alpha in (None, *start_alphas):
