@@ -1,10 +1,10 @@
 """Analysis by synthesis: the scene and the motion of K lab frames fitted jointly, coarse to fine, from several starts.
 
-Unknowns: the scene parameters of :data:`.parameters.PARAMETERS` and Eq. 1's (d, p, a, b) of every fitted
-frame (motion per frame: it needs no segmentation and holds in the ejection's transient too). Each stage
-is one bounded least-squares problem (scipy's trust-region reflective) on the blurred pyramid of
-:mod:`.synthesis`, its Jacobian by finite differences with the frames' independence declared (a frame's
-residuals depend on its own motion only), so a step costs one renderer per scene parameter plus four
+Unknowns: the scene parameters of :data:`.parameters.PARAMETERS` and the motion (:class:`Motion`): Eq. 1's
+d and p once per window between ejections (constant there), a and b per fitted frame (free, so the
+ejection's transient bulge needs no model). Each stage is one bounded least-squares problem (scipy's
+trust-region reflective) on the blurred pyramid of :mod:`.synthesis`, its Jacobian by finite differences
+with the sparsity declared (a frame's residuals depend on its window's d, p and its own a, b), so a step costs one renderer per scene parameter plus four
 renders of all frames. Before the first stage each frame's motion starts at its nearest neighbour in a
 library rendered with the candidate scene; the ROI is found before the first stage and again after it.
 """
@@ -24,7 +24,7 @@ from service.calibration import parameters as P
 from service.calibration.artifacts import face_pixels, recover, with_spheres
 from service.calibration.footage import Footage
 from service.calibration.noise import NoiseFit, fit_noise
-from service.calibration.roi import find_roi
+from service.calibration.roi import find_roi, refine_shift
 from service.calibration.synthesis import Synthesis, pyramid
 from service.errors import MeniscopeError
 from service.physics import CoefficientRanges
@@ -74,45 +74,103 @@ class Calibration:
     starts: list[dict] = field(default_factory=list)
 
 
-class Problem:
-    """The least-squares problem of one stage: lab pyramid, synthesis, the scene parameters and K frames' motion."""
+#: Columns of (d, p, a, b) tied across a window's frames by default: d and p (see :class:`Motion`).
+TIED = (0, 1)
 
-    def __init__(self, synth: Synthesis, base: Scene, lab: np.ndarray, sigmas: tuple[float, ...]) -> None:
+
+class Motion:
+    """The motion unknowns of K frames: the ``tied`` columns of Eq. 1's (d, p, a, b) once per window between
+    ejections (d and p are constant in a window), the others per frame. Tying d and p across a window's frames
+    stops each frame's curvature trading with the fluid's roughness, the light's angle and the blur (Blender
+    rough and all-at-once recordings: alpha -2 % and +11 % tied, -37 % and +70 % untied). Tying p alone fits
+    each frame's motion better for a given scene (d trades with a: with the true scene on the near-mirror
+    recording, fine-level cost 4.4 with p tied, 80-104 with d and p tied from their frames' medians, 1.3 for
+    the true motion), but the joint calibration then trades alpha again (-38 %, +60 %, mirror +589 %).
+    Each frame its own window is the untied case."""
+
+    def __init__(self, windows: np.ndarray, tied: tuple[int, ...] = TIED) -> None:
+        self.group = np.unique(np.asarray(windows), return_inverse=True)[1]
+        self.k, self.g = len(self.group), int(self.group.max()) + 1
+        self.tied = np.array(sorted(tied), dtype=int)
+        self.free = np.setdiff1d(np.arange(4), self.tied)
+        nt, nf = len(self.tied), len(self.free)
+        self.size = nt * self.g + nf * self.k
+        self.low, self.high, self.scale = (
+            np.concatenate([np.tile(v[self.tied], self.g), np.tile(v[self.free], self.k)])
+            for v in (MOTION_LOW, MOTION_HIGH, MOTION_SCALE)
+        )
+
+    def expand(self, v: np.ndarray) -> np.ndarray:
+        """Per-frame coefficients (K, 4) of the unknowns ``v``."""
+        nt = len(self.tied) * self.g
+        out = np.empty((self.k, 4))
+        out[:, self.tied] = v[:nt].reshape(self.g, len(self.tied))[self.group]
+        out[:, self.free] = v[nt:].reshape(self.k, len(self.free))
+        return out
+
+    def pack(self, motion: np.ndarray) -> np.ndarray:
+        """The unknowns of per-frame coefficients (K, 4): each window's tied values the median of its frames'."""
+        tied = np.stack([np.median(motion[self.group == i][:, self.tied], axis=0) for i in range(self.g)])
+        return np.concatenate([tied.ravel(), motion[:, self.free].ravel()])
+
+    def sparsity(self, q: int, n_scene: int) -> lil_matrix:
+        """Which residual (K*q of them) depends on which unknown: all on the ``n_scene`` scene parameters, frame
+        k's on its window's tied values and its own free ones."""
+        m = lil_matrix((self.k * q, n_scene + self.size), dtype=np.int8)
+        m[:, :n_scene] = 1
+        nt, nf = len(self.tied), len(self.free)
+        for k, g in enumerate(self.group):
+            rows = slice(k * q, (k + 1) * q)
+            m[rows, n_scene + nt * g : n_scene + nt * (g + 1)] = 1
+            m[rows, n_scene + nt * self.g + nf * k : n_scene + nt * self.g + nf * (k + 1)] = 1
+        return m
+
+
+class Problem:
+    """The least-squares problem of one stage: lab pyramid, synthesis, the scene parameters and K frames' motion
+    (:class:`Motion`, tied within the ``windows`` (K,) the frames belong to; untied when omitted)."""
+
+    def __init__(
+        self,
+        synth: Synthesis,
+        base: Scene,
+        lab: np.ndarray,
+        sigmas: tuple[float, ...],
+        windows: np.ndarray | None = None,
+        tied: tuple[int, ...] = TIED,
+    ) -> None:
         self.synth, self.base, self.sigmas = synth, base, sigmas
         self.target = pyramid(lab, sigmas)  # (K, Q)
         self.k = len(lab)
+        self.motion = Motion(np.arange(self.k) if windows is None else windows, tied)
         self.n_scene = len(P.PARAMETERS)
         self.x0 = P.read(base)
         lo, hi = P.bounds(base)
-        self.low = np.concatenate([lo, np.tile(MOTION_LOW, self.k)])
-        self.high = np.concatenate([hi, np.tile(MOTION_HIGH, self.k)])
-        self.scale = np.concatenate([SCENE_SCALE, np.tile(MOTION_SCALE, self.k)])
+        self.low = np.concatenate([lo, self.motion.low])
+        self.high = np.concatenate([hi, self.motion.high])
+        self.scale = np.concatenate([SCENE_SCALE, self.motion.scale])
 
     def unpack(self, x: np.ndarray) -> tuple[Scene, np.ndarray]:
-        return P.write(self.base, x[: self.n_scene]), x[self.n_scene :].reshape(self.k, 4)
+        return P.write(self.base, x[: self.n_scene]), self.motion.expand(x[self.n_scene :])
 
     def residuals(self, x: np.ndarray) -> np.ndarray:
         scene, motion = self.unpack(x)
         return (self.synth.levels(scene, motion, self.sigmas) - self.target).ravel()
 
-    def sparsity(self) -> lil_matrix:
-        """Which residual depends on which unknown: all on the scene, frame k's on its own motion only."""
-        q = self.target.shape[1]
-        m = lil_matrix((self.k * q, self.n_scene + 4 * self.k), dtype=np.int8)
-        m[:, : self.n_scene] = 1
-        for k in range(self.k):
-            m[k * q : (k + 1) * q, self.n_scene + 4 * k : self.n_scene + 4 * k + 4] = 1
-        return m
+    def frame_costs(self, scene: Scene, motion: np.ndarray) -> np.ndarray:
+        """Each frame's squared residual (K,) for per-frame ``motion`` (K, 4) in ``scene``."""
+        r = self.synth.levels(scene, motion, self.sigmas) - self.target
+        return (r**2).sum(axis=1)
 
     def solve(self, motion: np.ndarray, max_evaluations: int) -> tuple[np.ndarray, object]:
-        """Least squares from the base scene and ``motion``, in units of ``scale`` around the start."""
-        start = np.clip(np.concatenate([self.x0, motion.ravel()]), self.low, self.high)
+        """Least squares from the base scene and ``motion`` (K, 4), in units of ``scale`` around the start."""
+        start = np.clip(np.concatenate([self.x0, self.motion.pack(motion)]), self.low, self.high)
         fun = lambda u: self.residuals(start + u * self.scale)
         res = least_squares(
             fun,
             np.zeros_like(start),
             bounds=((self.low - start) / self.scale, (self.high - start) / self.scale),
-            jac_sparsity=self.sparsity(),
+            jac_sparsity=self.motion.sparsity(self.target.shape[1], self.n_scene),
             diff_step=DIFF_STEP,
             x_scale=1.0,
             max_nfev=max_evaluations,
@@ -153,29 +211,26 @@ def motion_only(
     """Each frame's motion (K, 4) for a fixed scene: its ``starts`` nearest library neighbours each refined by
     least squares (scene fixed, so no renderer is built), the best kept per frame. Highlights make the motion
     landscape rugged; several starts per frame are cheap here and spare the joint fit a bad start."""
-    problem = Problem(synth, scene, lab, sigmas)
+    problem = Problem(synth, scene, lab, sigmas)  # untied: each frame its own motion
     k, q = problem.target.shape
-    scale = np.tile(MOTION_SCALE, k)
-    low, high = np.tile(MOTION_LOW, k), np.tile(MOTION_HIGH, k)
-    sparsity = lil_matrix((k * q, 4 * k), dtype=np.int8)
-    for i in range(k):
-        sparsity[i * q : (i + 1) * q, 4 * i : 4 * i + 4] = 1
+    mot = problem.motion
+    sparsity = mot.sparsity(q, 0)
     fixed = P.read(scene)
     best, best_cost = None, None
     for start in Library(synth, scene, sigmas, size=1500).nearest(lab, starts):
-        x0 = np.clip(start.ravel(), low, high)
-        fun = lambda u, x0=x0: problem.residuals(np.concatenate([fixed, x0 + u * scale]))
+        x0 = np.clip(mot.pack(start), mot.low, mot.high)
+        fun = lambda u, x0=x0: problem.residuals(np.concatenate([fixed, x0 + u * mot.scale]))
         res = least_squares(
             fun,
             np.zeros_like(x0),
-            bounds=((low - x0) / scale, (high - x0) / scale),
+            bounds=((mot.low - x0) / mot.scale, (mot.high - x0) / mot.scale),
             jac_sparsity=sparsity,
             diff_step=DIFF_STEP,
             max_nfev=max_evaluations,
             method="trf",
             tr_solver="lsmr",
         )
-        motion = (x0 + res.x * scale).reshape(k, 4)
+        motion = mot.expand(x0 + res.x * mot.scale)
         cost = (res.fun.reshape(k, q) ** 2).sum(axis=1)
         if best is None:
             best, best_cost = motion, cost
@@ -218,6 +273,35 @@ def locate(synth: Synthesis, scene: Scene, footage: Footage) -> tuple[Scene, np.
     return _with_roi(scene, corner), corner, score
 
 
+#: Pixels round the fluid's reach left out of :func:`settle_roi`'s match (its highlights' blur).
+FLUID_MARGIN_PX = 3
+
+
+def settle_roi(synth: Synthesis, scene: Scene, footage: Footage, corner: np.ndarray) -> tuple[Scene, np.ndarray, float]:
+    """The calibrated ``scene``'s ROI placed by its static pixels (:func:`.roi.refine_shift`: the lab's mean frame
+    against the scene's static frame on the whole recorded frame, the fluid's reach and its margin masked); the
+    sub-pixel corner and the correlation (0 and ``corner`` unchanged when the match fails)."""
+    import cv2
+
+    from service.simulate import canvas
+
+    mean = footage.stack.mean(axis=0)
+    height, width = mean.shape
+    big, (cx, cy) = canvas(with_spheres(scene, np.zeros((0, 4))), (width, height))
+    model = synth.stored(big, np.zeros((1, 4)))[0][cy : cy + height, cx : cx + width]
+    renderer = synth.renderer(big)
+    fluid = np.zeros(renderer.shape, np.uint8)
+    fluid.ravel()[np.unique(renderer.fluid_rays.pixel)] = 1
+    grow = 2 * FLUID_MARGIN_PX + 1
+    static = cv2.dilate(fluid, np.ones((grow, grow), np.uint8))[cy : cy + height, cx : cx + width] == 0
+    found = refine_shift(mean, model, static)
+    if found is None:
+        return scene, corner, 0.0
+    cam = scene.camera
+    sub = np.clip(np.array(cam.roi, dtype=np.float64) + found[0], 0, [width - cam.width_px, height - cam.height_px])
+    return _with_roi(scene, sub), sub, found[1]
+
+
 def rms_finest(synth: Synthesis, scene: Scene, motion: np.ndarray, lab: np.ndarray) -> float:
     """RMS difference (fraction of full scale) of lab frames and their synthesis, pixel by pixel."""
     return float(np.sqrt(np.mean((synth.stored(scene, motion) - lab) ** 2)))
@@ -239,14 +323,14 @@ def calibrate(
     base = with_spheres(P.write(guess, P.read(guess)), np.zeros((0, 4)))
     scene, corner, score = locate(synth, base, footage)
     first = schedule[0]
-    bar = tqdm(total=len(start_alphas) + 1 + len(schedule) - 1, desc="calibrate", unit="stage", disable=not progress)
+    bar = tqdm(total=len(start_alphas) + 1 + len(schedule), desc="calibrate", unit="stage", disable=not progress)
     # several starts on the coarsest stage: the guess's roughness and the extra ones
     starts, best = [], None
     for alpha in (None, *start_alphas):
         start = scene if alpha is None else P.write(scene, _set(P.read(scene), "fluid.roughness", math.log10(alpha)))
         lab = crop(footage.frames, start)
         motion = motion_only(synth, start, lab, first.sigmas)
-        problem = Problem(synth, start, lab, first.sigmas)
+        problem = Problem(synth, start, lab, first.sigmas, footage.windows)
         x, res = problem.solve(motion, first.max_evaluations)
         starts.append({"fluid.roughness": start.fluid.roughness, "cost": float(res.cost)})
         if best is None or res.cost < best[0]:
@@ -267,15 +351,22 @@ def calibrate(
     for stage in schedule[1:]:
         synth.quality["supersample"] = stage.supersample
         lab = crop(footage.frames, scene)
-        problem = Problem(synth, scene, lab, stage.sigmas)
+        problem = Problem(synth, scene, lab, stage.sigmas, footage.windows)
         fresh = motion_only(synth, scene, lab, stage.sigmas)
-        keep = _frame_costs(problem, scene, motion) <= _frame_costs(problem, scene, fresh)
+        keep = problem.frame_costs(scene, motion) <= problem.frame_costs(scene, fresh)
         motion = np.where(keep[:, None], motion, fresh)
         x, res = problem.solve(motion, stage.max_evaluations)
         scene, motion = problem.unpack(x)
         sigma = _uncertainty(problem, x, res)
         bar.update()
     bar.close()
+    settled, sub, corr = settle_roi(synth, scene, footage, corner)
+    if corr > 0:
+        corner, score = sub, corr
+        if settled.camera.roi != scene.camera.roi:  # the frames' motion again, on the crop where the nozzle is
+            scene, lab = settled, crop(footage.frames, settled)
+            last = schedule[-1].sigmas
+            motion = motion_only(synth, scene, lab, last)
     lab_stack = crop(footage.stack, scene)
     moving = _moving(synth, scene)
     noise = fit_noise(lab_stack, ~moving, scene.sensor.offset, footage.full_scale)
@@ -298,12 +389,6 @@ def calibrate(
         builds=synth.builds,
         starts=starts,
     )
-
-
-def _frame_costs(problem: Problem, scene: Scene, motion: np.ndarray) -> np.ndarray:
-    """Each frame's squared residual (K,) for ``motion`` in ``scene``."""
-    r = problem.residuals(np.concatenate([P.read(scene), motion.ravel()]))
-    return (r.reshape(problem.k, -1) ** 2).sum(axis=1)
 
 
 def _with_roi(scene: Scene, corner: np.ndarray) -> Scene:

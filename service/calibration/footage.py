@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
+from service.analysis.segment import find_ejections, frame_activity, frame_steps
 from service.errors import MeniscopeError
 from service.recordings import open_recording
 
@@ -17,7 +18,8 @@ class Footage:
 
     ``frames`` (K, H, W): the frames whose motion is fitted, ``indices`` (K,) their frame numbers;
     ``stack`` (S, H, W): frames spread over the whole recording, for the temporal median (static scene,
-    ROI search) and the temporal variance of static pixels (noise model).
+    ROI search) and the temporal variance of static pixels (noise model); ``windows`` (K,) the window between
+    ejections each fitted frame lies in (ejections detected from the whole recording's frame-to-frame change).
     """
 
     path: Path
@@ -26,6 +28,7 @@ class Footage:
     stack: np.ndarray
     bit_depth: int
     fps: float
+    windows: np.ndarray
 
     @property
     def full_scale(self) -> float:
@@ -40,8 +43,15 @@ def spread(count: int, total: int) -> np.ndarray:
     return np.unique(np.floor(((np.arange(min(count, total)) + 0.5) * golden) % 1.0 * total).astype(np.int64))
 
 
-def read_footage(path: str | Path, frames: int, stack: int = 120) -> Footage:
-    """Read ``frames`` frames to fit and a ``stack`` for statistics from a recording (any format we read)."""
+def read_footage(
+    path: str | Path,
+    frames: int,
+    stack: int = 120,
+    ejections_file: str | Path | None = None,
+    ejection_hz: float | None = None,
+) -> Footage:
+    """Read ``frames`` frames to fit and a ``stack`` for statistics from a recording (any format we read); the
+    ejections from ``ejections_file``, at ``ejection_hz``, or detected (as ``analyze`` takes them)."""
     path = Path(path)
     with open_recording(path) as rec:
         total = len(rec)
@@ -51,4 +61,17 @@ def read_footage(path: str | Path, frames: int, stack: int = 120) -> Footage:
         read = lambda idx: np.stack([rec[int(i)] for i in idx]).astype(np.float32) / top
         indices = spread(frames, total)
         stack_idx = np.unique(np.linspace(0, total - 1, min(stack, total)).round().astype(np.int64))
-        return Footage(path, read(indices), indices, read(stack_idx), rec.bit_depth, rec.fps)
+        windows = np.searchsorted(_ejections(rec, total, ejections_file, ejection_hz), indices, side="right")
+        return Footage(path, read(indices), indices, read(stack_idx), rec.bit_depth, rec.fps, windows)
+
+
+def _ejections(
+    rec, total: int, ejections_file: str | Path | None, ejection_hz: float | None, chunk: int = 256
+) -> np.ndarray:
+    """Ejection frames of an open recording, detected from its frame-to-frame change as ``analyze`` does."""
+    steps, previous = [], None
+    for lo in range(0, total, chunk):
+        frames = np.stack([rec[i] for i in range(lo, min(lo + chunk, total))])
+        steps.append(frame_steps(frames, previous))
+        previous = frames[-1]
+    return find_ejections(frame_activity(np.concatenate(steps)), rec.fps, ejections_file, ejection_hz)[0]

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 from pathlib import Path
 
 from service.errors import MeniscopeError, require_folder_of
@@ -28,6 +29,18 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         default=120,
         help="frames spread over the recording for the median image and the noise (default 120)",
     )
+    cut = p.add_mutually_exclusive_group()
+    cut.add_argument(
+        "--ejection-hz",
+        type=float,
+        help="ejections per second, phase found from the data (d and p are fitted once per window "
+        "between ejections; default: ejections detected from the video)",
+    )
+    cut.add_argument(
+        "--ejections",
+        type=Path,
+        help="file of ejection frame indices (one per line) or CSV with a 'frame' or 'time_s' column",
+    )
     p.set_defaults(func=run)
 
 
@@ -40,11 +53,13 @@ def run(args: argparse.Namespace) -> int:
         raise MeniscopeError("--frames", f"must be between 2 and 200, got {args.frames}")
     if not 8 <= args.stack <= 5000:
         raise MeniscopeError("--stack", f"must be between 8 and 5000, got {args.stack}")
+    if args.ejection_hz is not None and not (math.isfinite(args.ejection_hz) and args.ejection_hz > 0):
+        raise MeniscopeError("--ejection-hz", f"must be a positive number, got {args.ejection_hz}")
     require_folder_of(args.out)
     from service.scene import Scene
 
     guess = Scene.load(args.scene)
-    footage = read_footage(args.recording, args.frames, args.stack)
+    footage = read_footage(args.recording, args.frames, args.stack, args.ejections, args.ejection_hz)
     cal = calibrate(footage, guess)
     doc, png = write_report(cal, footage, args.out)
     print(
