@@ -64,7 +64,8 @@ class ServiceSettings(BaseSettings):
         64, description="source reads waiting for inference before new ones are dropped")
     # --- segmentation and fit
     ejection_hz: Positive | None = Field(100.0, description="expected ejection rate: no two within half a period")
-    activity_threshold: Positive = Field(8.0, description="robust sigmas of frame change that mark an ejection")
+    ejection_ratio: Positive = Field(2.0, description="an ejection's burst of frame change above the change of the "
+                                                     "frames before it, as a multiple of their median change")
     max_window_s: Positive = Field(0.05, description="a window is cut (not fitted as one) beyond this")
     fit: FitSettings = FitSettings()
     fit_workers: Annotated[int, Field(ge=1, le=16)] = Field(1, description="processes fitting windows")

@@ -32,6 +32,7 @@ from service.inverse.methods import open_method
 from service.inverse.nearest import NearestDatabase
 from service.physics import WindowTruth, centre_displacement
 from service.pipeline.records import COEFFICIENTS, coefficients_of
+from service.pipeline.ejections import detect_ejections_streamed
 from service.pipeline.segmenter import StreamingSegmenter
 from service.pipeline.stages import FrameStages
 from service.pipeline.windows import JobRunner, gather, job_for
@@ -94,8 +95,11 @@ def analyse_recording(
         n = len(records)
         if n < 2:
             raise MeniscopeError(path, f"{n} frame(s): a window analysis needs at least 2")
-        cuts, _ = find_ejections(frame_activity(records["change"]), fps, ejections.file, ejections.hz)
-        segmenter = StreamingSegmenter(1, n, np.inf)  # cut at the ejections found: the whole recording looked ahead
+        if ejections.file is None and ejections.hz is None:  # the live detector, looking further ahead
+            cuts = detect_ejections_streamed(records["change"], fps, offline=True)
+        else:
+            cuts, _ = find_ejections(frame_activity(records["change"]), fps, ejections.file, ejections.hz)
+        segmenter = StreamingSegmenter(n)  # cut at the ejections found: the whole recording looked ahead
         at_once = db is None and not refine  # else the windows' per-frame values change once all are known
         windows, futures, found = [], [], []
         with tqdm(total=n, unit="frame", desc=f"{inverse.name} {path.name}", disable=not progress) as bar:
@@ -107,7 +111,7 @@ def analyse_recording(
                     index = db.search(batch.pixels, k=CANDIDATES, exact=True).index
                     _set_coefficients(part, db.coeffs[index[:, 0]], db.centre[index[:, 0]])
                     found.append(index)
-                closed = segmenter.push(batch.indices, part, part["activity"], np.zeros(len(batch)), cuts)
+                closed = segmenter.push(batch.indices, part, part["change"], np.zeros(len(batch)), cuts)
                 windows += [c.window for c in closed]
                 futures += [runner.submit(job_for(c.window, c.values, radius, transient), fps) for c in closed
                             if at_once]

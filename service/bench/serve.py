@@ -164,7 +164,7 @@ def stage_costs(recording: Path, configs: list[tuple[int, int]], frames: int = 3
     records = [stages.infer(part.pixels, m) for part, m in zip(parts, measured)]
     segmenter = segmenter_for(ServiceSettings(), fps)
     costs["segmentation"], closed = cpu_us_per_frame(lambda: [
-        w for part, r in zip(parts, records) for w in segmenter.push(part.indices, r, r["activity"],
+        w for part, r in zip(parts, records) for w in segmenter.push(part.indices, r, r["change"],
                                                                      np.zeros(len(part)))], len(batch))
     settings = FitSettings()
     jobs = [job_for(c.window, c.values, scene.nozzle.radius_mm, settings.transient_frames(fps)) for c in closed]

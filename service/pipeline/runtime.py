@@ -25,10 +25,10 @@ from typing import Protocol
 import numpy as np
 
 from service.analysis.results import WindowResult
-from service.analysis.segment import MIN_EJECTION_PERIOD_S
 from service.errors import MeniscopeError
 from service.inverse.base import InverseMethod
 from service.pipeline.fitting import FitPool
+from service.pipeline.ejections import EjectionDetector
 from service.pipeline.segmenter import ClosedWindow, StreamingSegmenter
 from service.pipeline.stages import FrameStages
 from service.pipeline.windows import WindowJob, job_for
@@ -172,11 +172,12 @@ class BatchBudget:
 
 
 def segmenter_for(settings: ServiceSettings, fps: float) -> StreamingSegmenter:
-    """The live segmenter ``settings`` ask for at ``fps``: no two ejections within half the expected period
-    (:data:`MIN_EJECTION_PERIOD_S` when no rate is given), windows cut at ``max_window_s``."""
-    period = fps / settings.ejection_hz if settings.ejection_hz else MIN_EJECTION_PERIOD_S * fps
-    return StreamingSegmenter(int(0.5 * period), int(settings.max_window_s * fps), settings.activity_threshold,
-                              drop_leading=True)
+    """The live segmenter ``settings`` ask for at ``fps``: ejections from the detector with the live look-ahead, no
+    two within half the expected period (its own refractory time when no rate is given), windows cut at
+    ``max_window_s``."""
+    refractory = int(0.5 * fps / settings.ejection_hz) if settings.ejection_hz else None
+    detector = EjectionDetector(fps, ratio=settings.ejection_ratio, refractory=refractory)
+    return StreamingSegmenter(int(settings.max_window_s * fps), detector, drop_leading=True)
 
 
 class Pipeline:
@@ -311,7 +312,7 @@ class Pipeline:
         self.budget.record(seconds, len(batch))
         self.sink.on_inference(seconds, len(batch))
         self.stats.frames_inferred += len(batch)
-        self._dispatch(self.segmenter.push(batch.indices, records, records["activity"], acquired.arrival))
+        self._dispatch(self.segmenter.push(batch.indices, records, records["change"], acquired.arrival))
         last = records[-1]
         self.stats.latest = LatestFrame(int(batch.indices[-1]), pixels[-1].copy(),
                                         (float(last["d"]), float(last["p"]), float(last["a"]), float(last["b"])),
