@@ -67,6 +67,12 @@ class ServiceSettings(BaseSettings):
     ejection_ratio: Positive = Field(2.0, description="an ejection's burst of frame change above the change of the "
                                                      "frames before it, as a multiple of their median change")
     max_window_s: Positive = Field(0.05, description="a window is cut (not fitted as one) beyond this")
+    trigger: Literal["video", "printer"] = Field(
+        "video", description="what cuts the windows: the ejections the video shows, or the printer's trigger "
+                             "(POST /api/v1/ejections, trigger_zmq), which the video then checks")
+    trigger_zmq: str | None = Field(None, description="ZeroMQ endpoint to subscribe to for the printer's ejection "
+                                                      "events (JSON {\"frame\": N} or {\"time_s\": T}); empty: none")
+    trigger_wait_s: Positive = Field(2e-3, description="how long frames wait for a late printer event (trigger)")
     fit: FitSettings = FitSettings()
     fit_workers: Annotated[int, Field(ge=1, le=16)] = Field(1, description="processes fitting windows")
     fit_nice: Annotated[int, Field(ge=0, le=19)] = Field(

@@ -7,7 +7,7 @@ its ``transient`` frames, less the median change of the ``history`` frames befor
 or the ringing of the window before), exceeds both ``ratio`` times that baseline and ``floor`` times the
 typical burst of the ejections found so far (the median of the last eight; spatter or a strong ringing
 peak is a fraction of one). The ejection is the burst's first frame: the earliest frame, among the
-transient frames before the strongest start, whose change reaches half the burst's highest. None is
+transient frames before the strongest start, whose change reaches 0.3 of the burst's highest. None is
 taken within ``refractory`` frames of the last (the transient and the ringing it starts).
 
 What happens after the ejection is not consulted beyond the transient, so a settled meniscus, a heavily
@@ -28,6 +28,11 @@ TRANSIENT_S = 0.3e-3
 HISTORY_S = 2e-3
 #: No second ejection this soon after one, s (the printer's 250 Hz at most; its ringing is not a repeat).
 REFRACTORY_S = 4e-3
+
+
+#: A burst starts at its first frame whose change above the baseline reaches this share of its highest: the
+#: bulge's first frame changes less than its fastest (one ejection in 50 at half, with the 4th frame the peak).
+ONSET_FRACTION = 0.3
 
 
 class EjectionDetector:
@@ -124,7 +129,7 @@ class EjectionDetector:
             ahead = level[i : i + self.lookahead - self.transient + 1]
             if ahead.max() > level[i]:  # a stronger start follows within the look-ahead: decide there
                 continue
-            onset = self._onset(c, at(frame), base[i])
+            onset = self._onset(c, at(frame), top[i])
             self._last = self._first + onset
             self._bursts.append(float(level[i]))
             found.append(self._last)
@@ -137,13 +142,13 @@ class EjectionDetector:
         """The median burst level of the recent ejections (0 before the first)."""
         return float(np.median(self._bursts)) if self._bursts else 0.0
 
-    def _onset(self, c: np.ndarray, peak: int, base: float) -> int:
+    def _onset(self, c: np.ndarray, peak: int, top: float) -> int:
         """Position of the burst's first frame: the earliest of the ``transient`` frames up to ``peak`` whose
-        change above ``base`` reaches half the highest in the burst."""
+        change above ``top`` (the baseline's 90th percentile) reaches ONSET_FRACTION of the burst's highest."""
         lo = max(peak - self.transient + 1, 0, (self._last - self._first + self.refractory) if self._last is not None else 0)
         lo = min(lo, peak)
-        span = np.nan_to_num(c[lo : peak + self.transient] - base, nan=0.0)
-        return lo + int(np.argmax(span >= 0.5 * span.max()))
+        span = np.nan_to_num(c[lo : peak + self.transient] - top, nan=0.0)
+        return lo + int(np.argmax(span >= ONSET_FRACTION * span.max()))
 
 
 class _quiet:

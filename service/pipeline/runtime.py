@@ -30,6 +30,7 @@ from service.inverse.base import InverseMethod
 from service.pipeline.fitting import FitPool
 from service.pipeline.ejections import EjectionDetector
 from service.pipeline.segmenter import ClosedWindow, StreamingSegmenter
+from service.pipeline.trigger import TriggerCheck, TriggerInbox
 from service.pipeline.stages import FrameStages
 from service.pipeline.windows import WindowJob, job_for
 from service.scene import Scene
@@ -130,6 +131,7 @@ class PipelineStats:
     fps_in: float = 0.0
     fps_out: float = 0.0
     last_frame_at: float = 0.0  # monotonic time (s) frames last arrived
+    trigger: TriggerInbox = field(default_factory=TriggerInbox, repr=False)  # the printer's ejection events
     latest: LatestFrame | None = field(default=None, repr=False)
 
 
@@ -171,13 +173,16 @@ class BatchBudget:
         self._cost = cost if self._cost is None else self._cost + self.smoothing * (cost - self._cost)
 
 
-def segmenter_for(settings: ServiceSettings, fps: float) -> StreamingSegmenter:
+def segmenter_for(settings: ServiceSettings, fps: float, trigger: TriggerInbox | None = None) -> StreamingSegmenter:
     """The live segmenter ``settings`` ask for at ``fps``: ejections from the detector with the live look-ahead, no
     two within half the expected period (its own refractory time when no rate is given), windows cut at
-    ``max_window_s``."""
+    ``max_window_s``; with ``trigger = "printer"``, cut at the ``trigger``'s events, which the detector checks."""
     refractory = int(0.5 * fps / settings.ejection_hz) if settings.ejection_hz else None
     detector = EjectionDetector(fps, ratio=settings.ejection_ratio, refractory=refractory)
-    return StreamingSegmenter(int(settings.max_window_s * fps), detector, drop_leading=True)
+    check = None
+    if settings.trigger == "printer" and trigger is not None:
+        check = TriggerCheck(trigger, fps, int(round(settings.trigger_wait_s * fps)))
+    return StreamingSegmenter(int(settings.max_window_s * fps), detector, drop_leading=True, trigger=check)
 
 
 class Pipeline:
@@ -192,7 +197,7 @@ class Pipeline:
         self.settings, self.source, self.method, self.fits = settings, source, method, fits
         self.sink, self.stats = sink, stats
         fps = source.fps
-        self.segmenter = segmenter_for(settings, fps)
+        self.segmenter = segmenter_for(settings, fps, stats.trigger)
         self._queue: queue.Queue[Acquired] = queue.Queue(settings.queue_batches)
         self._rest: Acquired | None = None  # a read's frames past the last call's cap
         self.budget = BatchBudget(settings.batch_ms / 1e3, settings.batch, settings.read_frames)

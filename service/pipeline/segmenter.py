@@ -19,6 +19,7 @@ import numpy as np
 
 from service.analysis.segment import Window
 from service.pipeline.ejections import EjectionDetector
+from service.pipeline.trigger import TriggerCheck
 
 
 @dataclass(frozen=True)
@@ -43,8 +44,10 @@ class StreamingSegmenter:
     so it has no t = 0 to fit from (the live service starts and restarts anywhere in a window).
     """
 
-    def __init__(self, max_frames: int, detector: EjectionDetector | None = None, drop_leading: bool = False) -> None:
+    def __init__(self, max_frames: int, detector: EjectionDetector | None = None, drop_leading: bool = False,
+                 trigger: TriggerCheck | None = None) -> None:
         self.max_frames, self.detector, self.drop_leading = max(2, max_frames), detector, drop_leading
+        self.trigger = trigger  # with one (and a detector), the printer's ejections cut and the video's check them
         self._waiting: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []  # (indices, values, arrival) undecided
         self._found: list[int] = []  # ejections the detector found that are not yet cut
         self._seen_ejection = False
@@ -61,12 +64,18 @@ class StreamingSegmenter:
         """Add a batch (indices, change, arrival (N,), increasing; values (N, ...)); the windows it closes.
 
         ``ejections``: the ejection frames among ``indices`` when they are known already (offline, which looks
-        further ahead); else the detector's, the batch's frames waiting until it has decided them."""
+        further ahead); else the detector's (or the printer's trigger's, which the detector's then check), the
+        batch's frames waiting until they are decided."""
         if ejections is not None or self.detector is None:
             return self._cut(indices, values, arrival, np.empty(0, np.int64) if ejections is None else ejections)
-        self._found += self.detector.push(indices, change)
+        found = self.detector.push(indices, change)
         self._waiting.append((np.asarray(indices), np.asarray(values), np.asarray(arrival)))
-        return self._release(self.detector.settled)
+        if self.trigger is None:
+            self._found += found
+            return self._release(self.detector.settled)
+        until = self.trigger.update(found, int(indices[-1]), self.detector.settled)
+        self._found = self.trigger.cuts
+        return self._release(until)
 
     def _release(self, until: int) -> list[ClosedWindow]:
         """Cut the waiting frames before ``until`` (decided by the detector) at the ejections it found."""
@@ -77,7 +86,8 @@ class StreamingSegmenter:
         self._waiting = [(indices[~ready], values[~ready], arrival[~ready])] if not ready.all() else []
         if not ready.any():
             return []
-        cuts, self._found = np.asarray(self._found, np.int64), [f for f in self._found if f >= until]
+        cuts = np.asarray(self._found, np.int64)
+        self._found[:] = [f for f in self._found if f >= until]
         return self._cut(indices[ready], values[ready], arrival[ready], cuts)
 
     def _cut(self, indices: np.ndarray, values: np.ndarray, arrival: np.ndarray,
@@ -119,7 +129,12 @@ class StreamingSegmenter:
         """The stream ended: the frames still waiting cut at what the detector finds in them, then the window in
         progress, closed there (its end is not an ejection)."""
         if self.detector is not None:
-            self._found += self.detector.finish()
+            found = self.detector.finish()
+            if self.trigger is None:
+                self._found += found
+            else:
+                self.trigger.update(found, np.iinfo(np.int64).max - 1, np.iinfo(np.int64).max)
+                self._found = self.trigger.cuts
         return self._release(np.iinfo(np.int64).max) + self._close(False, closed_at)
 
     def _append(self, values: np.ndarray) -> None:

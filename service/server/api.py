@@ -1,6 +1,6 @@
 """REST routes: health and readiness, status, window history, configuration, latest frame, metrics, WebSocket.
 
-Reading needs nothing; changing (PUT /api/v1/config) needs ``Authorization: Bearer <token>`` whenever a
+Reading needs nothing; changing (PUT /api/v1/config, POST /api/v1/ejections) needs ``Authorization: Bearer <token>`` whenever a
 token is set, and a token must be set before anything can be changed on a service that is reachable
 from other machines (bound beyond loopback). Every error answers ``{"detail": ...}`` as documented in
 the OpenAPI schema (422: the list of problems, as for any request that fails validation).
@@ -167,6 +167,27 @@ def put_config(change: ConfigChange, service: Svc) -> dict[str, Any]:
         raise RequestValidationError([{"loc": ("body", "source"), "msg": str(exc), "type": "value_error"}]) from None
     service.reconfigure(settings)
     return settings.public()
+
+
+class Ejection(BaseModel):
+    """One ejection announced by the printer: its camera frame index or its time since the stream's frame 0."""
+
+    model_config = ConfigDict(extra="forbid")
+    frame: int | None = Field(None, ge=0, le=MAX_ID, description="the camera's frame index of the ejection")
+    time_s: float | None = Field(None, ge=0, allow_inf_nan=False, description="seconds since the stream's frame 0")
+
+
+@router.post("/api/v1/ejections", tags=["trigger"], status_code=202, dependencies=[Depends(require_token)],
+             responses=_documented(401, 403))
+def post_ejection(event: Ejection, service: Svc) -> dict[str, Any]:
+    """The printer's trigger: one ejection (exactly one of ``frame`` and ``time_s``). With the setting ``trigger =
+    "printer"`` the windows are cut at these, and the video's ejections check them
+    (``meniscope_trigger_disagreements_total``)."""
+    try:
+        service.stats.trigger.add(event.frame, event.time_s)
+    except ValueError as exc:
+        raise RequestValidationError([{"loc": ("body",), "msg": str(exc), "type": "value_error"}]) from None
+    return {"received": service.stats.trigger.counts.received}
 
 
 @router.get("/api/v1/frames/latest.png", tags=["frames"], response_class=Response, responses=_documented(404))

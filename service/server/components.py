@@ -17,6 +17,7 @@ from service.server.history import History
 from service.server.hub import Hub
 from service.server.metrics import HistoryHealth, Metrics
 from service.server.publishers import Publishers
+from service.server.trigger_zmq import TriggerSubscriber
 from service.server.zmq_publisher import ZmqPublisher
 from service.settings import ServiceSettings
 
@@ -38,6 +39,7 @@ class Service:
     hub: Hub | None = None
     zmq: ZmqPublisher | None = None
     views: FrameViews | None = None
+    trigger: TriggerSubscriber | None = None
 
     def websocket_counts(self) -> tuple[int, int]:
         return (self.hub.clients, self.hub.skipped) if self.hub is not None else (0, 0)
@@ -70,9 +72,12 @@ class Service:
         self.metrics = Metrics(self.stats, self.health, self.websocket_counts, self.history_health)
         self.publishers = Publishers(self.history, self.metrics, self.zmq, self.hub).start()
         self.supervisor = Supervisor(s, self.publishers, self.stats).start()
+        self.trigger = TriggerSubscriber(s.trigger_zmq, self.stats.trigger) if s.trigger_zmq else None
 
     def stop(self) -> None:
-        """In order: the pipeline stops, the publishers drain and close ZeroMQ, the history closes."""
+        """In order: the trigger and the pipeline stop, the publishers drain and close ZeroMQ, the history closes."""
+        if self.trigger is not None:
+            self.trigger.close()
         if self.supervisor is not None:
             self.supervisor.stop()
         if self.publishers is not None:
