@@ -15,7 +15,8 @@ PROMETHEUS = Path(__file__).resolve().parents[1] / "deploy" / "prometheus"
 RULE_FILES = sorted((PROMETHEUS / "rules").glob("*.yml"))
 #: The alerts the deployment promises (issue 7), each with a test in tests/alerts_test.yml.
 ALERTS = {"MeniscopeUnsettledEjections", "MeniscopeFrequencyDrift", "MeniscopeDroppedFrames", "MeniscopeSourceDown",
-          "MeniscopeNotReady", "MeniscopeDown", "MeniscopeNoSignal", "MeniscopeHistoryFailing"}
+          "MeniscopeNotReady", "MeniscopeDown", "MeniscopeNoSignal", "MeniscopeHistoryFailing",
+          "MeniscopeTriggerDisagrees"}
 
 
 def _promtool(*args: str) -> subprocess.CompletedProcess:
