@@ -12,6 +12,7 @@ Per frame, with ``x`` the linear render in [0, 1] (scene.md, "Camera") and ``M =
     DN = round(M * (e / full_well_e + offset) + read_noise_dn * z),  z ~ N(0, 1)
     pixel = clip(DN, 0, M)                      uint8 (8 bits) or uint16 (10, 12, 16 bits)
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -20,6 +21,8 @@ from typing import Annotated, Literal
 import cv2
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
+
+from service.noise_presets import NOISE_PRESETS
 
 BitDepth = Literal[8, 10, 12, 16]
 
@@ -62,7 +65,7 @@ class FrameEffects:
     def __len__(self) -> int:
         return int(self.gain.shape[0])
 
-    def __getitem__(self, frames: slice) -> "FrameEffects":
+    def __getitem__(self, frames: slice) -> FrameEffects:
         """The settings of a slice of the frames."""
         return FrameEffects(**{k: v[frames] for k, v in vars(self).items()})
 
@@ -89,7 +92,7 @@ class CameraEffects(BaseModel):
 
     def per_frame(self, n: int) -> FrameEffects:
         """These settings repeated for ``n`` frames."""
-        full = lambda v: np.full(n, v, dtype=np.float64)  # noqa: E731
+        full = lambda v: np.full(n, v, dtype=np.float64)
         return FrameEffects(
             gain=full(self.gain),
             offset=full(self.offset),
@@ -104,23 +107,19 @@ class CameraEffects(BaseModel):
         return apply_effects(linear, self.per_frame(len(linear)), self.bit_depth, rng)
 
 
-#: Noise presets for ``meniscope simulate --noise``: (full well e-, read noise e-, PSF sigma px,
-#: black level). "lab" is a guess at a Phantom CMOS sensor (~16k e- well, ~20 e- read noise),
-#: not a calibration.
-NOISE_PRESETS: dict[str, tuple[float, float, float, float]] = {
-    "none": (0.0, 0.0, 0.0, 0.0),
-    "low": (40000.0, 10.0, 0.5, 0.0),
-    "lab": (16000.0, 20.0, 0.7, 0.01),
-    "high": (4000.0, 30.0, 1.0, 0.02),
-}
-
-
 def noise_preset(name: str, bit_depth: BitDepth) -> CameraEffects:
     """The named preset of :data:`NOISE_PRESETS` at ``bit_depth`` (read noise converted to DN)."""
     full_well, read_e, sigma, offset = NOISE_PRESETS[name]
-    read_dn = read_e / full_well * (2**bit_depth - 1) if full_well else 0.0
+    return sensor_effects(offset, sigma, full_well, read_e, bit_depth)
+
+
+def sensor_effects(
+    offset: float, blur_sigma_px: float, full_well_e: float, read_noise_e: float, bit_depth: BitDepth
+) -> CameraEffects:
+    """A calibrated sensor (a scene's ``sensor`` block, read noise in electrons) at ``bit_depth``."""
+    read_dn = read_noise_e / full_well_e * (2**bit_depth - 1) if full_well_e else 0.0
     return CameraEffects(
-        full_well_e=full_well, read_noise_dn=read_dn, blur_sigma_px=sigma, offset=offset, bit_depth=bit_depth
+        full_well_e=full_well_e, read_noise_dn=read_dn, blur_sigma_px=blur_sigma_px, offset=offset, bit_depth=bit_depth
     )
 
 
@@ -143,7 +142,7 @@ class EffectRanges(BaseModel):
 
     def sample(self, n: int, rng: np.random.Generator) -> FrameEffects:
         """Independent draws for ``n`` frames (shift uniform in +/- ``shift_px`` on each axis)."""
-        uniform = lambda lohi: rng.uniform(*lohi, size=n)  # noqa: E731
+        uniform = lambda lohi: rng.uniform(*lohi, size=n)
         lo, hi = np.log(self.full_well_e)
         return FrameEffects(
             gain=uniform(self.gain),
@@ -226,7 +225,7 @@ def apply_effects(
 def _sensor(optical: np.ndarray, effects: FrameEffects, bit_depth: BitDepth, rng: np.random.Generator) -> np.ndarray:
     """Gain, saturation, shot and read noise, black level and rounding of optical frames (N, H, W) float32."""
     top = float(2**bit_depth - 1)
-    col = lambda v: np.asarray(v, dtype=np.float32)[:, None, None]  # noqa: E731  (N,) -> (N, 1, 1)
+    col = lambda v: np.asarray(v, dtype=np.float32)[:, None, None]
     signal = optical
     signal *= col(effects.gain)
     np.clip(signal, 0.0, 1.0, out=signal)  # fraction of the full well, saturating
@@ -247,7 +246,8 @@ def _sensor(optical: np.ndarray, effects: FrameEffects, bit_depth: BitDepth, rng
         if dim.any():
             frame = np.nonzero(dim)[0]
             electrons = rng.poisson(signal[dim] * well[frame])
-            dn[dim] = (electrons * dn_per_electron[frame] + top * effects.offset[frame]
-                       + effects.read_noise_dn[frame] * z[dim])
+            dn[dim] = (
+                electrons * dn_per_electron[frame] + top * effects.offset[frame] + effects.read_noise_dn[frame] * z[dim]
+            )
     np.rint(dn, out=dn)
     return np.clip(dn, 0.0, top, out=dn)

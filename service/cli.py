@@ -3,14 +3,15 @@
 Each module of ``service.verbs`` exposes ``register(subparsers)`` and is found by itself; ``training`` adds its verbs
 through the ``meniscope.verbs`` entry-point group, so the runtime never imports it.
 """
+
 from __future__ import annotations
 
 import argparse
 import importlib
 import pkgutil
 import sys
+from collections.abc import Callable, Sequence
 from importlib.metadata import entry_points
-from typing import Callable, Sequence
 
 from service.errors import MeniscopeError
 

@@ -1,4 +1,5 @@
 """Numeric CSV tables with a header row (COEFFS.csv, SERIES.csv of shared/spec/cli.md), read with one-line errors."""
+
 from __future__ import annotations
 
 import csv
@@ -24,8 +25,11 @@ def read_columns(path: str | Path, names: tuple[str, ...], allow_empty: bool = F
             header = [h.strip() for h in next(reader, [])]
             missing = [n for n in names if n not in header]
             if missing:
-                raise MeniscopeError(path, f"needs a header row with columns {', '.join(names)}; "
-                                           f"missing {', '.join(missing)} (header: {','.join(header) or 'none'})")
+                raise MeniscopeError(
+                    path,
+                    f"needs a header row with columns {', '.join(names)}; "
+                    f"missing {', '.join(missing)} (header: {','.join(header) or 'none'})",
+                )
             index = [header.index(n) for n in names]
             rows, blank = [], 0
             for line, row in enumerate(reader, start=2):
@@ -34,8 +38,12 @@ def read_columns(path: str | Path, names: tuple[str, ...], allow_empty: bool = F
                     continue
                 rows.extend([[math.nan] * len(names)] * (blank if allow_empty else 0))
                 blank = 0
-                rows.append([_cell(path, line, name, row[i] if i < len(row) else "", allow_empty)
-                             for name, i in zip(names, index)])
+                rows.append(
+                    [
+                        _cell(path, line, name, row[i] if i < len(row) else "", allow_empty)
+                        for name, i in zip(names, index)
+                    ]
+                )
     except FileNotFoundError:
         raise MeniscopeError(path, "no such file") from None
     except (OSError, UnicodeDecodeError, csv.Error) as exc:

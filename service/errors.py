@@ -1,4 +1,5 @@
 """The one exception type a user sees: a single line naming the file and the problem."""
+
 from __future__ import annotations
 
 from pathlib import Path

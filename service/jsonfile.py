@@ -1,4 +1,5 @@
 """JSON documents with a ``schema`` field (dataset and model manifests), read with one-line errors."""
+
 from __future__ import annotations
 
 import json

@@ -8,6 +8,7 @@ radius in mm (0 <= r <= R), ``d`` mm, ``p`` dimensionless, ``a``, ``b`` mm, ``t`
 the start of the window, ``g`` 1/s, ``f`` Hz. Every function broadcasts over any batch
 shape (radii x frames x parameter sets) and returns float64 without NaN for finite input.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, fields
@@ -45,7 +46,9 @@ def centre_displacement(d: ArrayLike, p: ArrayLike, a: ArrayLike, b: ArrayLike, 
     return np.asarray(d, dtype=np.float64) + np.asarray(p) * R + np.asarray(a) + np.asarray(b)
 
 
-def damped_mode(t: ArrayLike, amplitude: ArrayLike, decay: ArrayLike, frequency: ArrayLike, phase: ArrayLike) -> np.ndarray:
+def damped_mode(
+    t: ArrayLike, amplitude: ArrayLike, decay: ArrayLike, frequency: ArrayLike, phase: ArrayLike
+) -> np.ndarray:
     """A exp(-g t) cos(2 pi f t + phi); the envelope underflows cleanly to 0 for large g t.
 
     ``decay`` must be >= 0 and ``t`` >= 0 (time since the window start): the envelope
@@ -79,7 +82,7 @@ class Coefficients:
     b: np.ndarray
 
     @classmethod
-    def from_array(cls, array: ArrayLike) -> "Coefficients":
+    def from_array(cls, array: ArrayLike) -> Coefficients:
         """From an array of shape (N, 4) with columns d, p, a, b."""
         arr = np.asarray(array, dtype=np.float64).reshape(-1, 4)
         return cls(*(arr[:, i].copy() for i in range(4)))

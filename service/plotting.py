@@ -1,4 +1,5 @@
 """matplotlib for the PNGs people would rather look at than read: imported when a figure is drawn, headless."""
+
 from __future__ import annotations
 
 from types import ModuleType

@@ -4,6 +4,7 @@ One calibrated camera set-up: nozzle geometry, fluid material, artifact spheres,
 pinhole camera and sun light. Everything that renders, trains or analyses takes one.
 Units: millimetres, seconds, degrees in the file (radians inside code).
 """
+
 from __future__ import annotations
 
 import hashlib
@@ -14,7 +15,14 @@ from pathlib import Path
 from typing import Annotated
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
 
 from service.errors import MeniscopeError
 
@@ -36,11 +44,9 @@ class Nozzle(_Strict):
     albedo: Fraction
 
     @model_validator(mode="after")
-    def _outer_beyond_bore(self) -> "Nozzle":
+    def _outer_beyond_bore(self) -> Nozzle:
         if self.outer_radius_mm <= self.radius_mm:
-            raise ValueError(
-                f"outer_radius_mm ({self.outer_radius_mm}) must exceed radius_mm ({self.radius_mm})"
-            )
+            raise ValueError(f"outer_radius_mm ({self.outer_radius_mm}) must exceed radius_mm ({self.radius_mm})")
         return self
 
 
@@ -58,14 +64,25 @@ class Sphere(_Strict):
     radius: PositiveMm
 
 
+class SphereMaterial(_Strict):
+    """The artifact spheres' own GGX metal (machining defects are rougher than the fluid): alpha and reflectance."""
+
+    roughness: Annotated[float, Field(gt=0, le=1, allow_inf_nan=False)]
+    reflectance: Fraction
+
+
 class Artifacts(_Strict):
-    """Small specular spheres on the nozzle face: drawn from ``seed`` or listed in ``spheres``."""
+    """Small specular spheres on the nozzle face: drawn from ``seed`` or listed in ``spheres``.
+
+    ``material``: their own GGX metal; absent (older files), they share the fluid's.
+    """
 
     count: Annotated[int, Field(ge=0, le=1000)] = 0
     radius_mm: tuple[PositiveMm, PositiveMm] = (0.006, 0.018)
     ring_mm: tuple[PositiveMm, PositiveMm] = (0.26, 0.33)
     seed: int = 0
     spheres: list[Sphere] | None = None
+    material: SphereMaterial | None = None
 
     @field_validator("radius_mm", "ring_mm")
     @classmethod
@@ -88,6 +105,16 @@ class Camera(_Strict):
     roi: tuple[Annotated[int, Field(ge=0)], Annotated[int, Field(ge=0)]] = (0, 0)
     fps: Annotated[float, Field(gt=0, allow_inf_nan=False)]
     exposure: Annotated[float, Field(gt=0, allow_inf_nan=False)] = 1.0
+
+
+class Sensor(_Strict):
+    """The camera's response as calibrated (service.camera_effects): black level (fraction of full scale),
+    Gaussian PSF sigma (px), full well (electrons at full scale, 0: no shot noise) and read noise (electrons)."""
+
+    offset: Annotated[float, Field(ge=-1, le=1, allow_inf_nan=False)] = 0.0
+    blur_sigma_px: Annotated[float, Field(ge=0, le=10, allow_inf_nan=False)] = 0.0
+    full_well_e: Annotated[float, Field(ge=0, le=1e9, allow_inf_nan=False)] = 0.0
+    read_noise_e: Annotated[float, Field(ge=0, le=1e6, allow_inf_nan=False)] = 0.0
 
 
 class Light(_Strict):
@@ -113,12 +140,15 @@ class Scene(_Strict):
     artifacts: Artifacts = Artifacts()
     camera: Camera
     light: Light
+    sensor: Sensor | None = None
 
     @model_validator(mode="after")
-    def _artifacts_on_face(self) -> "Scene":
+    def _artifacts_on_face(self) -> Scene:
         lo, hi = self.artifacts.ring_mm
-        if self.artifacts.spheres is None and self.artifacts.count and (
-            lo < self.nozzle.radius_mm or hi > self.nozzle.outer_radius_mm
+        if (
+            self.artifacts.spheres is None
+            and self.artifacts.count
+            and (lo < self.nozzle.radius_mm or hi > self.nozzle.outer_radius_mm)
         ):
             raise ValueError(
                 f"artifacts.ring_mm {[lo, hi]} must lie on the nozzle face "
@@ -128,7 +158,7 @@ class Scene(_Strict):
 
     # ---- construction -------------------------------------------------------------
     @classmethod
-    def from_dict(cls, data: object, where: str | Path = "scene") -> "Scene":
+    def from_dict(cls, data: object, where: str | Path = "scene") -> Scene:
         """Validate a parsed scene; errors become one :class:`MeniscopeError` line."""
         try:
             return cls.model_validate(data)
@@ -143,7 +173,7 @@ class Scene(_Strict):
             raise MeniscopeError(where, "invalid scene: " + "; ".join(problems)) from None
 
     @classmethod
-    def load(cls, path: str | Path) -> "Scene":
+    def load(cls, path: str | Path) -> Scene:
         """Read and validate a scene JSON file."""
         path = Path(path)
         try:
@@ -158,8 +188,26 @@ class Scene(_Strict):
 
     # ---- derived quantities -----------------------------------------------------------
     def to_json(self) -> str:
-        """Canonical JSON (sorted keys, no whitespace): what :attr:`sha256` hashes."""
-        return json.dumps(self.model_dump(mode="json"), sort_keys=True, separators=(",", ":"))
+        """Canonical JSON (sorted keys, no whitespace): what :attr:`sha256` hashes.
+
+        Optional blocks added after the first format (``artifacts.material``, ``sensor``) are left out
+        when absent, so an older file keeps its hash and the models tied to it."""
+        return json.dumps(self.as_dict(), sort_keys=True, separators=(",", ":"))
+
+    def as_dict(self) -> dict:
+        """The scene as JSON-ready data, without the absent optional blocks (see :meth:`to_json`)."""
+        data = self.model_dump(mode="json")
+        if data["artifacts"]["material"] is None:
+            del data["artifacts"]["material"]
+        if data["sensor"] is None:
+            del data["sensor"]
+        return data
+
+    @property
+    def sphere_material(self) -> SphereMaterial:
+        """The artifact spheres' GGX material: their own, or the fluid's in older files."""
+        fluid = self.fluid
+        return self.artifacts.material or SphereMaterial(roughness=fluid.roughness, reflectance=fluid.reflectance)
 
     @cached_property
     def sha256(self) -> str:

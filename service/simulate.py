@@ -10,14 +10,16 @@ the meniscus bulges out towards the camera and snaps back as the droplet leaves,
 extra mode-1 amplitude ``bulge_mm * sin(pi (i + 0.5) / transient_frames)`` on frame ``i`` of the
 transient, on top of the window's true motion, which holds on every frame of the window.
 """
+
 from __future__ import annotations
 
 import json
 import math
 import os
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Sequence
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from tqdm import tqdm
@@ -62,7 +64,7 @@ class WindowRanges:
     g1: tuple[float, float] = (100.0, 1000.0)
     g2_over_g1: tuple[float, float] = (1.5, 3.0)
 
-    def for_fps(self, fps: float) -> "WindowRanges":
+    def for_fps(self, fps: float) -> WindowRanges:
         """These ranges with f1's upper end lowered so f2 stays below 0.35 fps; ValueError if none is left."""
         f1_max = MAX_FREQUENCY_FPS_FRACTION * fps / self.f2_over_f1[1]
         if f1_max <= self.f1[0]:
@@ -74,7 +76,7 @@ class WindowRanges:
 
     def sample(self, rng: np.random.Generator) -> WindowTruth:
         """One window's true motion."""
-        u = lambda lohi: float(rng.uniform(*lohi))  # noqa: E731
+        u = lambda lohi: float(rng.uniform(*lohi))
         d, p, A1, A2, f1, g1 = u(self.d), u(self.p), u(self.A1), u(self.A2), u(self.f1), u(self.g1)
         f2, g2 = f1 * u(self.f2_over_f1), g1 * u(self.g2_over_g1)
         phi1, phi2 = u((0.0, 2 * math.pi)), u((0.0, 2 * math.pi))
@@ -193,19 +195,52 @@ def plan_recording(
     return Plan(fps, ejections, truths, bulges, n_transient, ranges, transient, first_window)
 
 
-class CameraFrames:
-    """What the camera stores for Eq. 1 coefficients: the scene rendered into its ROI (``camera.roi``) of a
-    sensor that ends with it, black around it, then through the camera's ``effects``.
+def canvas(scene: Scene, frame: tuple[int, int]) -> tuple[Scene, tuple[int, int]]:
+    """A scene whose image holds a whole recorded ``frame`` (width, height) with the ROI at ``camera.roi``: the
+    same camera and pixels, more of them, centred on the nozzle; and where the frame's corner lies in it.
 
-    ``renderer``: anything with ``render(coeffs (N, 4)) -> (N, H, W)`` linear frames of the scene.
+    So a frame larger than the ROI shows the scene everywhere, as a real sensor would, with the nozzle
+    wherever the ROI puts it (the ROI's centre is the principal point).
+    """
+    cam = scene.camera
+    (x, y), (w, h) = cam.roi, (cam.width_px, cam.height_px)
+    scene.check_roi(*frame, "--frame")
+    mx, my = max(x, frame[0] - w - x), max(y, frame[1] - h - y)
+    width, height = w + 2 * mx, h + 2 * my
+    focal = 0.5 * w / math.tan(math.radians(cam.fov_deg) / 2)
+    data = scene.as_dict()
+    data["camera"].update(
+        width_px=width, height_px=height, roi=[0, 0], fov_deg=math.degrees(2 * math.atan(0.5 * width / focal))
+    )
+    return Scene.from_dict(data), (mx - x, my - y)
+
+
+class CameraFrames:
+    """What the camera stores for Eq. 1 coefficients: ``renderer``'s frames (anything with ``render(coeffs (N, 4))
+    -> (N, h, w)`` linear frames), cut at ``corner`` (x, y) to ``frame`` (width, height) px when given (see
+    :func:`canvas`), else placed at the ROI (``camera.roi``) of a sensor that ends with it, black around it;
+    then through the camera's ``effects``.
     """
 
-    def __init__(self, scene: Scene, renderer: Renderer, effects: CameraEffects) -> None:
+    def __init__(
+        self,
+        scene: Scene,
+        renderer: Renderer,
+        effects: CameraEffects,
+        frame: tuple[int, int] | None = None,
+        corner: tuple[int, int] = (0, 0),
+    ) -> None:
         cam = scene.camera
         x, y = cam.roi
         self.renderer, self.effects = renderer, effects
-        self.height, self.width = y + cam.height_px, x + cam.width_px
-        self._roi = (slice(None), slice(y, None), slice(x, None))
+        if frame is None:
+            self.width, self.height = x + cam.width_px, y + cam.height_px
+            self._roi = (slice(None), slice(y, None), slice(x, None))
+            self._cut = (slice(None),) * 3
+        else:
+            self.width, self.height = frame
+            self._roi = (slice(None),) * 3
+            self._cut = (slice(None), slice(corner[1], corner[1] + frame[1]), slice(corner[0], corner[0] + frame[0]))
         self._linear = np.zeros((0, self.height, self.width), np.float32)  # linear, black outside the ROI
 
     def take(self, coeffs: np.ndarray, rng: np.random.Generator) -> np.ndarray:
@@ -214,7 +249,7 @@ class CameraFrames:
         if n > len(self._linear):
             self._linear = np.zeros((n, self.height, self.width), np.float32)
         linear = self._linear[:n]
-        linear[self._roi] = self.renderer.render(coeffs)
+        linear[self._roi] = self.renderer.render(coeffs)[self._cut]
         return self.effects.apply(linear, rng)
 
 
@@ -224,21 +259,31 @@ def truth_path(recording: str | Path) -> Path:
     return recording.with_name(recording.stem + ".truth.json")
 
 
-def truth_document(plan: Plan, scene: Scene, recording: Path, effects: CameraEffects, seed: int,
-                   ejection_hz: float, noise: str | None, renderer: str) -> dict[str, Any]:
+def truth_document(
+    plan: Plan,
+    scene: Scene,
+    recording: Path,
+    effects: CameraEffects,
+    seed: int,
+    ejection_hz: float,
+    noise: str | None,
+    renderer: str,
+    frame: tuple[int, int] | None = None,
+) -> dict[str, Any]:
     """The sidecar's content (scene.md, "Recordings and ground truth"): JSON-safe, finite numbers."""
     x, y = scene.camera.roi
+    width, height = frame or (x + scene.camera.width_px, y + scene.camera.height_px)
     return {
         "schema": SCHEMA,
         "recording": {
             "path": recording.name,
             "frames": plan.frame_count,
             "fps": scene.camera.fps,
-            "width": x + scene.camera.width_px,
-            "height": y + scene.camera.height_px,
+            "width": width,
+            "height": height,
             "bit_depth": effects.bit_depth,
         },
-        "scene": scene.model_dump(mode="json"),
+        "scene": scene.as_dict(),
         "scene_sha256": scene.sha256,
         "seed": seed,
         "renderer": renderer,
@@ -249,7 +294,7 @@ def truth_document(plan: Plan, scene: Scene, recording: Path, effects: CameraEff
             "frames": plan.transient_frames,
             "duration_s": plan.transient.duration_s,
             "model": "a += bulge_mm * sin(pi * (frame - start_frame + 0.5) / frames) on the first `frames` "
-                     "frames of each window, on top of the true motion",
+            "frames of each window, on top of the true motion",
         },
         "ranges": {name: list(lohi) for name, lohi in asdict(plan.ranges).items()},
         "camera_effects": effects.model_dump(mode="json"),
@@ -282,6 +327,7 @@ def simulate(
     ranges: WindowRanges = WindowRanges(),
     transient: Transient = Transient(),
     renderer: Renderer | None = None,
+    frame: tuple[int, int] | None = None,
     kinds: Sequence[WindowKind] = (),
     kind_names: Sequence[str] = (),
 ) -> dict[str, Any]:
@@ -290,7 +336,8 @@ def simulate(
     Deterministic by ``seed``: the motion comes from the first child of ``SeedSequence(seed)``, the
     camera noise of window k from child k of its second child. Frames outside the scene's ROI
     (``camera.roi``) are black before the camera effects. ``noise`` names the preset ``effects``
-    came from, for the record; ``renderer`` is anything with ``render(coeffs (N, 4)) -> (N, H, W)`` linear
+    came from, for the record; ``frame``: the recorded (width, height) when larger than the ROI (the renderer then
+    renders :func:`canvas`'s scene); ``renderer`` is anything with ``render(coeffs (N, 4)) -> (N, H, W)`` linear
     frames, ours by default (``service.render.blender.BlenderRenderer`` for a second renderer), and the
     truth names its class. ``kinds`` (named ``kind_names`` in the truth) draw window k as
     ``kinds[k % len(kinds)]`` (:mod:`service.window_kinds`), spatter included. Memory stays bounded: at most :data:`BATCH_FRAMES` frames at once.
@@ -300,20 +347,23 @@ def simulate(
     cam = scene.camera
     motion_seed, noise_seed = np.random.SeedSequence(seed).spawn(2)
     try:
-        plan = plan_recording(windows, cam.fps, ejection_hz, np.random.default_rng(motion_seed), ranges, transient,
-                              kinds=kinds)
+        plan = plan_recording(
+            windows, cam.fps, ejection_hz, np.random.default_rng(motion_seed), ranges, transient, kinds=kinds
+        )
     except ValueError as exc:
         raise MeniscopeError(out, str(exc)) from None
+    shown, corner = canvas(scene, frame) if frame else (scene, (0, 0))
     if renderer is None:
         from service.render import Renderer
 
-        renderer = Renderer(scene)
-    camera = CameraFrames(scene, renderer, effects)
+        renderer = Renderer(shown)
+    camera = CameraFrames(scene, renderer, effects, frame, corner)
     sidecar = truth_path(out)
     try:
-        with open_writer(out, camera.width, camera.height, cam.fps, bit_depth=effects.bit_depth) as writer, tqdm(
-            total=plan.frame_count, unit="frame", desc=f"simulate {out.name}", disable=None
-        ) as bar:
+        with (
+            open_writer(out, camera.width, camera.height, cam.fps, bit_depth=effects.bit_depth) as writer,
+            tqdm(total=plan.frame_count, unit="frame", desc=f"simulate {out.name}", disable=None) as bar,
+        ):
             for k, window_seed in enumerate(noise_seed.spawn(windows)):
                 rng = np.random.default_rng(window_seed)
                 length = int(plan.ejections[k + 1] - plan.ejections[k])
@@ -326,7 +376,9 @@ def simulate(
                         spatter(frames, kinds[k % len(kinds)].spatter, 2**effects.bit_depth - 1, rng)
                     writer.write(frames, None)
                     bar.update(stop - start)
-        truth = truth_document(plan, scene, out, effects, seed, ejection_hz, noise, type(renderer).__name__)
+        truth = truth_document(
+            plan, scene, out, effects, seed, ejection_hz, noise, type(renderer).__name__, (camera.width, camera.height)
+        )
         for k, window in enumerate(truth["windows"]) if kind_names else ():
             window["kind"] = kind_names[k % len(kind_names)]
         try:

@@ -5,6 +5,7 @@ Each kind changes one thing about the nominal window (:class:`service.simulate.W
 lightly damped, 4 kHz modes, a faint ejection, the rate drifting +-5 %, a skipped ejection, spatter specks.
 A recording of several kinds gives window k the kind ``kinds[k % len(kinds)]``.
 """
+
 from __future__ import annotations
 
 import math

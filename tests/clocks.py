@@ -1,4 +1,5 @@
 """A simulated monotonic clock for pacing tests: exact, and no test waits for real time to pass."""
+
 from __future__ import annotations
 
 

@@ -1,11 +1,11 @@
 """Fixtures shared by every test module: the example scene, the demo recording and the ../shared folder."""
+
 from __future__ import annotations
 
 from pathlib import Path
 
 import pytest
 from hypothesis import settings
-
 
 from service import DEFAULT_SCENE
 from service.pipeline.demo import demo_recording
@@ -36,5 +36,7 @@ def demo_cine(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def shared_dir() -> Path:
     """The shared folder, or a skip saying where it was looked for."""
     if not SHARED.is_dir():
-        pytest.skip(f"../shared not found at {SHARED}: the shared specs and recordings are not checked out beside the repo")
+        pytest.skip(
+            f"../shared not found at {SHARED}: the shared specs and recordings are not checked out beside the repo"
+        )
     return SHARED

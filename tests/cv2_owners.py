@@ -2,6 +2,7 @@
 
 Standard library only, so that tests can run it in another environment's Python (tests/test_install.py).
 """
+
 from __future__ import annotations
 
 import importlib.metadata
@@ -10,8 +11,13 @@ import json
 
 def cv2_owners() -> list[str]:
     """Names of the installed distributions with files in the cv2 package, sorted."""
-    return sorted({d.metadata["Name"] for d in importlib.metadata.distributions()
-                   if any(f.parts[0] == "cv2" for f in d.files or ())})
+    return sorted(
+        {
+            d.metadata["Name"]
+            for d in importlib.metadata.distributions()
+            if any(f.parts[0] == "cv2" for f in d.files or ())
+        }
+    )
 
 
 if __name__ == "__main__":

@@ -1,4 +1,5 @@
 """The metric names of deploy/metrics.txt, parsed once for every test that checks rules, panels or /metrics."""
+
 from __future__ import annotations
 
 import re

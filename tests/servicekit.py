@@ -1,4 +1,5 @@
 """Running the real service and CLI in tests: uvicorn on a free port in a thread, `meniscope` as a process."""
+
 from __future__ import annotations
 
 import json
@@ -9,17 +10,18 @@ import threading
 import time
 import urllib.error
 import urllib.request
+from collections.abc import Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any
 
 import uvicorn
 from fastapi import FastAPI
 
 from service.bench.live import free_port  # noqa: F401 - the tests' free port is the benchmark's
 from service.server.app import create_app
-from service.settings import ServiceSettings
+from service.server.settings import ServiceSettings
 
 #: The checkout these tests belong to, whose code every `meniscope` process they start must run.
 ROOT = Path(__file__).resolve().parents[1]
@@ -39,8 +41,9 @@ def checkout_env(env: dict[str, str] | None = None) -> dict[str, str]:
 
 def meniscope(*args: str | Path) -> subprocess.CompletedProcess:
     """Run ``meniscope ARGS`` as its own process on this checkout's code; its output is captured as text."""
-    return subprocess.run([*MENISCOPE, *map(str, args)], capture_output=True, text=True, timeout=CLI_TIMEOUT_S,
-                          env=checkout_env())
+    return subprocess.run(
+        [*MENISCOPE, *map(str, args)], capture_output=True, text=True, timeout=CLI_TIMEOUT_S, env=checkout_env()
+    )
 
 
 @contextmanager
@@ -54,8 +57,7 @@ def running_service(settings: ServiceSettings) -> Iterator[str]:
 def running_app(app: FastAPI) -> Iterator[str]:
     """Serve ``app`` (from :func:`create_app`: the test may reach into ``app.state.service``) as
     :func:`running_service` does."""
-    server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=0, log_level="warning",
-                                           ws="websockets-sansio"))
+    server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=0, log_level="warning", ws="websockets-sansio"))
     thread = threading.Thread(target=server.run, daemon=True)
     thread.start()
     deadline = time.monotonic() + 30
@@ -95,8 +97,9 @@ class Reply:
 def request(method: str, url: str, body: Any = None, headers: dict[str, str] | None = None) -> Reply:
     """One HTTP request with the standard library; any status is returned, not raised."""
     data = None if body is None else json.dumps(body).encode()
-    req = urllib.request.Request(url, data=data, method=method,
-                                 headers={"Content-Type": "application/json", **(headers or {})})
+    req = urllib.request.Request(
+        url, data=data, method=method, headers={"Content-Type": "application/json", **(headers or {})}
+    )
     try:
         with urllib.request.urlopen(req, timeout=10) as resp:
             return Reply(resp.status, resp.read(), dict(resp.headers))
@@ -106,5 +109,6 @@ def request(method: str, url: str, body: Any = None, headers: dict[str, str] | N
 
 def service_settings(data_dir: Path, recordings: Path, source: str | None, **overrides) -> ServiceSettings:  # type: ignore[no-untyped-def]
     """Settings for a test service: its own data folder, a ZeroMQ port the system picks."""
-    return ServiceSettings(data_dir=data_dir, recordings_dir=recordings, source=source,
-                           zmq_publish="tcp://127.0.0.1:*", **overrides)
+    return ServiceSettings(
+        data_dir=data_dir, recordings_dir=recordings, source=source, zmq_publish="tcp://127.0.0.1:*", **overrides
+    )

@@ -1,4 +1,5 @@
 """service.render.agreement: highlight centroids, correlation and gain between two renderers' frames."""
+
 from __future__ import annotations
 
 import json
@@ -61,7 +62,12 @@ def test_frames_without_a_highlight_are_counted_separately_and_never_compared():
     lit = spot((8, 8), 3, 4)[None]
     a = compare(np.concatenate([lit, lit, dark, dark]), np.concatenate([lit, dark, lit, dark]))
     s = a.summary()
-    assert (s["highlight_both"], s["highlight_ours_only"], s["highlight_reference_only"], s["highlight_neither"]) == (1, 1, 1, 1)
+    assert (s["highlight_both"], s["highlight_ours_only"], s["highlight_reference_only"], s["highlight_neither"]) == (
+        1,
+        1,
+        1,
+        1,
+    )
     assert s["highlight_both_fraction"] == 0.25
     assert s["centroid_distance_median_px"] == 0.0
 
@@ -78,9 +84,7 @@ def test_constant_frames_have_no_correlation_and_the_summary_says_none():
 @settings(max_examples=100, deadline=None)
 @given(
     pair=st.integers(1, 6).flatmap(
-        lambda h: st.tuples(
-            *(arrays(np.float32, (3, h, 5), elements=st.floats(0, 1, width=32)) for _ in range(2))
-        )
+        lambda h: st.tuples(*(arrays(np.float32, (3, h, 5), elements=st.floats(0, 1, width=32)) for _ in range(2)))
     )
 )
 def test_any_frames_in_the_unit_range_give_a_finite_json_summary(pair):

@@ -1,4 +1,5 @@
 """The analysis PNG colours each window's fit by its status, so that a glance finds the bad ones: red only for failure."""
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -17,16 +18,27 @@ RED = np.array(mcolors.to_rgb(STATUS_COLOURS["failed"]))
 def window(index: int, status: str) -> WindowResult:
     """A 190-frame window: one 2 kHz mode when ok, none when settled, nothing fitted when it failed."""
     mode = ModeEstimate(frequency_hz=2000.0, decay_rate_per_s=900.0, amplitude_mm=0.01, phase_rad=0.3)
-    return WindowResult(index=index, start_frame=190 * index, end_frame=190 * (index + 1), status=status,
-                        modes=[mode] if status == "ok" else [], offset_mm=None if status == "failed" else 0.02,
-                        reason=None if status == "ok" else f"{status} (a test window)", samples=190)
+    return WindowResult(
+        index=index,
+        start_frame=190 * index,
+        end_frame=190 * (index + 1),
+        status=status,
+        modes=[mode] if status == "ok" else [],
+        offset_mm=None if status == "failed" else 0.02,
+        reason=None if status == "ok" else f"{status} (a test window)",
+        samples=190,
+    )
 
 
 def red_pixels(statuses: list[str], path: Path) -> int:
     """Pixels of the failure red (within a shaded tint of it) in the plot of windows with these statuses."""
     windows = [window(i, s) for i, s in enumerate(statuses)]
-    report = Report(source=Source(path="rec.cine", frames=190 * len(windows), fps=FPS), method="network",
-                    ejections=[w.start_frame for w in windows[1:]], windows=windows)
+    report = Report(
+        source=Source(path="rec.cine", frames=190 * len(windows), fps=FPS),
+        method="network",
+        ejections=[w.start_frame for w in windows[1:]],
+        windows=windows,
+    )
     t = np.arange(190 * len(windows)) / FPS
     plot_report(report, 0.02 + 0.01 * np.cos(2 * np.pi * 2000 * (t % 0.01)), path)
     rgb = mimage.imread(path)[..., :3]

@@ -1,5 +1,6 @@
 """`meniscope analyze` and `meniscope fit` as users run them: real recordings from `meniscope simulate`, the
 shipped models, REPORT.json in the layout of shared/spec/cli.md, one-line errors for bad input."""
+
 from __future__ import annotations
 
 import json
@@ -9,14 +10,24 @@ import numpy as np
 import pytest
 
 from service.analysis.results import Report
-from service.validation.score import ejection_matches
 from service.csvtable import read_columns
+from service.validation.score import ejection_matches
 from service.validation.truth import read_truth, truth_centre
 from tests.servicekit import meniscope
 
 REPORT_KEYS = {"schema", "source", "method", "ejections", "windows"}
-WINDOW_KEYS = {"index", "start_frame", "end_frame", "status", "reason", "modes", "offset_mm", "settling_time_s",
-               "settled", "r2"}
+WINDOW_KEYS = {
+    "index",
+    "start_frame",
+    "end_frame",
+    "status",
+    "reason",
+    "modes",
+    "offset_mm",
+    "settling_time_s",
+    "settled",
+    "r2",
+}
 MODE_KEYS = {"frequency_hz", "decay_rate_per_s", "amplitude_mm", "phase_rad", "frequency_ci_hz", "decay_rate_ci_per_s"}
 
 
@@ -67,8 +78,11 @@ def test_analyze_takes_the_poles_from_the_frames_unless_told(recording: Path, tm
         assert meniscope("analyze", recording, "--poles", poles, "--out", out, "--quiet").returncode == 0
         data = json.loads(out.read_text())
         assert data["fit"]["poles"] == poles
-        errors[poles] = [abs(w["modes"][0]["frequency_hz"] / truth[w["start_frame"]] - 1) for w in data["windows"]
-                         if w["modes"] and w["start_frame"] in truth]
+        errors[poles] = [
+            abs(w["modes"][0]["frequency_hz"] / truth[w["start_frame"]] - 1)
+            for w in data["windows"]
+            if w["modes"] and w["start_frame"] in truth
+        ]
         assert {w["poles_from"] for w in data["windows"] if w["modes"]} <= {poles, "series"}
     # on this recording D(0, t) alone doubles one window's frequency (the network's |a| response); the frames do not
     assert max(errors["frames"]) < 0.03 and max(errors["series"]) > 0.5
@@ -104,15 +118,18 @@ def test_fit_recovers_the_true_motion_of_every_window(recording: Path, tmp_path:
     assert whole.returncode == 0 and len(json.loads((tmp_path / "one.json").read_text())["windows"]) == 1
 
 
-@pytest.mark.parametrize("verb_args, names", [
-    (("analyze", "missing.cine"), "missing.cine"),
-    (("fit", "missing.csv", "--fps", "19000"), "missing.csv"),
-    (("fit", "SERIES", "--fps", "-3"), "--fps"),
-    (("fit", "SERIES", "--fps", "19000", "--ejections", "nowhere.txt"), "nowhere.txt"),
-    (("analyze", "REC", "--method", "nearest", "--database", "nodb"), "nodb"),
-    (("analyze", "REC", "--models", "nomodels"), "nomodels"),
-    (("analyze", "REC", "--refine", "--poles", "frames"), "--poles"),
-])
+@pytest.mark.parametrize(
+    "verb_args, names",
+    [
+        (("analyze", "missing.cine"), "missing.cine"),
+        (("fit", "missing.csv", "--fps", "19000"), "missing.csv"),
+        (("fit", "SERIES", "--fps", "-3"), "--fps"),
+        (("fit", "SERIES", "--fps", "19000", "--ejections", "nowhere.txt"), "nowhere.txt"),
+        (("analyze", "REC", "--method", "nearest", "--database", "nodb"), "nodb"),
+        (("analyze", "REC", "--models", "nomodels"), "nomodels"),
+        (("analyze", "REC", "--refine", "--poles", "frames"), "--poles"),
+    ],
+)
 def test_bad_input_is_one_line_naming_the_culprit(recording: Path, tmp_path: Path, verb_args, names):
     series = tmp_path / "s.csv"
     series.write_text("value\n1\n2\n3\n")
@@ -132,13 +149,8 @@ def test_a_csv_without_the_column_is_refused(tmp_path: Path):
     assert done.returncode == 2 and "value" in done.stderr and "s.csv" in done.stderr
 
 
-def test_the_benchmarks_score_against_truth_and_harminv(recording: Path, tmp_path: Path):
-    out = tmp_path / "fit.json"
-    done = meniscope("bench", "fit", "--windows", "5", "--noise-mm", "0,0.001", "--out", out)
-    assert done.returncode == 0, done.stderr
-    levels = json.loads(out.read_text())["levels"]
-    assert [lv["noise_mm"] for lv in levels] == [0, 0.001]
-    assert levels[0]["methods"]["ours"]["found"] == 5 and levels[0]["methods"]["ours"]["frequency_error_median"] < 1e-9
+def test_bench_analysis_scores_every_method_against_the_truth(recording: Path, tmp_path: Path):
+    """(``bench fit``, the window-fit suite, has its own test in test_fit_suite.py.)"""
     out = tmp_path / "analysis.json"
     done = meniscope("bench", "analysis", "--recordings", recording.parent, "--methods", "direct", "--out", out)
     assert done.returncode == 0, done.stderr

@@ -1,6 +1,7 @@
 """Every operation of the OpenAPI schema, driven by schemathesis against a running demo service: valid and
 invalid requests (seeded, a bounded number per operation), each answer checked against the schema (status
 documented, body and content type as declared, no server error, invalid input refused)."""
+
 from __future__ import annotations
 
 from collections.abc import Iterator
@@ -25,8 +26,9 @@ checks.positive_data_acceptance.expected-statuses = ["2xx", "401", "403", "404",
 
 @pytest.fixture(scope="module")
 def api_schema(tmp_path_factory: pytest.TempPathFactory, demo_cine: Path) -> Iterator[schemathesis.BaseSchema]:
-    settings_ = service_settings(tmp_path_factory.mktemp("schema"), demo_cine.parent,
-                                 f"file://{demo_cine}?speed=0.25&loop=1", token=TOKEN)
+    settings_ = service_settings(
+        tmp_path_factory.mktemp("schema"), demo_cine.parent, f"file://{demo_cine}?speed=0.25&loop=1", token=TOKEN
+    )
     with running_service(settings_) as base:
         wait_for(lambda: request("GET", base + "/api/v1/windows?limit=1").json()["windows"], 120, "a window")
         yield schemathesis.openapi.from_url(base + "/openapi.json", config=CONFIG)
@@ -36,7 +38,11 @@ schema = schemathesis.pytest.from_fixture("api_schema")
 
 
 @schema.parametrize()
-@settings(max_examples=25, derandomize=True, deadline=None,
-          suppress_health_check=[HealthCheck.too_slow, HealthCheck.filter_too_much, HealthCheck.function_scoped_fixture])
+@settings(
+    max_examples=25,
+    derandomize=True,
+    deadline=None,
+    suppress_health_check=[HealthCheck.too_slow, HealthCheck.filter_too_much, HealthCheck.function_scoped_fixture],
+)
 def test_every_operation_answers_as_its_schema_says(case: schemathesis.Case) -> None:
     case.call_and_validate(headers={"Authorization": f"Bearer {TOKEN}"}, timeout=60)

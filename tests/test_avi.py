@@ -1,4 +1,5 @@
 """AVI through OpenCV: 8-bit grey frames round-trip exactly (FFV1) at high-speed camera rates."""
+
 from __future__ import annotations
 
 import itertools
@@ -28,8 +29,11 @@ def noise(shape: tuple[int, ...], seed: int = 0) -> np.ndarray:
 
 @settings(max_examples=15, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(
-    frames=arrays(np.uint8, st.tuples(st.integers(1, 4), st.sampled_from([2, 16, 34]), st.sampled_from([2, 24])),
-                  elements=st.integers(0, 255)),
+    frames=arrays(
+        np.uint8,
+        st.tuples(st.integers(1, 4), st.sampled_from([2, 16, 34]), st.sampled_from([2, 24])),
+        elements=st.integers(0, 255),
+    ),
     fps=st.sampled_from([30.0, 1000.0, 1200.0, 19000.0, 18939.39, 90000.0, 19000 / 3]),
 )
 @example(frames=np.zeros((1, 2, 2), np.uint8), fps=30.0)  # one frame: OpenCV cannot seek back to it
@@ -101,7 +105,9 @@ def test_rgb_video_is_refused_and_yuv_video_gives_its_luma(tmp_path: Path) -> No
     grey = noise((3, 32, 48))
     rgb, yuv = fresh(tmp_path), fresh(tmp_path)
     for path, fourcc in ((rgb, "FFV1"), (yuv, "MJPG")):
-        writer = cv2.VideoWriter(str(path), cv2.CAP_FFMPEG, cv2.VideoWriter_fourcc(*fourcc), 30.0, (48, 32), isColor=True)
+        writer = cv2.VideoWriter(
+            str(path), cv2.CAP_FFMPEG, cv2.VideoWriter_fourcc(*fourcc), 30.0, (48, 32), isColor=True
+        )
         for frame in grey:
             writer.write(np.stack([frame, frame // 2, frame], axis=-1))
         writer.release()

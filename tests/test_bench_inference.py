@@ -1,5 +1,6 @@
 """`meniscope bench inference`: the learned graphs alone under each setting asked for, as the service runs
 them, one row per model folder, method and setting, with each method's fastest marked."""
+
 from __future__ import annotations
 
 import json
@@ -8,8 +9,8 @@ from pathlib import Path
 import numpy as np
 
 from service import DEFAULT_MODELS
-from service.pipeline.demo import DEMO_AVI
 from service.inverse.network import NetworkMethod
+from service.pipeline.demo import DEMO_AVI
 from service.recordings.roi import read_roi_frames
 from service.scene import Scene
 from tests.servicekit import meniscope
@@ -17,8 +18,22 @@ from tests.servicekit import meniscope
 
 def test_every_setting_of_every_method_is_measured_once(tmp_path: Path):
     out = tmp_path / "inference.json"
-    done = meniscope("bench", "inference", "--frames", "64", "--repeats", "2", "--threads", "1,2", "--batches", "16,64",
-                     "--optimisation", "basic,all", "--out", out)
+    done = meniscope(
+        "bench",
+        "inference",
+        "--frames",
+        "64",
+        "--repeats",
+        "2",
+        "--threads",
+        "1,2",
+        "--batches",
+        "16,64",
+        "--optimisation",
+        "basic,all",
+        "--out",
+        out,
+    )
     assert done.returncode == 0, done.stderr
     rows = json.loads(out.read_text())["rows"]
     settings = {(r["label"], r["threads"], r["batch"], r["optimisation"]) for r in rows}

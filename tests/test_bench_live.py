@@ -1,4 +1,5 @@
 """`meniscope bench live`: the real service started, clients attached, its own latency histogram read back."""
+
 from __future__ import annotations
 
 import argparse

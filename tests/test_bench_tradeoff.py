@@ -1,6 +1,7 @@
 """`meniscope bench tradeoff --mode quick`: every inverse method on the same held-out recordings, with the
 renderer, the window fit and the replay pipeline beside them, in one run and one table; further model
 folders (here an int8 copy of the shipped one) as rows of their own."""
+
 from __future__ import annotations
 
 import json
@@ -13,25 +14,35 @@ from service.bench import fitsuite
 from service.bench.tradeoff import misses
 from tests.servicekit import meniscope
 
-
 #: A learned method's row exactly at every target: issue 4's accuracy targets and the camera's 19,000 frames/s.
-AT_TARGETS = {"method": "network", "frames_per_s": 19000.0, "ms_per_window": 40.0, "frequency_median": 0.005,
-              "decay_median": 0.05, "amplitude_median": 0.10, "offset_mm_median": 0.002}
+AT_TARGETS = {
+    "method": "network",
+    "frames_per_s": 19000.0,
+    "ms_per_window": 40.0,
+    "frequency_median": 0.005,
+    "decay_median": 0.05,
+    "amplitude_median": 0.10,
+    "offset_mm_median": 0.002,
+}
 
 
 def test_a_row_exactly_at_every_target_misses_none() -> None:
     assert misses(AT_TARGETS) == []
 
 
-@pytest.mark.parametrize("figure, value, missed", [
-    ("frequency_median", 0.0051, "frequency 0.0051 > 0.005"),
-    ("decay_median", 0.0501, "decay 0.0501 > 0.05"),
-    ("amplitude_median", 0.25, "amplitude 0.25 > 0.1"),
-    ("offset_mm_median", 0.0114, "offset 0.0114 > 0.002"),
-    ("decay_median", None, "decay not measured (no window with a mode)"),
-])
-def test_an_accuracy_figure_above_its_target_or_not_measured_misses_it(figure: str, value: float | None,
-                                                                       missed: str) -> None:
+@pytest.mark.parametrize(
+    "figure, value, missed",
+    [
+        ("frequency_median", 0.0051, "frequency 0.0051 > 0.005"),
+        ("decay_median", 0.0501, "decay 0.0501 > 0.05"),
+        ("amplitude_median", 0.25, "amplitude 0.25 > 0.1"),
+        ("offset_mm_median", 0.0114, "offset 0.0114 > 0.002"),
+        ("decay_median", None, "decay not measured (no window with a mode)"),
+    ],
+)
+def test_an_accuracy_figure_above_its_target_or_not_measured_misses_it(
+    figure: str, value: float | None, missed: str
+) -> None:
     assert misses({**AT_TARGETS, figure: value}) == [missed]
 
 
@@ -76,8 +87,15 @@ def tradeoff(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def test_every_method_is_measured_at_both_noise_levels_with_the_targets_it_misses(tradeoff: Path):
     results = json.loads((tradeoff / "tradeoff.json").read_text())
     labels = {(r["label"], r["noise"]) for r in results["methods"]}
-    expected = {"network 32px", "direct 32px", "network 32px int8 static", "direct 32px int8 static", "nearest db600",
-                "nearest-approx db600", "regularised db600"}
+    expected = {
+        "network 32px",
+        "direct 32px",
+        "network 32px int8 static",
+        "direct 32px int8 static",
+        "nearest db600",
+        "nearest-approx db600",
+        "regularised db600",
+    }
     assert labels == {(m, n) for m in expected for n in ("low", "high")}
     for row in results["methods"]:
         assert row["frames_per_s"] > 0 and row["ms_per_window"] > 0 and row["peak_memory_mb"] > 50

@@ -3,6 +3,7 @@
 The tests marked ``blender`` run the real executable (skipped when it is not on PATH);
 the others check what happens around it: inputs, the job it is given, its failures.
 """
+
 from __future__ import annotations
 
 import json
@@ -22,7 +23,9 @@ from service.render.agreement import highlights
 from service.render.blender import BlenderRenderer, camera_frame, fluid_profiles
 from service.scene import Scene, direction
 
-needs_blender = pytest.mark.skipif(shutil.which("blender") is None, reason="blender not on PATH (Debian: apt install blender)")
+needs_blender = pytest.mark.skipif(
+    shutil.which("blender") is None, reason="blender not on PATH (Debian: apt install blender)"
+)
 
 
 def example(**changes: dict) -> Scene:

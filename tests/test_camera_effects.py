@@ -1,5 +1,6 @@
 """The camera model: an ideal camera only quantises, optics move and spread light as stated,
 noise has the variance its physics says, and no setting wraps, overflows or makes NaN."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -19,8 +20,11 @@ from service.camera_effects import (
 )
 
 BIT_DEPTHS = (8, 10, 12, 16)
-unit_frames = arrays(np.float32, st.tuples(st.integers(1, 3), st.integers(1, 12), st.integers(1, 12)),
-                     elements=st.floats(0.0, 1.0, width=32))
+unit_frames = arrays(
+    np.float32,
+    st.tuples(st.integers(1, 3), st.integers(1, 12), st.integers(1, 12)),
+    elements=st.floats(0.0, 1.0, width=32),
+)
 
 
 def rng(seed: int = 0) -> np.random.Generator:
@@ -65,8 +69,15 @@ def test_black_and_full_scale_map_to_the_ends_of_the_range(bit_depth: int) -> No
 )
 @settings(max_examples=60, deadline=None)
 def test_extreme_settings_stay_in_range(level, gain, offset, full_well, read, sigma, shift, bit_depth) -> None:
-    effects = CameraEffects(gain=gain, offset=offset, full_well_e=full_well, read_noise_dn=read,
-                            blur_sigma_px=sigma, shift_px=(shift, -shift), bit_depth=bit_depth)
+    effects = CameraEffects(
+        gain=gain,
+        offset=offset,
+        full_well_e=full_well,
+        read_noise_dn=read,
+        blur_sigma_px=sigma,
+        shift_px=(shift, -shift),
+        bit_depth=bit_depth,
+    )
     out = effects.apply(np.full((2, 9, 7), level, np.float32), rng())
     assert out.dtype == pixel_dtype(bit_depth) and out.shape == (2, 9, 7)
     assert int(out.max()) <= 2**bit_depth - 1
@@ -114,7 +125,8 @@ def test_read_noise_is_gaussian_in_dn(read: float) -> None:
 def test_few_electrons_are_counted_exactly() -> None:
     # one DN per electron: the stored values are the photo-electron counts, Poisson(3)
     out = CameraEffects(full_well_e=2**16 - 1, bit_depth=16).apply(
-        np.full((10, 64, 64), 3 / (2**16 - 1), np.float32), rng())
+        np.full((10, 64, 64), 3 / (2**16 - 1), np.float32), rng()
+    )
     counts = out.astype(np.float64)
     assert counts.mean() == pytest.approx(3.0, rel=0.02) and counts.var() == pytest.approx(3.0, rel=0.05)
     assert (out == 0).mean() == pytest.approx(np.exp(-3.0), rel=0.08)
@@ -122,7 +134,9 @@ def test_few_electrons_are_counted_exactly() -> None:
 
 def test_the_noise_grows_with_the_preset() -> None:
     frames = np.full((8, 32, 32), 0.4, np.float32)
-    spread = [noise_preset(name, 12).apply(frames, rng()).astype(float).std() for name in ("none", "low", "lab", "high")]
+    spread = [
+        noise_preset(name, 12).apply(frames, rng()).astype(float).std() for name in ("none", "low", "lab", "high")
+    ]
     assert spread == sorted(spread) and spread[0] == 0.0
 
 
@@ -174,4 +188,3 @@ def test_settings_are_validated() -> None:
         CameraEffects(bit_depth=9)
     with pytest.raises(ValueError):
         CameraEffects(read_noise_dn=float("nan"))
-

@@ -5,6 +5,7 @@ an independent writer (:func:`cine_bytes`, bit packing by :func:`pack_msb_first`
 layout in the Vision Research "Cine File Format" document); pycine, whose documented scaling is
 predicted from our words.
 """
+
 from __future__ import annotations
 
 import itertools
@@ -93,16 +94,24 @@ def cine_bytes(
         struct.pack_into("<d", setup, 10400, float(frame_rate))  # dFrameRate
     blocks = b""
     if time64 is not None:  # BlockSize, Type, Reserved (1: more blocks follow), data
-        blocks = (struct.pack("<IHH", 8 + 8 * n, 1002, 1) + time64.astype("<u8").tobytes()
-                  + struct.pack("<IHH", 8 + 4 * n, 1003, 0) + bytes(4 * n))
+        blocks = (
+            struct.pack("<IHH", 8 + 8 * n, 1002, 1)
+            + time64.astype("<u8").tobytes()
+            + struct.pack("<IHH", 8 + 4 * n, 1003, 0)
+            + bytes(4 * n)
+        )
     off_setup = 44 + 40
     off_offsets = off_setup + setup_length + len(blocks)
     images, offsets = b"", []
     for px, annotation in zip(pixels, annotations or [8] * n):
         offsets.append(off_offsets + 8 * n + len(images))
         images += struct.pack("<I", annotation) + bytes(annotation - 8) + struct.pack("<I", len(px)) + px
-    header = struct.pack("<2sHHHiIiIIIIQ", b"CI", 44, 0, 1, first_no, n, first_no, n, 44, off_setup, off_offsets, trigger)
-    bitmap = struct.pack("<IiiHHIIiiII", 40, width, height, 1, bit_count, compression, len(pixels[0]), 0, 0, 0, 2**real_bpp)
+    header = struct.pack(
+        "<2sHHHiIiIIIIQ", b"CI", 44, 0, 1, first_no, n, first_no, n, 44, off_setup, off_offsets, trigger
+    )
+    bitmap = struct.pack(
+        "<IiiHHIIiiII", 40, width, height, 1, bit_count, compression, len(pixels[0]), 0, 0, 0, 2**real_bpp
+    )
     return header + bitmap + bytes(setup) + blocks + struct.pack(f"<{n}q", *offsets) + images
 
 
@@ -128,7 +137,11 @@ def test_real_file_header_facts(real_cine: Path) -> None:
     with open_recording(real_cine) as rec:
         info = rec.info()
         assert (len(rec), rec.width, rec.height, rec.bit_depth) == (
-            facts["frames"], facts["width"], facts["height"], facts["bit_depth"])
+            facts["frames"],
+            facts["width"],
+            facts["height"],
+            facts["bit_depth"],
+        )
         assert info["acquisition_fps"] == facts["acquisition_fps"]
         assert info["decimation"] == facts["decimation"]
         assert rec.fps == facts["acquisition_fps"] / facts["decimation"]
@@ -180,7 +193,9 @@ def test_pycine_scales_black_to_white_level_onto_the_full_range(shared_dir: Path
 def test_packed_pixels_unpack_to_the_values_packed(tmp_path: Path, data: st.DataObject, bits: int) -> None:
     shape = data.draw(st.tuples(st.integers(1, 3), st.integers(1, 5), st.sampled_from([4, 8, 12])))
     frames = data.draw(arrays(np.uint16, shape, elements=st.integers(0, 2**bits - 1)))
-    path = write(tmp_path, cine_bytes(frames, storage=f"p{bits}", real_bpp=bits, time64=np.zeros(len(frames), np.uint64)))
+    path = write(
+        tmp_path, cine_bytes(frames, storage=f"p{bits}", real_bpp=bits, time64=np.zeros(len(frames), np.uint64))
+    )
     with open_recording(path) as rec:
         assert (rec.bit_depth, rec.dtype, rec.header["pixel_storage"]) == (bits, np.uint16, f"packed {bits}-bit")
         np.testing.assert_array_equal(rec.read(0, len(rec)), frames)
@@ -219,8 +234,10 @@ def test_annotations_of_any_length_are_skipped(tmp_path: Path) -> None:
 def test_time_stamps_are_seconds_from_the_trigger(tmp_path: Path) -> None:
     trigger = (1_700_000_000 << 32) + 123
     time64 = trigger + np.array([-(2**32), -1, 0, 3 * 2**31], dtype=np.int64)
-    path = write(tmp_path, cine_bytes(np.zeros((4, 2, 2), np.uint16), time64=time64.astype(np.uint64),
-                                      trigger=trigger, first_no=-2))
+    path = write(
+        tmp_path,
+        cine_bytes(np.zeros((4, 2, 2), np.uint16), time64=time64.astype(np.uint64), trigger=trigger, first_no=-2),
+    )
     with open_recording(path) as rec:
         assert rec.timestamps.tolist() == [-1.0, -(2.0**-32), 0.0, 1.5]
         assert rec.trigger_frame == 2
@@ -228,8 +245,7 @@ def test_time_stamps_are_seconds_from_the_trigger(tmp_path: Path) -> None:
 
 
 def test_without_time_stamps_times_follow_the_frame_rate(tmp_path: Path) -> None:
-    path = write(tmp_path, cine_bytes(np.zeros((3, 2, 2), np.uint16), frame_rate=35087, setup_length=5692,
-                                      first_no=-1))
+    path = write(tmp_path, cine_bytes(np.zeros((3, 2, 2), np.uint16), frame_rate=35087, setup_length=5692, first_no=-1))
     with open_recording(path) as rec:
         assert rec.fps == 35087.0 and rec.timestamps_source == "frame_rate"
         np.testing.assert_allclose(rec.timestamps, (np.arange(3) - 1) / 35087)
@@ -257,7 +273,18 @@ def test_info_is_json_and_its_header_fields_extend_the_common_ones(tmp_path: Pat
     path = write(tmp_path, cine_bytes(np.zeros((2, 4, 4), np.uint16), time64=np.zeros(2, np.uint64)))
     with open_recording(path) as rec:
         info = rec.info()
-        common = {"path", "format", "frames", "fps", "width", "height", "bit_depth", "dtype", "trigger_frame", "timestamps"}
+        common = {
+            "path",
+            "format",
+            "frames",
+            "fps",
+            "width",
+            "height",
+            "bit_depth",
+            "dtype",
+            "trigger_frame",
+            "timestamps",
+        }
         assert common <= info.keys() and not common & rec.header.keys()
         assert json.loads(json.dumps(info, allow_nan=False)) == info
 

@@ -5,6 +5,7 @@ packed 12-bit, 8-bit words); read back as the mosaic, rows top first; checked ag
 reads raw 16-bit mosaics, and against PIMS for the header (PIMS refuses uninterpolated frames).
 Inference sees OpenCV's demosaicing to grey.
 """
+
 from __future__ import annotations
 
 import json
@@ -24,8 +25,13 @@ from service.recordings.cine_writer import CFA_CODES, CineWriter
 from service.recordings.roi import roi_frames
 from service.scene import Scene
 
-LAYOUTS = [(16, False, "16-bit"), (12, False, "16-bit"), (10, True, "packed 10-bit"), (12, True, "packed 12-bit"),
-           (8, False, "8-bit")]
+LAYOUTS = [
+    (16, False, "16-bit"),
+    (12, False, "16-bit"),
+    (10, True, "packed 10-bit"),
+    (12, True, "packed 12-bit"),
+    (8, False, "8-bit"),
+]
 WHITE_BALANCE = (1.75, 2.25)
 
 
@@ -40,8 +46,9 @@ def mosaic_of(rgb: np.ndarray, pattern: str) -> np.ndarray:
 
 def write_colour(path: Path, frames: np.ndarray, bits: int, packed: bool, pattern: str) -> Path:
     _, height, width = frames.shape
-    with CineWriter(path, width, height, 19000.0, bits, packed=packed, cfa=pattern,
-                    white_balance=WHITE_BALANCE) as writer:
+    with CineWriter(
+        path, width, height, 19000.0, bits, packed=packed, cfa=pattern, white_balance=WHITE_BALANCE
+    ) as writer:
         writer.write(frames)
     return path
 
@@ -103,7 +110,9 @@ def test_the_scene_roi_of_a_colour_recording_is_demosaiced_before_cropping(tmp_p
     np.testing.assert_array_equal(roi, whole[:, y : y + cam.height_px, x : x + cam.width_px])
 
 
-def test_frames_and_info_verbs_give_the_mosaic_and_its_pattern(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_frames_and_info_verbs_give_the_mosaic_and_its_pattern(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
     frames = np.random.default_rng(4).integers(0, 1024, (5, 6, 8))
     path = write_colour(tmp_path / "colour.cine", frames, 10, True, "rggb")
     assert main(["frames", str(path), "--start", "1", "--count", "3", "--out", str(tmp_path / "f.npy")]) == 0
@@ -124,11 +133,14 @@ def test_raw_cfa_without_a_known_pattern_is_one_clear_error(tmp_path: Path) -> N
         open_recording(path)
 
 
-@pytest.mark.parametrize(("kwargs", "problem"), [
-    ({"bit_depth": 10}, "cannot be stored in words"),
-    ({"bit_depth": 16, "packed": True}, "cannot be stored packed"),
-    ({"bit_depth": 12, "cfa": "cmyk"}, "CFA pattern 'cmyk'"),
-])
+@pytest.mark.parametrize(
+    ("kwargs", "problem"),
+    [
+        ({"bit_depth": 10}, "cannot be stored in words"),
+        ({"bit_depth": 16, "packed": True}, "cannot be stored packed"),
+        ({"bit_depth": 12, "cfa": "cmyk"}, "CFA pattern 'cmyk'"),
+    ],
+)
 def test_the_writer_refuses_layouts_phantom_has_not(tmp_path: Path, kwargs: dict, problem: str) -> None:
     with pytest.raises(MeniscopeError, match=problem):
         CineWriter(tmp_path / "x.cine", 8, 4, 1000.0, **kwargs)

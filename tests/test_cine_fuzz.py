@@ -2,6 +2,7 @@
 
 When a damaged file opens, everything it claims must hold: every frame reads, ``info`` is strict JSON.
 """
+
 from __future__ import annotations
 
 import itertools
@@ -76,7 +77,9 @@ def test_bit_flips(tmp_path: Path, valid: bytes, flips: list[tuple[int, int]]) -
 
 @FUZZ
 @given(flips=st.lists(st.tuples(st.integers(0, 10**9), st.integers(0, 7)), min_size=1, max_size=8))
-def test_bit_flips_in_the_headers_of_a_real_file(tmp_path: Path, shared_dir: Path, flips: list[tuple[int, int]]) -> None:
+def test_bit_flips_in_the_headers_of_a_real_file(
+    tmp_path: Path, shared_dir: Path, flips: list[tuple[int, int]]
+) -> None:
     path = shared_dir / "data" / "cine" / "cine_781.cine"
     if not path.is_file():
         pytest.skip(f"real Phantom file {path} is absent")

@@ -4,6 +4,7 @@ pycine rescales words from SETUP's [BlackLevel, WhiteLevel] to [0, 2**RealBPP - 
 words only; the writer stores BlackLevel 0 and WhiteLevel 2**bit_depth - 1, so for 12- and 16-bit
 files pycine must return the words unchanged.
 """
+
 from __future__ import annotations
 
 import itertools
@@ -45,9 +46,7 @@ def recordings(draw: st.DrawFn) -> tuple[int, np.ndarray, np.ndarray | None, lis
     fps=st.floats(1e-3, 1e7, allow_nan=False),
     trigger_frame=st.integers(-5, 10),
 )
-def test_written_frames_read_back_identically(
-    tmp_path: Path, recording: tuple, fps: float, trigger_frame: int
-) -> None:
+def test_written_frames_read_back_identically(tmp_path: Path, recording: tuple, fps: float, trigger_frame: int) -> None:
     bits, frames, times, cuts = recording
     path = fresh(tmp_path)
     with open_writer(path, frames.shape[2], frames.shape[1], fps, bit_depth=bits, trigger_frame=trigger_frame) as w:

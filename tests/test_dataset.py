@@ -1,5 +1,6 @@
 """The training set: files that do not depend on the number of workers, a manifest that says how
 they were made, and a loader that maps them and refuses anything inconsistent, in one line."""
+
 from __future__ import annotations
 
 import argparse
@@ -13,7 +14,16 @@ from service.errors import MeniscopeError
 from service.physics import CoefficientRanges, centre_displacement
 from service.scene import Scene
 from training import verbs
-from training.dataset import FILES, GENERATOR_VERSION, SCHEMA, DatasetConfig, Jitter, generate, generate_chunk, open_dataset
+from training.dataset import (
+    FILES,
+    GENERATOR_VERSION,
+    SCHEMA,
+    DatasetConfig,
+    Jitter,
+    generate,
+    generate_chunk,
+    open_dataset,
+)
 
 
 @pytest.fixture(scope="module")
@@ -80,7 +90,12 @@ def test_the_manifest_records_how_the_set_was_made(config: DatasetConfig, made: 
     assert manifest["schema"] == SCHEMA and manifest["generator"]["version"] == GENERATOR_VERSION
     assert manifest["scene_sha256"] == config.scene.sha256
     assert manifest["config"]["scene"] == config.scene.model_dump(mode="json")
-    assert manifest["config"]["ranges"] == {"d": [-0.05, 0.05], "p": [-0.2, 0.2], "a": [-0.03, 0.03], "b": [-0.015, 0.015]}
+    assert manifest["config"]["ranges"] == {
+        "d": [-0.05, 0.05],
+        "p": [-0.2, 0.2],
+        "a": [-0.03, 0.03],
+        "b": [-0.015, 0.015],
+    }
     assert manifest["config"]["jitter"] == Jitter().model_dump() and "gain" in manifest["config"]["augment"]
     assert (manifest["samples"], manifest["chunks"], manifest["config"]["chunk_size"]) == (70, 3, 32)
     assert manifest["frames"] == {"shape": [70, 32, 32], "dtype": "uint8"}
@@ -168,15 +183,18 @@ def _cli(*argv: str) -> argparse.Namespace:
 def test_the_dataset_verb_writes_a_set(tmp_path: Path, small_scene: Scene, capsys: pytest.CaptureFixture) -> None:
     scene_file = tmp_path / "scene.json"
     scene_file.write_text(small_scene.to_json())
-    args = _cli("--scene", str(scene_file), "--out", str(tmp_path / "set"), "--samples", "10", "--seed", "1",
-                "--workers", "1")
+    args = _cli(
+        "--scene", str(scene_file), "--out", str(tmp_path / "set"), "--samples", "10", "--seed", "1", "--workers", "1"
+    )
     assert args.func(args) == 0
     assert "10 frames uint8 32x32" in capsys.readouterr().out
     assert len(open_dataset(tmp_path / "set", scene=small_scene)) == 10
 
 
-@pytest.mark.parametrize("option, value, message", [("--samples", "0", "--samples"), ("--bit-depth", "9", "--bit-depth"),
-                                                    ("--workers", "0", "--workers")])
+@pytest.mark.parametrize(
+    "option, value, message",
+    [("--samples", "0", "--samples"), ("--bit-depth", "9", "--bit-depth"), ("--workers", "0", "--workers")],
+)
 def test_the_dataset_verb_names_a_bad_option(tmp_path: Path, option: str, value: str, message: str) -> None:
     args = _cli("--out", str(tmp_path / "set"), option, value)
     with pytest.raises(MeniscopeError, match=message):

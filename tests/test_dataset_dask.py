@@ -1,5 +1,6 @@
 """Scale-out: a dataset rendered on a Dask cluster (two worker processes) is byte for byte the one this
 process renders alone for the same seed, and a scheduler that cannot be reached is one clear line."""
+
 from __future__ import annotations
 
 import argparse
@@ -28,13 +29,15 @@ def config(scene: Scene) -> DatasetConfig:
 
 @pytest.fixture(scope="module")
 def cluster() -> distributed.LocalCluster:
-    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None,
-                                  silence_logs=40) as local:
+    with distributed.LocalCluster(
+        n_workers=2, threads_per_worker=1, processes=True, dashboard_address=None, silence_logs=40
+    ) as local:
         yield local
 
 
 def test_a_two_worker_cluster_writes_the_same_files_as_one_process(
-        config: DatasetConfig, cluster: distributed.LocalCluster, tmp_path: Path) -> None:
+    config: DatasetConfig, cluster: distributed.LocalCluster, tmp_path: Path
+) -> None:
     generate(config, tmp_path / "alone", workers=1)
     manifest = generate(config, tmp_path / "dask", scheduler=cluster.scheduler_address)
     for name in FILES:
@@ -46,7 +49,8 @@ def test_a_two_worker_cluster_writes_the_same_files_as_one_process(
 
 
 def test_an_unreachable_scheduler_is_one_line_and_leaves_no_folder(
-        config: DatasetConfig, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    config: DatasetConfig, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     with socket.socket() as s:  # a port nobody listens on
         s.bind(("127.0.0.1", 0))
         address = f"tcp://127.0.0.1:{s.getsockname()[1]}"
@@ -56,13 +60,25 @@ def test_an_unreachable_scheduler_is_one_line_and_leaves_no_folder(
     assert not (tmp_path / "set").exists()
 
 
-def test_the_dataset_verb_takes_a_scheduler(config: DatasetConfig, cluster: distributed.LocalCluster,
-                                            tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+def test_the_dataset_verb_takes_a_scheduler(
+    config: DatasetConfig, cluster: distributed.LocalCluster, tmp_path: Path, capsys: pytest.CaptureFixture
+) -> None:
     parser = argparse.ArgumentParser()
     register(parser.add_subparsers(dest="verb"))
     scene_file = tmp_path / "scene.json"
     scene_file.write_text(config.scene.to_json())
-    args = parser.parse_args(["dataset", "--scene", str(scene_file), "--out", str(tmp_path / "set"), "--samples", "5",
-                              "--scheduler", cluster.scheduler_address])
+    args = parser.parse_args(
+        [
+            "dataset",
+            "--scene",
+            str(scene_file),
+            "--out",
+            str(tmp_path / "set"),
+            "--samples",
+            "5",
+            "--scheduler",
+            cluster.scheduler_address,
+        ]
+    )
     assert args.func(args) == 0
     assert "5 frames uint8 16x16" in capsys.readouterr().out

@@ -2,6 +2,7 @@
 passes `docker compose config` (or docker-compose's); the Dockerfile's structure keeps its promises
 (two stages, no torch, non-root, health check, default models, the serve command); the build context
 holds what the Dockerfile copies."""
+
 from __future__ import annotations
 
 import fnmatch
@@ -22,7 +23,9 @@ COMPOSE = ROOT / "docker-compose.yml"
 
 def _instructions() -> list[tuple[str, str]]:
     """(INSTRUCTION, arguments) of the Dockerfile, continuation lines joined, comments dropped."""
-    text = re.sub(r"\\\n", " ", "\n".join(l for l in DOCKERFILE.read_text().splitlines() if not l.lstrip().startswith("#")))
+    text = re.sub(
+        r"\\\n", " ", "\n".join(l for l in DOCKERFILE.read_text().splitlines() if not l.lstrip().startswith("#"))
+    )
     return [(line.split(None, 1)[0].upper(), line.split(None, 1)[1]) for line in text.splitlines() if line.strip()]
 
 
@@ -47,15 +50,24 @@ def _compose_command() -> list[str]:
 
 def test_compose_config_accepts_the_file_and_passes_the_source_through() -> None:
     env = {k: v for k, v in os.environ.items() if not k.startswith("MENISCOPE_")} | {"MENISCOPE_SOURCE": "v4l2://0"}
-    result = subprocess.run([*_compose_command(), "-f", str(COMPOSE), "config"], capture_output=True, text=True,
-                            timeout=60, env=env, cwd=ROOT)
+    result = subprocess.run(
+        [*_compose_command(), "-f", str(COMPOSE), "config"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        env=env,
+        cwd=ROOT,
+    )
     assert result.returncode == 0, result.stderr
     config = yaml.safe_load(result.stdout)
     assert set(config["services"]) == {"meniscope", "prometheus", "grafana"}
     meniscope = config["services"]["meniscope"]
     assert meniscope["build"]["dockerfile"] == "deploy/Dockerfile"
     assert meniscope["environment"]["MENISCOPE_SOURCE"] == "v4l2://0"
-    assert {int(p["target"]) if isinstance(p, dict) else int(p.split(":")[-1]) for p in meniscope["ports"]} == {8000, 5556}
+    assert {int(p["target"]) if isinstance(p, dict) else int(p.split(":")[-1]) for p in meniscope["ports"]} == {
+        8000,
+        5556,
+    }
 
 
 def test_compose_mounts_what_prometheus_reads() -> None:
@@ -72,11 +84,12 @@ def test_the_image_builds_in_two_stages_and_runs_without_root() -> None:
     build, runtime = _stages()[0], _stages()[-1]
     assert len(_stages()) >= 2
     installs = " ".join(a for op, a in build if op == "RUN")
-    assert "pip install" in installs and "[train" not in installs and "torch" not in installs.replace('import torch', '')
+    assert (
+        "pip install" in installs and "[train" not in installs and "torch" not in installs.replace("import torch", "")
+    )
     users = [a for op, a in runtime if op == "USER"]
     assert users and users[-1].split(":")[0] not in {"root", "0"}
     assert not any(op == "RUN" and "pip install" in a for op, a in runtime), "the runtime stage installs nothing"
-
 
 
 def test_the_image_compiles_the_window_fit_as_the_user_that_runs_it() -> None:
@@ -88,6 +101,7 @@ def test_the_image_compiles_the_window_fit_as_the_user_that_runs_it() -> None:
     assert warms and warms[-1] > user
     assert "NUMBA_CACHE_DIR=" in " ".join(a for op, a in runtime if op == "ENV")
 
+
 def test_the_image_checks_health_bakes_models_and_serves() -> None:
     runtime = _stages()[-1]
     [health] = [a for op, a in runtime if op == "HEALTHCHECK"]
@@ -95,14 +109,21 @@ def test_the_image_checks_health_bakes_models_and_serves() -> None:
     assert any(op == "COPY" and a.split()[0] == "models" for op, a in runtime)
     entry = next(a for op, a in reversed(runtime) if op == "ENTRYPOINT")
     cmd = next(a for op, a in reversed(runtime) if op == "CMD")
-    assert re.findall(r'"([^"]*)"', entry) + re.findall(r'"([^"]*)"', cmd) == ["meniscope", "serve", "--host", "0.0.0.0"]
+    assert re.findall(r'"([^"]*)"', entry) + re.findall(r'"([^"]*)"', cmd) == [
+        "meniscope",
+        "serve",
+        "--host",
+        "0.0.0.0",
+    ]
     env = " ".join(a for op, a in runtime if op == "ENV")
     assert "MENISCOPE_DATA_DIR=" in env and "MENISCOPE_SOURCE" not in env, "unset, the service picks its own default"
 
 
 def test_the_build_context_holds_what_the_dockerfile_copies() -> None:
     """Every COPY source exists and .dockerignore (an allow-list) lets it in."""
-    rules = [l.strip() for l in (ROOT / ".dockerignore").read_text().splitlines() if l.strip() and not l.startswith("#")]
+    rules = [
+        l.strip() for l in (ROOT / ".dockerignore").read_text().splitlines() if l.strip() and not l.startswith("#")
+    ]
 
     def included(path: str) -> bool:
         keep = True
@@ -131,8 +152,8 @@ def test_the_images_settings_bind_zeromq_where_compose_publishes_it(monkeypatch:
     127.0.0.1 inside the container, compose's published 5556 reached nothing), on a port compose publishes."""
     from urllib.parse import urlsplit
 
+    from service.server.settings import load_settings
     from service.server.zmq_publisher import ZmqPublisher
-    from service.settings import load_settings
 
     env = dict(re.findall(r"(MENISCOPE_\w+)=(\S+)", " ".join(a for op, a in _stages()[-1] if op == "ENV")))
     for name in [k for k in os.environ if k.startswith("MENISCOPE_")]:

@@ -1,14 +1,15 @@
 """deploy/grafana: the dashboard is well formed, reads only the metric contract (deploy/metrics.txt) and
 recorded series, shows every contract metric somewhere, and names the provisioned datasource."""
+
 from __future__ import annotations
 
 import json
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any
 
 import pytest
 import yaml
-
 from metric_contract import load_contract, metric_names_in, rule_names_in, series_names
 
 DEPLOY = Path(__file__).resolve().parents[1] / "deploy"
@@ -24,8 +25,13 @@ def dashboard() -> dict[str, Any]:
 @pytest.fixture(scope="module")
 def recorded() -> dict[str, str]:
     """Recording rules: name -> expression."""
-    return {r["record"]: r["expr"] for path in sorted((DEPLOY / "prometheus" / "rules").glob("*.yml"))
-            for g in yaml.safe_load(path.read_text())["groups"] for r in g["rules"] if "record" in r}
+    return {
+        r["record"]: r["expr"]
+        for path in sorted((DEPLOY / "prometheus" / "rules").glob("*.yml"))
+        for g in yaml.safe_load(path.read_text())["groups"]
+        for r in g["rules"]
+        if "record" in r
+    }
 
 
 def _panels(dashboard: dict[str, Any]) -> Iterator[dict[str, Any]]:
@@ -66,12 +72,17 @@ def test_panels_do_not_overlap(dashboard: dict[str, Any]) -> None:
                 cells[(x, y)] = p["title"]
 
 
-def test_queries_read_only_contract_metrics_and_recorded_series(dashboard: dict[str, Any],
-                                                                recorded: dict[str, str]) -> None:
+def test_queries_read_only_contract_metrics_and_recorded_series(
+    dashboard: dict[str, Any], recorded: dict[str, str]
+) -> None:
     exported = series_names(load_contract())
     for where, expr in _exprs(dashboard):
-        assert not metric_names_in(expr) - exported, f"{where}: {metric_names_in(expr) - exported} not in deploy/metrics.txt"
-        assert not rule_names_in(expr) - set(recorded), f"{where}: {rule_names_in(expr) - set(recorded)} recorded nowhere"
+        assert not metric_names_in(expr) - exported, (
+            f"{where}: {metric_names_in(expr) - exported} not in deploy/metrics.txt"
+        )
+        assert not rule_names_in(expr) - set(recorded), (
+            f"{where}: {rule_names_in(expr) - set(recorded)} recorded nowhere"
+        )
 
 
 def test_every_contract_metric_is_on_the_dashboard(dashboard: dict[str, Any], recorded: dict[str, str]) -> None:

@@ -1,5 +1,6 @@
 """deploy/prometheus: the config and rules pass promtool, every alert is proven to fire (and to stay
 quiet) by `promtool test rules`, and the rules read only metrics of the contract (deploy/metrics.txt)."""
+
 from __future__ import annotations
 
 import shutil
@@ -8,15 +9,22 @@ from pathlib import Path
 
 import pytest
 import yaml
-
 from metric_contract import load_contract, metric_names_in, rule_names_in, series_names
 
 PROMETHEUS = Path(__file__).resolve().parents[1] / "deploy" / "prometheus"
 RULE_FILES = sorted((PROMETHEUS / "rules").glob("*.yml"))
 #: The alerts the deployment promises (issue 7), each with a test in tests/alerts_test.yml.
-ALERTS = {"MeniscopeUnsettledEjections", "MeniscopeFrequencyDrift", "MeniscopeDroppedFrames", "MeniscopeSourceDown",
-          "MeniscopeNotReady", "MeniscopeDown", "MeniscopeNoSignal", "MeniscopeHistoryFailing",
-          "MeniscopeTriggerDisagrees"}
+ALERTS = {
+    "MeniscopeUnsettledEjections",
+    "MeniscopeFrequencyDrift",
+    "MeniscopeDroppedFrames",
+    "MeniscopeSourceDown",
+    "MeniscopeNotReady",
+    "MeniscopeDown",
+    "MeniscopeNoSignal",
+    "MeniscopeHistoryFailing",
+    "MeniscopeTriggerDisagrees",
+}
 
 
 def _promtool(*args: str) -> subprocess.CompletedProcess:
@@ -27,7 +35,9 @@ def _promtool(*args: str) -> subprocess.CompletedProcess:
 
 
 def _rules() -> list[dict]:
-    return [rule for path in RULE_FILES for group in yaml.safe_load(path.read_text())["groups"] for rule in group["rules"]]
+    return [
+        rule for path in RULE_FILES for group in yaml.safe_load(path.read_text())["groups"] for rule in group["rules"]
+    ]
 
 
 def test_promtool_accepts_the_config_and_its_rule_files() -> None:
@@ -65,4 +75,6 @@ def test_the_rules_read_only_contract_metrics_and_recorded_series() -> None:
 def test_every_alert_has_a_severity_and_a_summary() -> None:
     for rule in _rules():
         if "alert" in rule:
-            assert rule["labels"]["severity"] in {"warning", "critical"} and rule["annotations"]["summary"], rule["alert"]
+            assert rule["labels"]["severity"] in {"warning", "critical"} and rule["annotations"]["summary"], rule[
+                "alert"
+            ]

@@ -1,5 +1,6 @@
 """deploy/systemd: the unit passes `systemd-analyze verify` with no complaint (the check is shown to
 complain about a broken copy), stays well hardened, and its user file and example config parse."""
+
 from __future__ import annotations
 
 import re
@@ -34,8 +35,9 @@ def _verify(unit_text: str, root: Path) -> subprocess.CompletedProcess:
     exe.chmod(0o755)
     (root / "etc/systemd/system").mkdir(parents=True, exist_ok=True)
     (root / "etc/systemd/system/meniscope.service").write_text(unit_text)
-    return subprocess.run([_analyze(), "verify", f"--root={root}", "meniscope.service"], capture_output=True,
-                          text=True, timeout=60)
+    return subprocess.run(
+        [_analyze(), "verify", f"--root={root}", "meniscope.service"], capture_output=True, text=True, timeout=60
+    )
 
 
 def test_the_unit_verifies_without_a_complaint(tmp_path: Path) -> None:
@@ -55,8 +57,9 @@ def test_verify_would_catch_a_typo(tmp_path: Path) -> None:
 
 
 def test_the_unit_is_hardened() -> None:
-    result = subprocess.run([_analyze(), "security", "--offline=yes", "--no-pager", str(UNIT)], capture_output=True,
-                            text=True, timeout=60)
+    result = subprocess.run(
+        [_analyze(), "security", "--offline=yes", "--no-pager", str(UNIT)], capture_output=True, text=True, timeout=60
+    )
     match = re.search(r"Overall exposure level for meniscope.service: ([\d.]+)", result.stdout + result.stderr)
     if match is None:
         pytest.skip(f"this systemd-analyze has no offline security check: {result.stderr.strip()[:200]}")
@@ -65,8 +68,14 @@ def test_the_unit_is_hardened() -> None:
 
 def test_the_unit_runs_as_its_own_user_and_restarts() -> None:
     text = UNIT.read_text()
-    for line in ("User=meniscope", "Restart=on-failure", "NoNewPrivileges=yes", "ProtectSystem=strict",
-                 "StateDirectory=meniscope", "--config /etc/meniscope/config.toml"):
+    for line in (
+        "User=meniscope",
+        "Restart=on-failure",
+        "NoNewPrivileges=yes",
+        "ProtectSystem=strict",
+        "StateDirectory=meniscope",
+        "--config /etc/meniscope/config.toml",
+    ):
         assert line in text, line
     assert "MemoryDenyWriteExecute=yes" not in text, "numba's JIT needs writable executable memory"
 
@@ -78,8 +87,12 @@ def test_the_sysusers_file_makes_the_user(tmp_path: Path) -> None:
     (tmp_path / "etc").mkdir()
     (tmp_path / "etc/passwd").write_text("root:x:0:0::/root:/bin/sh\n")
     (tmp_path / "etc/group").write_text("root:x:0:\nvideo:x:44:\n")
-    result = subprocess.run([exe, f"--root={tmp_path}", "--dry-run", str(SYSTEMD / "meniscope.sysusers.conf")],
-                            capture_output=True, text=True, timeout=60)
+    result = subprocess.run(
+        [exe, f"--root={tmp_path}", "--dry-run", str(SYSTEMD / "meniscope.sysusers.conf")],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert result.returncode == 0, result.stderr
     assert "Creating user 'meniscope'" in result.stdout + result.stderr
 

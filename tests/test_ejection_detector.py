@@ -1,8 +1,6 @@
 """The one ejection detector: every kind of window, live and offline, found within 2 frames, whatever the batching."""
-from __future__ import annotations
 
-import json
-from pathlib import Path
+from __future__ import annotations
 
 import numpy as np
 import pytest
@@ -27,8 +25,16 @@ def every_kind(tmp_path_factory: pytest.TempPathFactory) -> tuple[np.ndarray, di
     """Frame change and truth of a rendered recording with one window of each kind, at the noisiest preset."""
     out = tmp_path_factory.mktemp("kinds") / "kinds.cine"
     names = ",".join(KINDS)
-    truth = simulate(Scene.load(DEFAULT_SCENE), out, windows=len(KINDS) + 1, seed=3, effects=noise_preset("high", 12),
-                     noise="high", kinds=kinds_named(names), kind_names=names.split(","))
+    truth = simulate(
+        Scene.load(DEFAULT_SCENE),
+        out,
+        windows=len(KINDS) + 1,
+        seed=3,
+        effects=noise_preset("high", 12),
+        noise="high",
+        kinds=kinds_named(names),
+        kind_names=names.split(","),
+    )
     with open_recording(out) as rec:
         return frame_steps(rec.read_grey(0, len(rec))), truth
 
@@ -57,10 +63,14 @@ def bursts(at: list[int], n: int, rng: np.random.Generator, ringing: float = 0.0
 
 
 @settings(max_examples=10, deadline=None)
-@given(batches=st.lists(st.integers(7, 300), min_size=1, max_size=20), seed=st.integers(0, 2**16),
-       ringing=st.floats(0.0, 40.0))
-def test_the_ejections_do_not_depend_on_how_the_frames_are_batched(batches: list[int], seed: int,
-                                                                    ringing: float) -> None:
+@given(
+    batches=st.lists(st.integers(7, 300), min_size=1, max_size=20),
+    seed=st.integers(0, 2**16),
+    ringing=st.floats(0.0, 40.0),
+)
+def test_the_ejections_do_not_depend_on_how_the_frames_are_batched(
+    batches: list[int], seed: int, ringing: float
+) -> None:
     rng = np.random.default_rng(seed)
     true = [150, 345, 530, 731, 905]
     change = bursts(true, 1100, rng, ringing)

@@ -1,5 +1,6 @@
 """The fit workers (service.pipeline.fitting.FitPool): windows handed over and fitted in other processes, one
-in flight and one waiting per worker, and a worker that dies."""
+in flight per worker and up to BACKLOG waiting, and a worker that dies."""
+
 from __future__ import annotations
 
 import os
@@ -13,7 +14,7 @@ import pytest
 from service.analysis.results import FitSettings, WindowResult
 from service.analysis.segment import Window
 from service.errors import MeniscopeError
-from service.pipeline.fitting import FitPool
+from service.pipeline.fitting import BACKLOG, FitPool
 from service.pipeline.windows import WindowJob, fit_job
 
 FPS = 19000.0
@@ -51,37 +52,41 @@ def test_a_window_is_fitted_in_its_worker_as_in_process_and_its_times_follow_eac
     submitted = time.monotonic()
     assert pool.submit(closed, FPS, results)
     assert results.done.wait(60)
-    (back, result, started, finished, delivered), = results.got
+    ((back, result, started, finished, delivered),) = results.got
     assert back is closed
     assert result == fit_job(closed, FPS, FitSettings())
     assert submitted <= started <= finished <= delivered  # one monotonic clock across the processes
 
 
-def test_a_window_finding_every_worker_busy_waits_once_and_one_more_is_refused(pool: FitPool) -> None:
-    first, second, third = (WindowJob(Window(k, 0, 190, True, True), damped()) for k in (0, 1, 2))
-    results = Results(2)
-    assert pool.submit(first, FPS, results)
-    assert pool.submit(second, FPS, results)  # one worker busy: the window waits behind its fit
-    assert not pool.submit(third, FPS, results)  # one waiting per worker: refused, nothing queued
+def test_windows_finding_every_worker_busy_wait_in_order_up_to_the_backlog_and_one_more_is_refused(
+    pool: FitPool,
+) -> None:
+    jobs = [WindowJob(Window(k, 0, 190, True, True), damped()) for k in range(BACKLOG + 2)]
+    *accepted, refused = jobs
+    results = Results(len(accepted))
+    assert all(pool.submit(job, FPS, results) for job in accepted)  # one in flight, BACKLOG waiting
+    assert not pool.submit(refused, FPS, results)  # the backlog is full: refused, nothing queued
     assert results.done.wait(60)
-    assert [closed.window.index for closed, *_ in results.got] == [0, 1]
-    (_, _, _, first_done, _), (_, _, second_started, _, _) = results.got
-    assert first_done <= second_started  # the waiting window went to the worker once it was free
-    results.expected, results.done = 3, threading.Event()
-    assert pool.submit(third, FPS, results)
+    assert [closed.window.index for closed, *_ in results.got] == list(range(len(accepted)))
+    finished = [got[3] for got in results.got]
+    started = [got[2] for got in results.got]
+    assert all(done <= next_start for done, next_start in zip(finished, started[1:]))  # one after another
+    results.expected, results.done = len(jobs), threading.Event()
+    assert pool.submit(refused, FPS, results)
     assert results.done.wait(60)
-    assert [closed.window.index for closed, *_ in results.got] == [0, 1, 2]
+    assert results.got[-1][0] is refused
 
 
 def kill_worker(pool: FitPool) -> None:
     """Kill the pool's one worker process, as the OOM killer would, and wait until it is gone."""
-    process = pool._all[0].process  # noqa: SLF001 - the test reaches for the process to kill it
+    process = pool._all[0].process
     os.kill(process.pid, signal.SIGKILL)
     process.join(10)
 
 
 def test_a_worker_that_dies_while_fitting_fails_its_window_and_the_one_waiting_and_the_pool_reports_itself_broken(
-        pool: FitPool) -> None:
+    pool: FitPool,
+) -> None:
     results = Results(2)
     n = 200_000  # a fit of seconds: still running when the worker is killed just after the hand-over
     long_window = WindowJob(Window(0, 0, n, True, True), damped(n))

@@ -1,5 +1,6 @@
 """The window-fit suite (``meniscope bench fit``): its windows, its Cramer-Rao bound and its scoring, and the verb
 end to end; then the fit's behaviour at the extremes the suite measures, as properties."""
+
 from __future__ import annotations
 
 import json
@@ -41,8 +42,10 @@ def test_the_cramer_rao_bound_is_the_inverse_fisher_information_of_the_true_mode
 
     p = np.r_[0.0, np.ravel(w.modes)]
     steps = np.abs(p) * 1e-6 + 1e-12
-    jac = np.stack([(model(p + np.eye(p.size)[k] * h) - model(p - np.eye(p.size)[k] * h)) / (2 * h)
-                    for k, h in enumerate(steps)], axis=1)
+    jac = np.stack(
+        [(model(p + np.eye(p.size)[k] * h) - model(p - np.eye(p.size)[k] * h)) / (2 * h) for k, h in enumerate(steps)],
+        axis=1,
+    )
     sd = np.sqrt(np.diag(np.linalg.inv(jac.T @ jac / w.sigma**2)))
     assert fitsuite.cramer_rao_sd(w) == pytest.approx((sd[3], sd[2]), rel=1e-4)  # f, then g of mode 1
 
@@ -87,8 +90,13 @@ def _mode(n: int, a: float, g: float, f: float, phase: float) -> np.ndarray:
 
 
 @settings(max_examples=25, deadline=None)
-@given(f=st.floats(600, 3000), g=st.floats(100, 600), phase=st.floats(-np.pi, np.pi), seed=st.integers(0, 10_000),
-       spikes=st.integers(2, 6))
+@given(
+    f=st.floats(600, 3000),
+    g=st.floats(100, 600),
+    phase=st.floats(-np.pi, np.pi),
+    seed=st.integers(0, 10_000),
+    spikes=st.integers(2, 6),
+)
 def test_spikes_of_twenty_times_the_amplitude_leave_the_mode_found(f, g, phase, seed, spikes):
     rng = np.random.default_rng(seed)
     y = _mode(190, 0.01, g, f, phase) + rng.normal(0, 2e-4, 190)
@@ -148,4 +156,6 @@ def test_a_held_parameter_keeps_its_start_in_the_compiled_search():
     free = np.ones(6, dtype=bool)
     free[1] = False
     held = kernels.levenberg_marquardt(n, y, 1.0, False, start, 1e-10, 500, free)
-    assert held[1] == 0.02 and kernels.levenberg_marquardt(n, y, 1.0, False, start, 1e-10, 500)[1] == pytest.approx(0.01)
+    assert held[1] == 0.02 and kernels.levenberg_marquardt(n, y, 1.0, False, start, 1e-10, 500)[1] == pytest.approx(
+        0.01
+    )

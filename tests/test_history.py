@@ -1,4 +1,5 @@
 """The window history: SQLite in WAL mode, kept across restarts, pruned by age and by count."""
+
 from __future__ import annotations
 
 import json
@@ -10,8 +11,16 @@ from service.server.history import History
 
 
 def result(index: int) -> WindowResult:
-    return WindowResult(index=index, start_frame=190 * index, end_frame=190 * (index + 1), status="settled",
-                        reason="no oscillation above the noise", offset_mm=0.01, settling_time_s=0.0, settled=True)
+    return WindowResult(
+        index=index,
+        start_frame=190 * index,
+        end_frame=190 * (index + 1),
+        status="settled",
+        reason="no oscillation above the noise",
+        offset_mm=0.01,
+        settling_time_s=0.0,
+        settled=True,
+    )
 
 
 def test_windows_survive_a_restart_and_ids_keep_growing(tmp_path: Path) -> None:

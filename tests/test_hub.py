@@ -1,5 +1,6 @@
 """The WebSocket hub: every client gets every message in order, one that goes away leaves at once, and a
 server that stops cancels the senders (none swallowed)."""
+
 from __future__ import annotations
 
 import asyncio

@@ -6,6 +6,7 @@ copy of this checkout (the files git knows), with the link put in a folder of th
 (MENISCOPE_BIN), so that the machine's /usr/local/bin is left alone. The runtime install only: the
 wheels come from pip's cache (tests/run.sh filled it a moment before), so it takes a minute or two.
 """
+
 from __future__ import annotations
 
 import json
@@ -28,8 +29,13 @@ pytestmark = pytest.mark.slow
 
 def checkout_copy(to: Path) -> Path:
     """The files git knows of this checkout (tracked, and untracked not ignored), copied to ``to``."""
-    listed = subprocess.run(["git", "-C", str(ROOT), "ls-files", "-co", "--exclude-standard", "-z"],
-                            capture_output=True, check=True).stdout.decode().split("\0")
+    listed = (
+        subprocess.run(
+            ["git", "-C", str(ROOT), "ls-files", "-co", "--exclude-standard", "-z"], capture_output=True, check=True
+        )
+        .stdout.decode()
+        .split("\0")
+    )
     for name in filter(None, listed):
         source = ROOT / name
         if source.is_file():  # tracked files deleted in the work tree are skipped
@@ -49,15 +55,28 @@ def installed(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     checkout = checkout_copy(base / "checkout")
     bin_dir, home = base / "bin", base / "home"
     home.mkdir()
-    env = {k: v for k, v in os.environ.items()
-           if k not in ("VIRTUAL_ENV", "PYTHONPATH", "PYTHONHOME") and not k.startswith("MENISCOPE_")}
-    env.update(PYTHON=str(DEBIAN_PYTHON), MENISCOPE_BIN=str(bin_dir), HOME=str(home),
-               PIP_CACHE_DIR=os.environ.get("PIP_CACHE_DIR", str(Path.home() / ".cache" / "pip")))
-    done = subprocess.run(["bash", "deploy/install.sh"], cwd=checkout, env=env, capture_output=True, text=True,
-                          timeout=INSTALL_TIMEOUT_S)
+    env = {
+        k: v
+        for k, v in os.environ.items()
+        if k not in ("VIRTUAL_ENV", "PYTHONPATH", "PYTHONHOME") and not k.startswith("MENISCOPE_")
+    }
+    env.update(
+        PYTHON=str(DEBIAN_PYTHON),
+        MENISCOPE_BIN=str(bin_dir),
+        HOME=str(home),
+        PIP_CACHE_DIR=os.environ.get("PIP_CACHE_DIR", str(Path.home() / ".cache" / "pip")),
+    )
+    done = subprocess.run(
+        ["bash", "deploy/install.sh"], cwd=checkout, env=env, capture_output=True, text=True, timeout=INSTALL_TIMEOUT_S
+    )
     assert done.returncode == 0, done.stderr[-3000:]
-    return {"checkout": checkout, "venv": checkout / ".venv", "command": bin_dir / "meniscope",
-            "stdout": done.stdout, "stderr": done.stderr}
+    return {
+        "checkout": checkout,
+        "venv": checkout / ".venv",
+        "command": bin_dir / "meniscope",
+        "stdout": done.stdout,
+        "stderr": done.stderr,
+    }
 
 
 def run(command: Path, *args: str | Path) -> subprocess.CompletedProcess:
@@ -67,8 +86,12 @@ def run(command: Path, *args: str | Path) -> subprocess.CompletedProcess:
 
 
 def test_the_environment_is_made_from_debians_python(installed: dict[str, Path]) -> None:
-    stdlib = subprocess.run([str(DEBIAN_PYTHON), "-c", "import sysconfig; print(sysconfig.get_path('stdlib'))"],
-                            capture_output=True, text=True, check=True).stdout.strip()
+    stdlib = subprocess.run(
+        [str(DEBIAN_PYTHON), "-c", "import sysconfig; print(sysconfig.get_path('stdlib'))"],
+        capture_output=True,
+        text=True,
+        check=True,
+    ).stdout.strip()
     if not (Path(stdlib) / "EXTERNALLY-MANAGED").is_file():
         pytest.skip(f"{DEBIAN_PYTHON} is not externally managed (PEP 668) here: the case this test is for")
     config = (installed["venv"] / "pyvenv.cfg").read_text()
@@ -87,8 +110,9 @@ def test_the_linked_command_runs_the_installed_package(installed: dict[str, Path
 
 
 def test_the_installed_environment_holds_one_opencv(installed: dict[str, Path]) -> None:
-    done = subprocess.run([str(installed["venv"] / "bin" / "python"), cv2_owners.__file__],
-                          capture_output=True, text=True, check=True)
+    done = subprocess.run(
+        [str(installed["venv"] / "bin" / "python"), cv2_owners.__file__], capture_output=True, text=True, check=True
+    )
     assert json.loads(done.stdout) == [SERVICE_OPENCV]
 
 
@@ -96,4 +120,3 @@ def test_training_verbs_say_how_to_add_the_training_extra(installed: dict[str, P
     done = run(installed["command"], "train", "--lab-video", tmp_path / "lab.cine", "--out", tmp_path / "models")
     assert done.returncode == 2 and len(done.stderr.strip().splitlines()) == 1, done.stderr
     assert "'.[train]'" in done.stderr and "Traceback" not in done.stderr
-

@@ -1,4 +1,5 @@
 """Live segmentation: the ejection detector and the streaming segmenter cut a stream as the offline analysis would."""
+
 from __future__ import annotations
 
 import json
@@ -13,12 +14,12 @@ from service.pipeline.ejections import EjectionDetector
 from service.pipeline.segmenter import StreamingSegmenter
 from service.recordings import open_recording
 
-
 FPS = 19_000.0
 
 
-def segment(segmenter: StreamingSegmenter, indices: np.ndarray, values: np.ndarray, change: np.ndarray,
-            batch: int) -> list:
+def segment(
+    segmenter: StreamingSegmenter, indices: np.ndarray, values: np.ndarray, change: np.ndarray, batch: int
+) -> list:
     closed = []
     for lo in range(0, len(indices), batch):
         part = slice(lo, lo + batch)
@@ -42,8 +43,9 @@ def test_the_demo_recording_is_cut_at_its_true_ejections_whatever_the_batching(b
     frames = np.concatenate([frames, frames])  # as the looping replay delivers them
     indices = np.arange(len(frames))
     tracker = ActivityTracker()
-    change = np.concatenate([tracker.update(frames[i:i + batch], indices[i:i + batch])[0]
-                             for i in range(0, len(frames), batch)])
+    change = np.concatenate(
+        [tracker.update(frames[i : i + batch], indices[i : i + batch])[0] for i in range(0, len(frames), batch)]
+    )
     truth = json.loads(DEMO_TRUTH.read_text())
     seg = StreamingSegmenter(950, EjectionDetector(truth["recording"]["fps"], refractory=95))
     closed = segment(seg, indices, indices.astype(float), change, batch)
@@ -71,7 +73,9 @@ def test_frames_wait_only_for_the_detectors_look_ahead() -> None:
     change = bursts([300], 400)
     closed = segment(seg, np.arange(300 + detector.latency), np.zeros(400), change, 1)
     assert closed == []
-    closed = seg.push(np.array([300 + detector.latency]), np.zeros(1), change[300 + detector.latency :][:1], np.zeros(1))
+    closed = seg.push(
+        np.array([300 + detector.latency]), np.zeros(1), change[300 + detector.latency :][:1], np.zeros(1)
+    )
     assert [c.window.end for c in closed] == [300]  # closed as soon as the look-ahead after the ejection is in
     assert detector.latency <= 12  # a few frames at 19,000 frames/s
 

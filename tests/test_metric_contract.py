@@ -1,14 +1,14 @@
 """tests/metric_contract.py: the contract file parses, and `missing_from` (which the service's /metrics test
 can call) accepts a complete exposition and names what an incomplete one lacks."""
+
 from __future__ import annotations
 
 import shutil
 import subprocess
 
 import pytest
-from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, generate_latest
-
 from metric_contract import load_contract, missing_from
+from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, generate_latest
 
 KINDS = {"counter": Counter, "gauge": Gauge, "histogram": Histogram}
 
@@ -43,15 +43,22 @@ def test_the_contract_names_pass_promtool_lint() -> None:
     """Base units, _total counters, help text: what `promtool check metrics` asks of an exporter."""
     if shutil.which("promtool") is None:
         pytest.skip("promtool not found (Debian package prometheus)")
-    result = subprocess.run(["promtool", "check", "metrics"], input=_exposition(), capture_output=True, text=True,
-                            timeout=60)
+    result = subprocess.run(
+        ["promtool", "check", "metrics"], input=_exposition(), capture_output=True, text=True, timeout=60
+    )
     assert result.returncode == 0 and not result.stdout.strip(), result.stdout + result.stderr
 
 
-@pytest.mark.parametrize("args, problem", [
-    ({"skip": "meniscope_source_up"}, "meniscope_source_up: not exported"),
-    ({"kind_of": {"meniscope_settling_time_seconds": "gauge"}}, "meniscope_settling_time_seconds: a gauge, not a histogram"),
-    ({"label_values": 2}, "meniscope_windows_total: no series with status='unresolved'"),
-])
+@pytest.mark.parametrize(
+    "args, problem",
+    [
+        ({"skip": "meniscope_source_up"}, "meniscope_source_up: not exported"),
+        (
+            {"kind_of": {"meniscope_settling_time_seconds": "gauge"}},
+            "meniscope_settling_time_seconds: a gauge, not a histogram",
+        ),
+        ({"label_values": 2}, "meniscope_windows_total: no series with status='unresolved'"),
+    ],
+)
 def test_an_incomplete_exposition_is_named(args: dict, problem: str) -> None:
     assert problem in missing_from(_exposition(**args))

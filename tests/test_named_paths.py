@@ -1,5 +1,6 @@
 """Every file a help text or the README names is in the repository, and the ZeroMQ frame document
 describes the header the encoder writes."""
+
 from __future__ import annotations
 
 import argparse
@@ -43,15 +44,20 @@ def test_paths_in_help_texts_exist(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setenv("COLUMNS", "10000")  # no line wrapping (argparse breaks lines at hyphens)
     texts = help_texts(build_parser())
     assert len(texts) > 15  # every verb and the bench sub-commands
-    named = {(command, path) for command, text in texts.items() for path in PATH_IN_TEXT.findall(" ".join(text.split()))}
+    named = {
+        (command, path) for command, text in texts.items() for path in PATH_IN_TEXT.findall(" ".join(text.split()))
+    }
     assert ("meniscope publish-frames", "docs/zmq-frames.md") in named
     assert [(c, p) for c, p in sorted(named) if missing({p})] == []
 
 
 def test_paths_in_the_readme_exist() -> None:
     text = (ROOT / "README.md").read_text()
-    named = {p for p in CODE_SPAN.findall(text) + LINK.findall(text)
-             if not p.startswith(("/", "~", "-", "http")) and "://" not in p and "=" not in p}
+    named = {
+        p
+        for p in CODE_SPAN.findall(text) + LINK.findall(text)
+        if not p.startswith(("/", "~", "-", "http")) and "://" not in p and "=" not in p
+    }
     named |= set(PATH_IN_TEXT.findall(text))
     assert {"docs/service.md", "deploy/install.sh"} <= named
     assert missing(named) == []
@@ -60,8 +66,11 @@ def test_paths_in_the_readme_exist() -> None:
 def test_the_frame_format_document_names_every_header_field() -> None:
     batch = FrameBatch(np.zeros((2, 4, 6), np.uint16), np.arange(5, 7), np.array([0.0, 0.001]))
     header = encode(batch, StreamFormat(6, 4, np.dtype(np.uint16), 12, 1000.0), 0)[0]
-    irregular = encode(FrameBatch(batch.pixels, batch.indices, np.array([0.0, 0.5])),
-                       StreamFormat(6, 4, np.dtype(np.uint16), 12, 1000.0), 1)[0]
+    irregular = encode(
+        FrameBatch(batch.pixels, batch.indices, np.array([0.0, 0.5])),
+        StreamFormat(6, 4, np.dtype(np.uint16), 12, 1000.0),
+        1,
+    )[0]
     fields = set(json.loads(bytes(header))) | set(json.loads(bytes(irregular)))
     document = (ROOT / "docs" / "zmq-frames.md").read_text()
     assert fields <= set(re.findall(r"^\| `(\w+)` \|", document, re.MULTILINE)) and '"end": true' in document

@@ -1,4 +1,5 @@
 """Nearest-neighbour inversion: exact and approximate search over renders, and the regularised window fit."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -30,8 +31,9 @@ def database(renders: tuple[np.ndarray, np.ndarray, np.ndarray]) -> NearestDatab
     return NearestDatabase(frames[:1000], coeffs[:1000], centre[:1000])
 
 
-def test_a_database_frame_finds_itself_whatever_the_gain_and_offset(database: NearestDatabase,
-                                                                    renders: tuple[np.ndarray, ...]) -> None:
+def test_a_database_frame_finds_itself_whatever_the_gain_and_offset(
+    database: NearestDatabase, renders: tuple[np.ndarray, ...]
+) -> None:
     frames = renders[0][:50]
     brighter = np.clip(frames.astype(np.uint16) * 3 + 40, 0, 65535).astype(np.uint16)
     for query in (frames, brighter):
@@ -44,8 +46,9 @@ def test_a_database_frame_finds_itself_whatever_the_gain_and_offset(database: Ne
     assert same.mean() >= 0.9
 
 
-def test_approximate_search_recalls_most_of_the_exact_neighbours(database: NearestDatabase,
-                                                                 renders: tuple[np.ndarray, ...]) -> None:
+def test_approximate_search_recalls_most_of_the_exact_neighbours(
+    database: NearestDatabase, renders: tuple[np.ndarray, ...]
+) -> None:
     unseen = renders[0][1000:]
     exact = database.search(unseen, k=10, exact=True)
     approximate = database.search(unseen, k=10, exact=False)
@@ -71,7 +74,9 @@ def _window(f0: float, g0: float, n: int, rng: np.random.Generator, decoys: int)
 
 @settings(max_examples=12, deadline=None)
 @given(f0=st.floats(600.0, 4000.0), g0=st.floats(50.0, 800.0), seed=st.integers(0, 2**16))
-def test_the_regularised_fit_recovers_frequency_and_decay_from_noisy_candidates(f0: float, g0: float, seed: int) -> None:
+def test_the_regularised_fit_recovers_frequency_and_decay_from_noisy_candidates(
+    f0: float, g0: float, seed: int
+) -> None:
     """Ten noisy candidates per frame around the truth, for a mode that turns at least 1.2 cycles per e-fold
     of its decay. (Candidates spread uniformly over the range can pull the fit to a faster curve that zig-zags
     through them: the objective's known weakness. So can a mode dying within a cycle: 600 Hz at 681 /s came
@@ -95,8 +100,9 @@ def test_a_still_surface_fits_no_oscillation_and_nothing_is_nan(n: int) -> None:
     assert fit.offset_mm == pytest.approx(0.013)
 
 
-@pytest.mark.parametrize("candidates, fps", [(np.zeros((3, 10)), FPS), (np.full((20, 10), np.nan), FPS),
-                                            (np.zeros((20, 10)), 0.0)])
+@pytest.mark.parametrize(
+    "candidates, fps", [(np.zeros((3, 10)), FPS), (np.full((20, 10), np.nan), FPS), (np.zeros((20, 10)), 0.0)]
+)
 def test_unusable_windows_are_a_clear_error(candidates: np.ndarray, fps: float) -> None:
     with pytest.raises(MeniscopeError, match="candidates"):
         choose_candidates(candidates, fps)
@@ -123,11 +129,18 @@ def test_a_database_rendered_for_another_scene_is_refused_as_models_are(scene: S
     from service.inverse.methods import open_database
 
     assert len(open_database(rendered_database, scene)) == 32
-    moved = Scene.from_dict({**scene.model_dump(mode="json"),
-                             "light": {**scene.light.model_dump(), "azimuth_deg": scene.light.azimuth_deg + 20}})
+    moved = Scene.from_dict(
+        {
+            **scene.model_dump(mode="json"),
+            "light": {**scene.light.model_dump(), "azimuth_deg": scene.light.azimuth_deg + 20},
+        }
+    )
     assert (moved.camera.width_px, moved.camera.height_px) == (scene.camera.width_px, scene.camera.height_px)
-    with pytest.raises(MeniscopeError, match=f"rendered for scene {scene.sha256[:12]}, not this one "
-                                             rf"\({moved.sha256[:12]}\)"):
+    with pytest.raises(
+        MeniscopeError,
+        match=f"rendered for scene {scene.sha256[:12]}, not this one "
+        rf"\({moved.sha256[:12]}\)",
+    ):
         open_database(rendered_database, moved)
 
 

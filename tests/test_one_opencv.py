@@ -3,6 +3,7 @@
 pycine requires opencv-python, whose cv2 overwrites opencv-contrib-python-headless's without a word from
 pip; deploy/install.sh installs pycine without its dependencies.
 """
+
 from __future__ import annotations
 
 import importlib.metadata

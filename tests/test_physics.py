@@ -1,4 +1,5 @@
 """Eq. 1 and its time model: exact at the rim and centre, sound at the extremes, never NaN."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -47,8 +48,8 @@ def test_slope_is_the_derivative_of_eq1(r: float, p: float, a: float, b: float) 
 
 
 def test_broadcasts_over_radii_frames_and_parameter_sets() -> None:
-    r = np.linspace(0, R, 7)[:, None, None]          # radii
-    a = np.linspace(-0.01, 0.01, 5)[None, :, None]   # frames
+    r = np.linspace(0, R, 7)[:, None, None]  # radii
+    a = np.linspace(-0.01, 0.01, 5)[None, :, None]  # frames
     b = np.array([0.0, 0.002, -0.003])[None, None, :]  # parameter sets
     out = displacement(r, 0.01, 0.1, a, b, R)
     assert out.shape == (7, 5, 3)
@@ -94,4 +95,3 @@ def test_coefficient_ranges_sample_inside_their_bounds() -> None:
     draws = ranges.sample(10_000, np.random.default_rng(0))
     lo, hi = ranges.bounds().T
     assert draws.shape == (10_000, 4) and np.all((draws >= lo) & (draws <= hi))
-

@@ -1,5 +1,6 @@
 """The live pipeline (service.pipeline.runtime) between a source and the publishers: what each published
 window says about where it came from, and a camera larger than the scene's region of interest."""
+
 from __future__ import annotations
 
 import asyncio
@@ -21,15 +22,15 @@ from service.inverse.network import NetworkMethod
 from service.pipeline.demo import DEMO_AVI
 from service.pipeline.fitting import OnFitted
 from service.pipeline.runtime import BatchBudget, FittedWindow, Pipeline, PipelineStats, TraceSnippet
-from service.pipeline.windows import WindowJob, fit_job
 from service.pipeline.supervisor import Health
+from service.pipeline.windows import WindowJob, fit_job
 from service.recordings import open_recording, open_writer
 from service.scene import Scene
 from service.server.history import History
 from service.server.hub import Hub
 from service.server.metrics import Metrics
 from service.server.publishers import Publishers
-from service.settings import ServiceSettings
+from service.server.settings import ServiceSettings
 from service.sources import FrameBatch, ReplaySource, open_source
 
 
@@ -64,13 +65,15 @@ def publishers(tmp_path: Path) -> Publishers:
 
 
 def test_windows_fitted_after_the_source_changed_name_the_source_their_frames_came_from(
-        tmp_path: Path, scene: Scene, publishers: Publishers) -> None:
+    tmp_path: Path, scene: Scene, publishers: Publishers
+) -> None:
     method, fits = NetworkMethod(DEFAULT_MODELS, scene), HeldFits(FitSettings())
     uris, counts = [], []
     for name in ("first.avi", "second.avi"):  # the source changed between two runs, as PUT /api/v1/config does
         shutil.copy(DEMO_AVI, tmp_path / name)
-        settings = ServiceSettings(source=f"file://{tmp_path / name}?speed=max", recordings_dir=tmp_path,
-                                   data_dir=tmp_path)
+        settings = ServiceSettings(
+            source=f"file://{tmp_path / name}?speed=max", recordings_dir=tmp_path, data_dir=tmp_path
+        )
         with open_source(settings.source) as source:
             assert Pipeline(settings, scene, source, method, fits, publishers, PipelineStats()).run(threading.Event())
         uris.append(settings.source)
@@ -162,8 +165,9 @@ def test_a_camera_smaller_than_the_roi_is_one_error_naming_the_source(tmp_path: 
         writer.write(np.zeros((4, 64, 64), np.uint8))
     with Watched(tmp_path / "small.cine", enough=1) as source:
         with pytest.raises(MeniscopeError) as err:
-            Pipeline(ServiceSettings(), scene, source, Gate(source), HeldFits(FitSettings()), Collected(),
-                     PipelineStats())
+            Pipeline(
+                ServiceSettings(), scene, source, Gate(source), HeldFits(FitSettings()), Collected(), PipelineStats()
+            )
     assert str(err.value) == f"{tmp_path / 'small.cine'}: scene ROI 96x96 at (0, 0) lies outside the 64x64 frame"
 
 
@@ -194,12 +198,15 @@ class Dispatched(HeldFits):
 
 
 def test_a_read_larger_than_the_inference_cap_is_split_across_calls_losing_and_repeating_no_frame(
-        demo_cine: Path, scene: Scene) -> None:
+    demo_cine: Path, scene: Scene
+) -> None:
     # reads of 16 frames, calls of at most 5 (a budget no call of 5 frames comes near)
     settings = ServiceSettings(read_frames=16, batch=5, batch_ms=1000, queue_batches=1024)
     stats, method = PipelineStats(), Calls()
     with open_source(f"file://{demo_cine}?speed=max") as source:
-        assert Pipeline(settings, scene, source, method, HeldFits(settings.fit), Collected(), stats).run(threading.Event())
+        assert Pipeline(settings, scene, source, method, HeldFits(settings.fit), Collected(), stats).run(
+            threading.Event()
+        )
     with open_recording(demo_cine) as demo:
         everything = demo.read(0, len(demo))
     assert max(len(c) for c in method.calls) == 5
@@ -208,15 +215,19 @@ def test_a_read_larger_than_the_inference_cap_is_split_across_calls_losing_and_r
 
 
 def test_a_window_goes_to_the_fit_with_at_most_one_call_of_frames_inferred_past_its_closing_frame(
-        demo_cine: Path, scene: Scene) -> None:
+    demo_cine: Path, scene: Scene
+) -> None:
     # the queue holds the whole recording at once (read as fast as it reads): a cap by frames read would take it all
     settings = ServiceSettings(read_frames=128, batch=8, batch_ms=1000, queue_batches=1024)
     stats = PipelineStats()
     fits = Dispatched(settings.fit, stats)
     with open_source(f"file://{demo_cine}?speed=max") as source:
         assert Pipeline(settings, scene, source, Calls(), fits, Collected(), stats).run(threading.Event())
-    closed_at_ejection = [(closed.window.end, at) for (closed, _, _), at in zip(fits.held, fits.inferred_at)
-                          if closed.window.ends_at_ejection]
+    closed_at_ejection = [
+        (closed.window.end, at)
+        for (closed, _, _), at in zip(fits.held, fits.inferred_at)
+        if closed.window.ends_at_ejection
+    ]
     # the demo's 4 windows: the first (its ejection, frame 0, unseen) is no window, the last ends with the file
     assert len(closed_at_ejection) >= 2
     for end, inferred in closed_at_ejection:  # frame ``end`` (the next ejection) closed it
@@ -236,3 +247,15 @@ def test_the_inference_cap_is_the_frames_the_measured_cost_allows_within_the_bud
     assert fast.frames() == 512  # never above ``most``
     fast.record(1e-6, 1000)
     assert fast.frames() == 512
+
+
+def test_a_window_whose_frames_show_no_highlight_is_unresolved_not_settled() -> None:
+    """A dark or unlit camera's window would fit as a flat, settled meniscus; without a highlight nothing of the
+    meniscus was seen, so it is unresolved and says why. A window with highlights is fitted as before."""
+    from service.analysis.segment import Window
+
+    flat = np.zeros(190)
+    unseen = fit_job(WindowJob(Window(0, 0, 190, True, True), flat, flat, highlight=0.03), 19000.0, FitSettings())
+    assert unseen.status == "unresolved" and "no highlight" in unseen.reason and not unseen.modes
+    seen = fit_job(WindowJob(Window(0, 0, 190, True, True), flat, flat, highlight=0.9), 19000.0, FitSettings())
+    assert seen.status == "settled"

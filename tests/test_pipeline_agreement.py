@@ -1,5 +1,6 @@
 """One pipeline behind every front door: the live pipeline and ``meniscope analyze`` make the same windows of the
 same recording, field for field, and a live start publishes no fragment of a window as a failure."""
+
 from __future__ import annotations
 
 import math
@@ -17,7 +18,7 @@ from service.pipeline.fitting import OnFitted
 from service.pipeline.runtime import FittedWindow, Pipeline, PipelineStats
 from service.pipeline.windows import WindowJob, fit_job
 from service.scene import Scene
-from service.settings import ServiceSettings
+from service.server.settings import ServiceSettings
 from service.sources import open_source
 
 
@@ -56,10 +57,19 @@ def live_and_offline(demo_cine: Path) -> tuple[list[FittedWindow], object]:
     published, stats = Published(), PipelineStats()
     with open_source(f"file://{demo_cine}?speed=max") as source:
         assert Pipeline(settings, scene, source, method, InProcessFits(settings.fit), published, stats).run(
-            threading.Event())
+            threading.Event()
+        )
     assert stats.frames_dropped == 0
-    offline = analyse_recording(demo_cine, scene, "network", DEFAULT_MODELS, settings=settings.fit, progress=False,
-                                opened=(method, None), workers=1)
+    offline = analyse_recording(
+        demo_cine,
+        scene,
+        "network",
+        DEFAULT_MODELS,
+        settings=settings.fit,
+        progress=False,
+        opened=(method, None),
+        workers=1,
+    )
     return published.windows, offline
 
 
@@ -80,5 +90,6 @@ def test_a_live_start_publishes_no_failed_fragment_before_the_first_ejection(liv
     assert all(f.result.status != "failed" for f in live)
     assert all(f.result.starts_at_ejection for f in live)  # the frames before the first ejection are no window
     first = min(f.result.start_frame for f in live)
-    assert [w.index for w in offline.report.windows if w.start_frame == first] == \
-           [min(f.result.index for f in live)]  # the dropped fragment keeps its index: live counts as offline does
+    assert [w.index for w in offline.report.windows if w.start_frame == first] == [
+        min(f.result.index for f in live)
+    ]  # the dropped fragment keeps its index: live counts as offline does

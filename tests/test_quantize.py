@@ -1,6 +1,7 @@
 """``meniscope quantize``: an int8 copy of a model folder that the service opens like any other, whose
 coefficients stay near the float graphs' on renders no model saw, with how it was made and its parity in
 its manifest; one-line errors for what users get wrong."""
+
 from __future__ import annotations
 
 import shutil
@@ -19,7 +20,7 @@ from service.scene import Scene
 from tests.servicekit import meniscope
 
 pytest.importorskip("onnx", reason="quantising needs the train extra (onnx)")
-from training.quantize import quantize_models, renders  # noqa: E402
+from training.quantize import quantize_models, renders
 
 #: The int8 graphs' promise on renders no model saw: each coefficient (d, p, a, b; mm, -, mm, mm) within
 #: these of the float graph's; D(0, t) within this RMS (mm) of the float graph's (its own error against
@@ -61,7 +62,9 @@ def test_the_service_opens_it_and_its_coefficients_stay_near_the_float_ones(int8
         got = open_method(name, scene, int8)[0].infer(frames)
         assert np.all(np.abs(got.coefficients - reference.coefficients).max(axis=0) < INT8_MAX_DIFF)
         assert np.sqrt(np.mean((got.centre - reference.centre) ** 2)) < INT8_RMS_DIFF_MM
-        error = {k: np.sqrt(np.mean((out.centre - truth[:, 4]) ** 2)) for k, out in (("float", reference), ("int8", got))}
+        error = {
+            k: np.sqrt(np.mean((out.centre - truth[:, 4]) ** 2)) for k, out in (("float", reference), ("int8", got))
+        }
         assert error["int8"] <= (1 + INT8_EXTRA_ERROR) * error["float"], (name, error)
 
 
@@ -88,6 +91,11 @@ def test_what_cannot_be_quantised_is_refused_in_one_line(int8: Path, scene: Scen
 def test_quantising_needs_no_torch() -> None:
     """`meniscope quantize` works on ONNX graphs (onnxruntime.quantization): loading it imports no torch."""
     check = "import sys, training.quantize; assert 'torch' not in sys.modules, 'training.quantize imported torch'"
-    done = subprocess.run([sys.executable, "-c", check], cwd=Path(__file__).resolve().parents[1], capture_output=True,
-                          text=True, timeout=120)
+    done = subprocess.run(
+        [sys.executable, "-c", check],
+        cwd=Path(__file__).resolve().parents[1],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert done.returncode == 0, done.stderr

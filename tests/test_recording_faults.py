@@ -1,6 +1,7 @@
 """A recording that lies or changes under the reader is one error line naming it: never a signal, a huge
 allocation or frames that are not in the file.
 """
+
 from __future__ import annotations
 
 import os
@@ -47,8 +48,13 @@ try:
 except MeniscopeError as exc:
     print("error:", exc)
 """
-    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60,
-                         env={**os.environ, "PYTHONPATH": str(REPO)})
+    run = subprocess.run(
+        [sys.executable, "-c", code],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        env={**os.environ, "PYTHONPATH": str(REPO)},
+    )
     assert run.returncode == 0, f"the reader died with {run.returncode}: {run.stderr[-500:]}"
     assert "error:" in run.stdout and "shrank" in run.stdout
 

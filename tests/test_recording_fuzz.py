@@ -8,6 +8,7 @@ truncations anywhere; truncations followed by garbage. Hypothesis drives the sma
 test_cine_fuzz.py; a plain seeded loop is used here because 40,000 cases through Hypothesis would cost
 minutes of CPU time.
 """
+
 from __future__ import annotations
 
 import json
@@ -57,7 +58,9 @@ def header_positions(data: bytes, suffix: str) -> np.ndarray:
         first_image = struct.unpack_from("<Q", data, struct.unpack_from("<I", data, 32)[0])[0]
         return np.arange(first_image + 8)  # the first image's annotation too
     movi = data.index(b"movi") + 4
-    chunks = [i for i in range(movi, len(data) - 8) if data[i : i + 2] == b"00" and data[i + 2 : i + 4] in (b"dc", b"db")]
+    chunks = [
+        i for i in range(movi, len(data) - 8) if data[i : i + 2] == b"00" and data[i + 2 : i + 4] in (b"dc", b"db")
+    ]
     chunks += [data.index(b"idx1")]
     return np.concatenate([np.arange(movi + 8)] + [np.arange(c, c + 8) for c in chunks])
 

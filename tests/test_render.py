@@ -1,5 +1,6 @@
 """The ray tracer: hits on the Eq. 1 surface (no missed or false hits), shading against the numpy
 reference of the shading model, the bore wall hiding the fluid, extremes, determinism, bad input."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -15,6 +16,7 @@ from service.render.meniscus import TABLE_SIZE, TOLERANCE_MM
 from service.render.nozzle import sun_visibility
 from service.render.shading import specular_sun, sun_directions
 from service.scene import Scene
+
 
 def height_tolerance(c: tuple[float, ...], R: float) -> float:
     """How far from the exact Eq. 1 surface a hit may be, in height (mm): the profile table's linear
@@ -46,8 +48,9 @@ amplitude = st.one_of(st.just(0.0), st.floats(1e-9, 1.0), st.floats(-1.0, -1e-9)
 coefficients = st.tuples(st.floats(-0.5, 0.5), st.floats(-1.0, 1.0), amplitude, amplitude)
 
 
-def _gap_along_rays(renderer: Renderer, coeffs: np.ndarray, rays: np.ndarray,
-                    samples: int = 3000) -> tuple[np.ndarray, np.ndarray]:
+def _gap_along_rays(
+    renderer: Renderer, coeffs: np.ndarray, rays: np.ndarray, samples: int = 3000
+) -> tuple[np.ndarray, np.ndarray]:
     """Brute force on the fluid rays ``rays`` (indices): the ray parameters (M, S) densely across each
     one's interval and the exact F = z + D(r) there (Eq. 1 by scipy; F > 0 inside the metal)."""
     fr, R = renderer.fluid_rays, renderer.scene.nozzle.radius_mm
@@ -71,8 +74,9 @@ def test_every_hit_lies_on_the_eq1_surface_inside_the_bore(renderer: Renderer, c
 
 @settings(max_examples=20, deadline=None)
 @given(coefficients)
-def test_no_ray_passes_into_the_metal_before_its_hit_grazing_rays_included(renderer: Renderer,
-                                                                         c: tuple[float, ...]) -> None:
+def test_no_ray_passes_into_the_metal_before_its_hit_grazing_rays_included(
+    renderer: Renderer, c: tuple[float, ...]
+) -> None:
     """First hits, no missed ones: along every ray, no point before its hit (or anywhere, for a ray
     that misses) lies inside the exact surface by more than the height tolerance."""
     coeffs = np.array(c)
@@ -110,8 +114,9 @@ def _down_normal(points: np.ndarray, c: np.ndarray, R: float) -> np.ndarray:
     return normal / np.linalg.norm(normal, axis=1, keepdims=True)
 
 
-def _second_points(origin: np.ndarray, direction: np.ndarray, c: np.ndarray, R: float,
-                   samples: int = 2000) -> np.ndarray:
+def _second_points(
+    origin: np.ndarray, direction: np.ndarray, c: np.ndarray, R: float, samples: int = 2000
+) -> np.ndarray:
     """Brute force: where mirror rays from surface points first meet the exact surface again inside the
     bore's cylinder, (M, 3), NaN rows for those that never do (sampled from 1e-4 mm to 2 mm)."""
     s = np.geomspace(1e-4, 2.0, samples)
@@ -143,8 +148,7 @@ def test_fluid_pixels_match_the_numpy_shading_model(bare_renderer: Renderer) -> 
     hits = r.fluid_hits(coeffs)
     rays, R = r.fluid_rays, sc.nozzle.radius_mm
     suns = sun_directions(sc, 4)
-    shade = lambda n, v, vis: specular_sun(n, v, suns, vis, sc.fluid.roughness, sc.fluid.reflectance,  # noqa: E731
-                                           sc.light.strength)
+    shade = lambda n, v, vis: specular_sun(n, v, suns, vis, sc.fluid.roughness, sc.fluid.reflectance, sc.light.strength)
     bounced = 0
     for f, c in enumerate(coeffs):
         found = ~np.isnan(hits[f, :, 0])

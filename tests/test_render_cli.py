@@ -1,4 +1,5 @@
 """``meniscope render`` and ``meniscope sheet`` as a user runs them: real files, the installed command."""
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -24,13 +25,16 @@ def test_render_writes_the_renderers_frames_for_each_csv_row(tmp_path: Path, sce
     np.testing.assert_array_equal(frames, Renderer(scene, supersample=1).render(coeffs))
 
 
-@pytest.mark.parametrize("content, problem", [
-    ("d,p,a\n1,2,3\n", "missing b"),
-    ("d,p,a,b\n0,0,zero,0\n", "line 2: column a is not a number"),
-    ("d,p,a,b\n0,0,,0\n", "line 2: empty cell in column a"),
-    ("d,p,a,b\n0,nan,0,0\n", "line 2: column p is not finite"),
-    ("", "missing d, p, a, b"),
-])
+@pytest.mark.parametrize(
+    "content, problem",
+    [
+        ("d,p,a\n1,2,3\n", "missing b"),
+        ("d,p,a,b\n0,0,zero,0\n", "line 2: column a is not a number"),
+        ("d,p,a,b\n0,0,,0\n", "line 2: empty cell in column a"),
+        ("d,p,a,b\n0,nan,0,0\n", "line 2: column p is not finite"),
+        ("", "missing d, p, a, b"),
+    ],
+)
 def test_a_bad_coefficients_file_is_a_one_line_error_naming_it(tmp_path: Path, content: str, problem: str) -> None:
     csv = tmp_path / "coeffs.csv"
     csv.write_text(content)

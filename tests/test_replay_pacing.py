@@ -3,6 +3,7 @@
 The schedule itself is checked on a simulated clock (exact, no waiting); one short real-time run
 checks, with loose bounds, that a paced replay neither runs flat out nor stalls.
 """
+
 from __future__ import annotations
 
 import time
@@ -76,7 +77,9 @@ class TestReplaySpeed:
             while (elapsed := time.monotonic() - start) < run_s:
                 delivered += len(source.read(64))  # type: ignore[arg-type]
         expected = elapsed * FPS * speed
-        assert 0.5 * expected < delivered < 1.5 * expected, f"{delivered} frames in {elapsed:.2f} s, expected ~{expected:.0f}"
+        assert 0.5 * expected < delivered < 1.5 * expected, (
+            f"{delivered} frames in {elapsed:.2f} s, expected ~{expected:.0f}"
+        )
 
     def test_unpaced_replay_fills_every_batch_without_waiting(self, recording: Path) -> None:
         with open_source(str(recording), speed="max", timeout=1e-6) as source:

@@ -1,4 +1,5 @@
 """The scene file: validated with messages that name the field and the problem."""
+
 from __future__ import annotations
 
 import json
@@ -99,3 +100,38 @@ def test_direction_follows_the_scene_convention() -> None:
     np.testing.assert_allclose(direction(0, 0), [1, 0, 0], atol=1e-15)
     np.testing.assert_allclose(direction(90, 0), [0, 1, 0], atol=1e-15)
     np.testing.assert_allclose(direction(0, -90), [0, 0, -1], atol=1e-15)
+
+
+def test_older_files_keep_their_hash_and_the_new_blocks_change_it(scene: Scene) -> None:
+    # the embedded scene's hash as of the first format: shipped models are tied to it
+    assert scene.sha256 == "8368d3f849ae505ec6b580c5b259a2698257ae8e9f6a7709a6d2d3a8d9d9556c"
+    assert "material" not in scene.as_dict()["artifacts"] and "sensor" not in scene.as_dict()
+    data = _example()
+    data["artifacts"]["material"] = {"roughness": 0.2, "reflectance": 0.7}
+    data["sensor"] = {"offset": 0.02, "blur_sigma_px": 0.5, "full_well_e": 12000, "read_noise_e": 15}
+    extended = Scene.from_dict(data)
+    assert extended.sha256 != scene.sha256
+    assert Scene.from_dict(json.loads(extended.to_json())) == extended
+    assert extended.sphere_material.roughness == 0.2 and scene.sphere_material.roughness == scene.fluid.roughness
+
+
+def test_the_artifacts_material_is_what_their_highlights_show() -> None:
+    from service.render import Renderer
+    from service.render.camera import project
+
+    data = _example()
+    data["artifacts"]["spheres"] = [{"x": -0.3, "y": 0.0, "z": 0.0, "radius": 0.02}]
+    mirror, rough = [], []
+    for alpha, out in ((0.002, mirror), (0.3, rough)):
+        data["artifacts"]["material"] = {"roughness": alpha, "reflectance": 0.9}
+        s = Scene.from_dict(data)
+        col, row = project(s, [-0.3, 0.0, 0.0])
+        frame = Renderer(s, supersample=2).render(np.zeros((1, 4)))[0]
+        out.append(
+            frame[
+                int(round(float(row))) - 3 : int(round(float(row))) + 4,
+                int(round(float(col))) - 3 : int(round(float(col))) + 4,
+            ]
+        )
+    # a rough defect spreads the sun's glint over more of the sphere than a mirror does
+    assert (rough[0] > 0.02).sum() > (mirror[0] > 0.02).sum()

@@ -1,4 +1,5 @@
 """Segmentation: ejections read from the printer's file, placed at its rate, or detected from the video."""
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -8,17 +9,24 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from service.validation.score import ejection_matches
 from service.analysis.segment import (
-    burst_period, detect_ejections, ejections_at_rate, frame_brightness, read_ejections, robust_z, windows_between,
+    burst_period,
+    detect_ejections,
+    ejections_at_rate,
+    frame_brightness,
+    read_ejections,
+    robust_z,
+    windows_between,
 )
 from service.errors import MeniscopeError
+from service.validation.score import ejection_matches
 
 FPS = 19000.0
 
 
-def activity(ejections: np.ndarray, n: int, seed: int, strengths: np.ndarray | None = None,
-             tail: int = 150) -> np.ndarray:
+def activity(
+    ejections: np.ndarray, n: int, seed: int, strengths: np.ndarray | None = None, tail: int = 150
+) -> np.ndarray:
     """Frame activity as a video gives it: noise, an ejection's out-and-back double burst, then for ``tail``
     frames a decaying oscillation's flicker about half as strong (single frames rival the weakest ejections)."""
     rng = np.random.default_rng(seed)
@@ -35,7 +43,10 @@ def activity(ejections: np.ndarray, n: int, seed: int, strengths: np.ndarray | N
 def test_windows_run_from_each_ejection_to_the_next():
     w = windows_between([10, 50], 100)
     assert [(x.start, x.end, x.starts_at_ejection, x.ends_at_ejection) for x in w] == [
-        (0, 10, False, True), (10, 50, True, True), (50, 100, True, False)]
+        (0, 10, False, True),
+        (10, 50, True, True),
+        (50, 100, True, False),
+    ]
     assert [(x.start, x.end) for x in windows_between([], 7)] == [(0, 7)]
     assert [(x.start, x.end) for x in windows_between([0], 7)] == [(0, 7)]
     with pytest.raises(ValueError):
@@ -43,8 +54,13 @@ def test_windows_run_from_each_ejection_to_the_next():
 
 
 @settings(max_examples=40, deadline=None)
-@given(period=st.floats(80, 400), phase=st.integers(0, 59), windows=st.integers(3, 30), seed=st.integers(0, 1000),
-       jitter=st.integers(0, 2))
+@given(
+    period=st.floats(80, 400),
+    phase=st.integers(0, 59),
+    windows=st.integers(3, 30),
+    seed=st.integers(0, 1000),
+    jitter=st.integers(0, 2),
+)
 def test_periodic_ejections_are_all_found_and_nothing_else(period, phase, windows, seed, jitter):
     rng = np.random.default_rng(seed)
     true = np.round(phase + period * np.arange(windows)).astype(int) + rng.integers(-jitter, jitter + 1, windows)
@@ -90,10 +106,17 @@ def test_ejection_files_in_frames_and_in_seconds(tmp_path: Path):
     assert read_ejections(times, FPS, 1000).tolist() == [19, 209]
 
 
-@pytest.mark.parametrize("text, message", [
-    ("", "no ejections"), ("10\nabc\n", "line 2"), ("10\n10\n", "same frame"), ("5000\n", "beyond the series"),
-    ("1.5\n", "whole frame"), ("-3\n", "non-negative"),
-])
+@pytest.mark.parametrize(
+    "text, message",
+    [
+        ("", "no ejections"),
+        ("10\nabc\n", "line 2"),
+        ("10\n10\n", "same frame"),
+        ("5000\n", "beyond the series"),
+        ("1.5\n", "whole frame"),
+        ("-3\n", "non-negative"),
+    ],
+)
 def test_bad_ejection_files_are_one_clear_error(tmp_path: Path, text: str, message: str):
     path = tmp_path / "bad.txt"
     path.write_text(text)
@@ -103,12 +126,19 @@ def test_bad_ejection_files_are_one_clear_error(tmp_path: Path, text: str, messa
 
 
 @settings(max_examples=40, deadline=None)
-@given(dtype=st.sampled_from([np.uint8, np.uint16]), side=st.sampled_from([1, 96, 256, 257]),
-       fill=st.sampled_from(["max", "zero", "random"]), seed=st.integers(0, 2**16))
+@given(
+    dtype=st.sampled_from([np.uint8, np.uint16]),
+    side=st.sampled_from([1, 96, 256, 257]),
+    fill=st.sampled_from(["max", "zero", "random"]),
+    seed=st.integers(0, 2**16),
+)
 def test_frame_brightness_is_the_exact_mean_up_to_the_largest_sums(dtype, side, fill, seed) -> None:
     """The integer sum behind it switches from 32 to 64 bits where a frame of full-scale 16-bit pixels would
     overflow 32 (256 x 257 pixels): on both sides, and at full scale, it is the float64 mean to the last bit."""
     top = np.iinfo(dtype).max
-    frames = {"max": np.full((3, side, side), top, dtype), "zero": np.zeros((3, side, side), dtype),
-              "random": np.random.default_rng(seed).integers(0, top, (3, side, side), endpoint=True).astype(dtype)}[fill]
+    frames = {
+        "max": np.full((3, side, side), top, dtype),
+        "zero": np.zeros((3, side, side), dtype),
+        "random": np.random.default_rng(seed).integers(0, top, (3, side, side), endpoint=True).astype(dtype),
+    }[fill]
     assert np.array_equal(frame_brightness(frames), frames.reshape(3, -1).mean(axis=1, dtype=np.float64))

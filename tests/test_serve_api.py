@@ -1,4 +1,5 @@
 """`meniscope serve` over HTTP: readiness that tells why, recovery, guarded configuration, slow clients."""
+
 from __future__ import annotations
 
 import base64
@@ -30,8 +31,9 @@ def test_a_missing_model_is_reported_and_the_service_recovers_once_it_is_there(t
     settings = service_settings(tmp_path / "data", demo_cine.parent, demo(demo_cine), models=models)
     with running_service(settings) as base:
         assert request("GET", base + "/healthz").json() == {"status": "ok"}
-        reply = wait_for(lambda: (r := request("GET", base + "/readyz")).json()["state"] == "retrying" and r,
-                         10, "a retry")
+        reply = wait_for(
+            lambda: (r := request("GET", base + "/readyz")).json()["state"] == "retrying" and r, 10, "a retry"
+        )
         assert reply.status == 503 and "not a model folder" in reply.json()["reason"]
         assert "/api/v1/windows" in request("GET", base + "/openapi.json").json()["paths"]
         shutil.copytree(DEFAULT_MODELS, models)
@@ -43,8 +45,9 @@ def test_an_unreadable_source_is_a_clear_reason_not_a_crash(tmp_path: Path, demo
     (tmp_path / "recordings" / "broken.cine").write_bytes(b"not a cine file at all" * 100)
     settings = service_settings(tmp_path / "data", tmp_path / "recordings", "broken.cine")
     with running_service(settings) as base:
-        status = wait_for(lambda: (s := request("GET", base + "/api/v1/status").json())["state"] == "retrying" and s,
-                          10, "a retry")
+        status = wait_for(
+            lambda: (s := request("GET", base + "/api/v1/status").json())["state"] == "retrying" and s, 10, "a retry"
+        )
         assert "broken.cine" in status["reason"] and not status["ready"]
         assert request("GET", base + "/api/v1/windows").json() == {"windows": [], "last_id": None}
 
@@ -54,15 +57,19 @@ def test_a_simulated_camera_renders_the_service_scene_and_its_windows_are_publis
     shutil.copy(DEFAULT_SCENE, scene)
     settings = service_settings(tmp_path / "data", tmp_path, "sim://?seed=4", scene=scene)
     with running_service(settings) as base:
-        status = wait_for(lambda: (s := request("GET", base + "/api/v1/status").json())["state"] == "running" and s,
-                          60, "the simulated camera running")
+        status = wait_for(
+            lambda: (s := request("GET", base + "/api/v1/status").json())["state"] == "running" and s,
+            60,
+            "the simulated camera running",
+        )
         assert status["source"]["kind"] == "simulated" and status["source"]["scene"] == str(scene)
         stored = wait_for(lambda: request("GET", base + "/api/v1/windows").json()["windows"], 60, "a window")
         assert stored[0]["source"] == "sim://?seed=4" and stored[0]["fps"] == 19000.0
 
 
-def test_configuration_changes_need_the_token_and_stay_in_the_recordings_folder(tmp_path: Path,
-                                                                                 demo_cine: Path) -> None:
+def test_configuration_changes_need_the_token_and_stay_in_the_recordings_folder(
+    tmp_path: Path, demo_cine: Path
+) -> None:
     settings = service_settings(tmp_path / "data", demo_cine.parent, demo(demo_cine), token="s3cret")
     with running_service(settings) as base:
         url = base + "/api/v1/config"
@@ -86,21 +93,35 @@ def test_without_a_token_only_a_loopback_service_can_be_reconfigured(tmp_path: P
 
 
 def test_a_websocket_client_that_stops_reading_slows_neither_the_pipeline_nor_other_clients(
-        tmp_path: Path, demo_cine: Path) -> None:
+    tmp_path: Path, demo_cine: Path
+) -> None:
     # large, frequent trace messages fill a stalled client's small socket buffers within a second or two
-    settings = service_settings(tmp_path / "data", demo_cine.parent, demo(demo_cine), trace_hz=100.0,
-                                trace_frames=8192, client_queue=4, read_frames=16)
+    settings = service_settings(
+        tmp_path / "data",
+        demo_cine.parent,
+        demo(demo_cine),
+        trace_hz=100.0,
+        trace_frames=8192,
+        client_queue=4,
+        read_frames=16,
+    )
     with running_service(settings) as base:
         wait_for(lambda: ready(base), 20, "readiness")
         ws_url = base.replace("http", "ws") + "/ws"
         with closing(stalled_websocket(base)), connect(ws_url) as reader:
             # the reader reads on while the stalled client's buffers fill, until it loses messages
-            wait_for(lambda: skipped_while_reading(base, reader), 60,
-                     "the stalled client's buffers to fill, so that it loses messages")
+            wait_for(
+                lambda: skipped_while_reading(base, reader),
+                60,
+                "the stalled client's buffers to fill, so that it loses messages",
+            )
             before, lost = request("GET", base + "/api/v1/status").json(), websocket(base)
             # frames read from now on reach the reader only if neither the pipeline nor the reader waits on it
-            wait_for(lambda: covers(next_message(reader), before["source"]["position"]), 60,
-                     "the reading client to get a trace of frames read after the stalled client fell behind")
+            wait_for(
+                lambda: covers(next_message(reader), before["source"]["position"]),
+                60,
+                "the reading client to get a trace of frames read after the stalled client fell behind",
+            )
             after, still = request("GET", base + "/api/v1/status").json(), websocket(base)
         assert still["clients"] == 2 and still["skipped"] > lost["skipped"]  # connected and stalled throughout
         assert after["windows"]["unpublished"] == before["windows"]["unpublished"] == 0  # publishing kept up
@@ -113,8 +134,10 @@ def stalled_websocket(base: str) -> socket.socket:
     host, port = base.removeprefix("http://").split(":")
     sock.connect((host, int(port)))
     key = base64.b64encode(os.urandom(16)).decode()
-    sock.sendall(f"GET /ws HTTP/1.1\r\nHost: {host}:{port}\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
-                 f"Sec-WebSocket-Key: {key}\r\nSec-WebSocket-Version: 13\r\n\r\n".encode())
+    sock.sendall(
+        f"GET /ws HTTP/1.1\r\nHost: {host}:{port}\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n"
+        f"Sec-WebSocket-Key: {key}\r\nSec-WebSocket-Version: 13\r\n\r\n".encode()
+    )
     assert sock.recv(12) == b"HTTP/1.1 101"
     return sock
 
@@ -135,16 +158,22 @@ def skipped_while_reading(base: str, reader: ClientConnection) -> bool:
 
 def covers(message: dict | None, index: int) -> bool:
     """Whether ``message`` is a trace whose frames reach past frame ``index``."""
-    return (message is not None and message["type"] == "trace"
-            and message["first_index"] + len(message["values"]) > index)
+    return (
+        message is not None and message["type"] == "trace" and message["first_index"] + len(message["values"]) > index
+    )
 
 
 def websocket(base: str) -> dict[str, float]:
     """The WebSocket metrics /metrics shows: connected ``clients`` and messages ``skipped`` for lagging ones."""
-    metrics = dict(line.split() for line in request("GET", base + "/metrics").body.decode().splitlines()
-                   if line.startswith(("meniscope_websocket_clients ", "meniscope_websocket_messages_skipped_total ")))
-    return {"clients": float(metrics["meniscope_websocket_clients"]),
-            "skipped": float(metrics["meniscope_websocket_messages_skipped_total"])}
+    metrics = dict(
+        line.split()
+        for line in request("GET", base + "/metrics").body.decode().splitlines()
+        if line.startswith(("meniscope_websocket_clients ", "meniscope_websocket_messages_skipped_total "))
+    )
+    return {
+        "clients": float(metrics["meniscope_websocket_clients"]),
+        "skipped": float(metrics["meniscope_websocket_messages_skipped_total"]),
+    }
 
 
 class Camera:
@@ -169,8 +198,9 @@ class Camera:
         self.source.close()
 
 
-def test_a_camera_that_disappears_is_reported_and_followed_again_when_it_returns(tmp_path: Path,
-                                                                                  demo_cine: Path) -> None:
+def test_a_camera_that_disappears_is_reported_and_followed_again_when_it_returns(
+    tmp_path: Path, demo_cine: Path
+) -> None:
     camera = Camera(demo_cine)
     uri = camera.endpoint.replace("tcp://", "zmq+tcp://") + "?open_timeout=1"
     with running_service(service_settings(tmp_path / "data", tmp_path, uri)) as base:

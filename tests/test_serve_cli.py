@@ -1,4 +1,5 @@
 """`meniscope serve` as a user starts it: no arguments on a fresh data folder, and bad settings."""
+
 from __future__ import annotations
 
 import os
@@ -19,8 +20,14 @@ def serve(tmp_path: Path, *args: str) -> subprocess.Popen:
     a ZeroMQ port the system picks (so that runs side by side do not collide)."""
     env = {k: v for k, v in os.environ.items() if not k.startswith("MENISCOPE_")}
     env.update(XDG_CACHE_HOME=str(tmp_path / "cache"), MENISCOPE_ZMQ_PUBLISH="tcp://127.0.0.1:*")
-    return subprocess.Popen([*MENISCOPE, "serve", *args], cwd=tmp_path, env=checkout_env(env),
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    return subprocess.Popen(
+        [*MENISCOPE, "serve", *args],
+        cwd=tmp_path,
+        env=checkout_env(env),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
 
 
 def test_with_no_arguments_it_runs_the_demo_and_shows_windows(tmp_path: Path) -> None:
@@ -49,19 +56,28 @@ def _answers(proc: subprocess.Popen, url: str) -> bool:
         return False  # not listening yet
 
 
-@pytest.mark.parametrize("setting, problem", [
-    ("batch = 0", "batch: Input should be greater than or equal to 1"),
-    ('source = "../outside.cine"', "source: ../outside.cine: file sources must lie in the recordings folder "
-                                   "{recordings} (setting recordings_dir, MENISCOPE_RECORDINGS_DIR)"),
-])
-def test_bad_settings_are_one_error_line_naming_the_file_and_exit_status_2(tmp_path: Path, setting: str,
-                                                                           problem: str) -> None:
+@pytest.mark.parametrize(
+    "setting, problem",
+    [
+        ("batch = 0", "batch: Input should be greater than or equal to 1"),
+        (
+            'source = "../outside.cine"',
+            "source: ../outside.cine: file sources must lie in the recordings folder "
+            "{recordings} (setting recordings_dir, MENISCOPE_RECORDINGS_DIR)",
+        ),
+    ],
+)
+def test_bad_settings_are_one_error_line_naming_the_file_and_exit_status_2(
+    tmp_path: Path, setting: str, problem: str
+) -> None:
     (tmp_path / "serve.toml").write_text(setting + "\n")
     proc = serve(tmp_path, "--config", "serve.toml")
     _, err = proc.communicate(timeout=60)
     assert proc.returncode == 2
     recordings = tmp_path / "cache" / "meniscope" / "recordings"
-    assert err.strip().splitlines()[-1] == f"meniscope serve: error: serve.toml: {problem.format(recordings=recordings)}"
+    assert (
+        err.strip().splitlines()[-1] == f"meniscope serve: error: serve.toml: {problem.format(recordings=recordings)}"
+    )
 
 
 def test_a_source_option_overrides_a_bad_source_in_the_config(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:

@@ -3,6 +3,7 @@
 One demo service serves the request-only checks; the checks that change the service or its data run
 their own.
 """
+
 from __future__ import annotations
 
 import asyncio
@@ -19,22 +20,21 @@ from typing import Any
 
 import numpy as np
 import pytest
+from prometheus_client import generate_latest
 from websockets.exceptions import InvalidStatus
 from websockets.sync.client import connect
 
 from service.analysis.results import WindowResult
 from service.pipeline.runtime import FittedWindow
 from service.recordings import open_writer
-from service.server.app import create_app
-from service.server.components import Service
+from service.server.engine import Engine
 from service.server.guard import default_hosts, host_name
 from service.server.history import History
 from service.server.hub import Hub
-from service.server.metrics import Metrics
+from service.server.metrics import Metrics, status_registry
 from service.server.publishers import Publishers
 from service.server.zmq_publisher import ZmqPublisher
-from tests.servicekit import (MENISCOPE, checkout_env, free_port, request, running_app, running_service,
-                              service_settings, wait_for)
+from tests.servicekit import MENISCOPE, checkout_env, free_port, request, running_service, service_settings, wait_for
 from tests.test_serve_cli import _answers, serve
 
 TOKEN = {"Authorization": "Bearer s3cret"}
@@ -47,22 +47,29 @@ def demo(demo_cine: Path, speed: float = 0.25) -> str:
 @pytest.fixture(scope="module")
 def base(tmp_path_factory: pytest.TempPathFactory, demo_cine: Path) -> Iterator[str]:
     """A running demo service with a token, ready."""
-    settings = service_settings(tmp_path_factory.mktemp("hardening"), demo_cine.parent, demo(demo_cine),
-                                token="s3cret")
+    settings = service_settings(tmp_path_factory.mktemp("hardening"), demo_cine.parent, demo(demo_cine), token="s3cret")
     with running_service(settings) as url:
         wait_for(lambda: request("GET", url + "/readyz").status == 200, 60, "readiness")
         yield url
 
 
-@pytest.mark.parametrize("path", ["/api/v1/windows?since=9223372036854775808", "/api/v1/windows/9223372036854775808",
-                                  "/api/v1/windows?limit=10000", "/api/v1/windows/-1"])
+@pytest.mark.parametrize(
+    "path",
+    [
+        "/api/v1/windows?since=9223372036854775808",
+        "/api/v1/windows/9223372036854775808",
+        "/api/v1/windows?limit=10000",
+        "/api/v1/windows/-1",
+    ],
+)
 def test_out_of_range_numbers_are_422_with_the_schemas_list(base: str, path: str) -> None:
     reply = request("GET", base + path)
     assert reply.status == 422 and isinstance(reply.json()["detail"], list)
 
 
-@pytest.mark.parametrize("source", ["gopher://printer/1", "", "x" * 100_000, "missing.cine",
-                                    "zmq+tcp://127.0.0.1:5555?colour=blue"])
+@pytest.mark.parametrize(
+    "source", ["gopher://printer/1", "", "x" * 100_000, "missing.cine", "zmq+tcp://127.0.0.1:5555?colour=blue"]
+)
 def test_a_source_that_cannot_open_is_refused_and_the_running_one_kept(base: str, source: str) -> None:
     before = request("GET", base + "/api/v1/config").json()["source"]
     reply = request("PUT", base + "/api/v1/config", {"source": source}, TOKEN)
@@ -123,26 +130,38 @@ class FailingWrites:
         self.conn.close()
 
 
-def test_windows_sent_while_the_history_fails_are_counted_and_stored_when_it_returns(tmp_path: Path, demo_cine: Path,
-                                                                         caplog: pytest.LogCaptureFixture) -> None:
-    app = create_app(service_settings(tmp_path / "data", demo_cine.parent, demo(demo_cine)))
-    with running_app(app) as url:
-        wait_for(lambda: request("GET", url + "/readyz").status == 200, 60, "readiness")
-        history = app.state.service.history
-        writes = history._writer = FailingWrites(history._writer)
+def test_windows_sent_while_the_history_fails_are_counted_and_stored_when_it_returns(
+    tmp_path: Path, demo_cine: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """The engine the pipeline process runs, in this process, so that its history writer can be made to fail."""
+    engine = Engine(
+        service_settings(tmp_path / "data", demo_cine.parent, demo(demo_cine)), Hub(asyncio.new_event_loop(), 1)
+    )
+
+    def text() -> str:
+        return generate_latest(
+            status_registry(lambda: engine.stats, engine.health, lambda: (0, 0), engine.history_health)
+        ).decode()
+
+    try:
+        engine.start()
+        wait_for(lambda: engine.health().ready, 60, "readiness")
+        writes = engine.history._writer = FailingWrites(engine.history._writer)
         writes.failing.set()
-        status = wait_for(lambda: (s := request("GET", url + "/api/v1/status").json())["history"]["backlog"] >= 5 and s,
-                          30, "windows waiting for the history")
-        ready = request("GET", url + "/readyz")
-        assert ready.status == 503 and ready.json()["state"] == "degraded" and "readonly" in ready.json()["reason"]
-        assert status["history"]["failures"] >= 5 and status["history"]["error"]
-        metrics = request("GET", url + "/metrics").body.decode()
-        assert "meniscope_history_up 0.0" in metrics
+        history = wait_for(
+            lambda: (h := engine.history_health()).backlog >= 5 and h, 30, "windows waiting for the history"
+        )
+        health = engine.health()
+        assert health.state == "degraded" and not health.ready and "readonly" in health.reason
+        assert history.failures >= 5 and history.error
+        assert "meniscope_history_up 0.0" in text() and "meniscope_ready 0.0" in text()
         writes.failing.clear()
-        wait_for(lambda: request("GET", url + "/readyz").status == 200, 30, "readiness once the history takes writes")
-        status = request("GET", url + "/api/v1/status").json()
-        ids = [w["id"] for w in request("GET", url + "/api/v1/windows?since=0&limit=1000").json()["windows"]]
-    assert status["history"]["lost"] == 0
+        wait_for(lambda: engine.health().ready, 30, "readiness once the history takes writes")
+        history = engine.history_health()
+        ids = [w.id for w in engine.history.since(0, 100_000)]
+    finally:
+        engine.stop()
+    assert history.lost == 0
     assert ids == list(range(ids[0], ids[0] + len(ids))) and len(ids) >= 5  # every window sent is stored, no gap
     logged = [r for r in caplog.records if r.name == "service.server.publishers"]
     assert len(logged) == 2, [r.getMessage() for r in logged]  # once when it failed, once when it came back
@@ -154,29 +173,29 @@ def test_a_dark_camera_is_no_signal_not_a_healthy_meniscus(tmp_path: Path) -> No
     with open_writer(recordings / "dark.cine", 96, 96, 19000.0, bit_depth=8) as writer:
         writer.write(np.zeros((2000, 96, 96), np.uint8))
     with running_service(service_settings(tmp_path / "data", recordings, demo(recordings / "dark.cine"))) as url:
-        reply = wait_for(lambda: (r := request("GET", url + "/readyz")).json()["state"] == "no_signal" and r, 60,
-                         "no signal")
+        reply = wait_for(
+            lambda: (r := request("GET", url + "/readyz")).json()["state"] == "no_signal" and r, 60, "no signal"
+        )
         assert reply.status == 503 and "flat" in reply.json()["reason"]
         assert "meniscope_signal 0.0" in request("GET", url + "/metrics").body.decode()
 
 
 def test_a_fit_that_comes_back_after_shutdown_is_counted_not_sent_on_a_closed_socket(
-        tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
     """What SIGTERM met: the fit workers finish the fit they are on after the pipeline stopped; its result came
     back after ZeroMQ had closed (`publishing failed ... ZMQError: Socket operation on non-socket`)."""
-    service = Service(service_settings(tmp_path / "data", tmp_path, None))
     loop = asyncio.new_event_loop()
     try:
-        service.history = History(tmp_path / "history.sqlite", 1.0, 100)
-        service.zmq = ZmqPublisher("tcp://127.0.0.1:*")
-        service.metrics = Metrics(service.stats, service.health, lambda: (0, 0))
-        service.publishers = Publishers(service.history, service.metrics, service.zmq, Hub(loop, 1)).start()
-        service.stop()
+        history = History(tmp_path / "history.sqlite", 1.0, 100)
+        publishers = Publishers(history, Metrics(), ZmqPublisher("tcp://127.0.0.1:*"), Hub(loop, 1)).start()
+        publishers.stop()
         result = WindowResult(index=0, start_frame=0, end_frame=10, status="failed", reason="late")
-        service.publishers.on_window(FittedWindow(result, "demo", np.zeros(10), 19000.0, *[0.0] * 5))
+        publishers.on_window(FittedWindow(result, "demo", np.zeros(10), 19000.0, *[0.0] * 5))
+        history.close()
     finally:
         loop.close()
-    assert service.publishers.dropped == 1
+    assert publishers.dropped == 1
     assert not [r for r in caplog.records if r.levelno >= logging.WARNING], caplog.text
 
 
@@ -194,13 +213,22 @@ def test_sigterm_stops_in_order_without_an_error(tmp_path: Path) -> None:
     assert proc.returncode in (0, -signal.SIGTERM) and "Traceback" not in err and "failed" not in err, err[-2000:]
 
 
-def test_a_zeromq_sender_that_dies_makes_the_service_unready_until_frames_flow_again(tmp_path: Path,
-                                                                                      demo_cine: Path) -> None:
+def test_a_zeromq_sender_that_dies_makes_the_service_unready_until_frames_flow_again(
+    tmp_path: Path, demo_cine: Path
+) -> None:
     """A sender killed with SIGKILL sends no end message: only the silence tells that it is dead (the service
     stayed ready for as long as anyone watched)."""
     port = free_port()
-    sender_command = [*MENISCOPE, "publish-frames", str(demo_cine), "--bind", f"tcp://127.0.0.1:{port}",
-                      "--speed", "0.25", "--loop"]
+    sender_command = [
+        *MENISCOPE,
+        "publish-frames",
+        str(demo_cine),
+        "--bind",
+        f"tcp://127.0.0.1:{port}",
+        "--speed",
+        "0.25",
+        "--loop",
+    ]
     sender = subprocess.Popen(sender_command, env=checkout_env(), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
         with running_service(service_settings(tmp_path / "data", tmp_path, f"zmq+tcp://127.0.0.1:{port}")) as url:
@@ -209,20 +237,28 @@ def test_a_zeromq_sender_that_dies_makes_the_service_unready_until_frames_flow_a
             reply = wait_for(lambda: (r := request("GET", url + "/readyz")).status == 503 and r, 10, "not ready")
             assert reply.json()["state"] == "stalled" and str(port) in reply.json()["reason"]
             sender.wait()
-            sender = subprocess.Popen(sender_command, env=checkout_env(), stdout=subprocess.DEVNULL,
-                                      stderr=subprocess.DEVNULL)
+            sender = subprocess.Popen(
+                sender_command, env=checkout_env(), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL
+            )
             wait_for(lambda: request("GET", url + "/readyz").status == 200, 60, "readiness once frames flow again")
     finally:
         sender.kill()
         sender.wait()
 
 
-@pytest.mark.parametrize("bind, host, allowed", [
-    ("127.0.0.1", "127.0.0.1:8000", True), ("127.0.0.1", "localhost", True), ("127.0.0.1", "[::1]:8000", True),
-    ("127.0.0.1", "evil.example", False), ("127.0.0.1", "127.0.0.1.evil.example:8000", False),
-    ("192.168.3.7", "192.168.3.7:8000", True), ("192.168.3.7", "evil.example", False),
-    ("0.0.0.0", "printer-7.factory.lan:8000", True),
-])
+@pytest.mark.parametrize(
+    "bind, host, allowed",
+    [
+        ("127.0.0.1", "127.0.0.1:8000", True),
+        ("127.0.0.1", "localhost", True),
+        ("127.0.0.1", "[::1]:8000", True),
+        ("127.0.0.1", "evil.example", False),
+        ("127.0.0.1", "127.0.0.1.evil.example:8000", False),
+        ("192.168.3.7", "192.168.3.7:8000", True),
+        ("192.168.3.7", "evil.example", False),
+        ("0.0.0.0", "printer-7.factory.lan:8000", True),
+    ],
+)
 def test_the_hosts_a_service_answers_to_follow_its_bind_address(bind: str, host: str, allowed: bool) -> None:
     hosts = default_hosts(bind)
     assert ("*" in hosts or host_name(host) in hosts) == allowed
@@ -233,8 +269,10 @@ def test_a_body_over_64_kb_is_refused_before_it_is_read_whole(base: str) -> None
     read (raw sockets: a client still sending meets the closed connection), and a chunked body (no length
     given) is read only up to the limit."""
     host, port = base.removeprefix("http://").split(":")
-    head = (f"PUT /api/v1/config HTTP/1.1\r\nHost: {host}\r\nAuthorization: Bearer s3cret\r\n"
-            "Content-Type: application/json\r\n")
+    head = (
+        f"PUT /api/v1/config HTTP/1.1\r\nHost: {host}\r\nAuthorization: Bearer s3cret\r\n"
+        "Content-Type: application/json\r\n"
+    )
     with socket.create_connection((host, int(port)), timeout=10) as s:
         s.sendall(f"{head}Content-Length: 1000000\r\n\r\n".encode())
         assert s.recv(100).startswith(b"HTTP/1.1 413")
@@ -243,3 +281,20 @@ def test_a_body_over_64_kb_is_refused_before_it_is_read_whole(base: str) -> None
         chunk = b'{"source": "' + b"x" * 66_000 + b'"}'  # just over the limit
         s.sendall(f"{len(chunk):x}\r\n".encode() + chunk + b"\r\n0\r\n\r\n")
         assert s.recv(100).startswith(b"HTTP/1.1 413")
+
+
+def test_a_lit_camera_without_a_highlight_is_its_own_state(tmp_path: Path) -> None:
+    """Frames that carry a picture (grey with noise: not flat) but no highlight (the brightest pixel ~4 % of full
+    scale above the mean): the meniscus is not seen, so the service is not ready (the window-level rule is
+    test_pipeline.py's)."""
+    recordings = tmp_path / "recordings"
+    recordings.mkdir()
+    grey = 90 + np.random.default_rng(3).normal(0, 2, (2000, 96, 96))
+    with open_writer(recordings / "unlit.cine", 96, 96, 19000.0, bit_depth=8) as writer:
+        writer.write(np.clip(grey, 0, 255).astype(np.uint8))
+    with running_service(service_settings(tmp_path / "data", recordings, demo(recordings / "unlit.cine"))) as url:
+        reply = wait_for(
+            lambda: (r := request("GET", url + "/readyz")).json()["state"] == "no_highlight" and r, 60, "no highlight"
+        )
+        assert reply.status == 503 and "no highlight" in reply.json()["reason"]
+        assert "meniscope_signal 0.0" in request("GET", url + "/metrics").body.decode()

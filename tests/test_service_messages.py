@@ -1,4 +1,5 @@
 """Published messages are plain JSON: missing samples are null, never NaN or Infinity."""
+
 from __future__ import annotations
 
 import json
@@ -21,8 +22,14 @@ def strict(text: str) -> dict:
 def test_a_trace_with_lost_frames_has_nulls_where_they_were() -> None:
     values = np.array([0.01, np.nan, np.inf, -0.0123456789])
     message = strict(trace_message(TraceSnippet(1000, 19000.0, values, [1002])))
-    assert message == {"schema": "meniscope.trace/1", "type": "trace", "first_index": 1000, "fps": 19000.0,
-                       "values": [0.01, None, None, -0.012346], "ejections": [1002]}
+    assert message == {
+        "schema": "meniscope.trace/1",
+        "type": "trace",
+        "first_index": 1000,
+        "fps": 19000.0,
+        "values": [0.01, None, None, -0.012346],
+        "ejections": [1002],
+    }
 
 
 def test_a_window_message_carries_the_stored_result_and_its_samples() -> None:

@@ -1,4 +1,5 @@
 """Service settings: defaults that run, file < environment < options, and file sources kept in their folder."""
+
 from __future__ import annotations
 
 import json
@@ -7,7 +8,7 @@ from pathlib import Path
 import pytest
 
 from service.errors import MeniscopeError
-from service.settings import load_settings, resolve_source
+from service.server.settings import load_settings, resolve_source
 
 
 @pytest.fixture(autouse=True)
@@ -18,13 +19,19 @@ def no_meniscope_env(monkeypatch: pytest.MonkeyPatch) -> None:
 
 def test_defaults_bind_loopback_port_8000_run_the_demo_with_the_fast_network() -> None:
     s = load_settings()
-    assert (s.host, s.port, s.source, s.method, s.zmq_publish) == ("127.0.0.1", 8000, None, "network",
-                                                                   "tcp://127.0.0.1:5556")
+    assert (s.host, s.port, s.source, s.method, s.zmq_publish) == (
+        "127.0.0.1",
+        8000,
+        None,
+        "network",
+        "tcp://127.0.0.1:5556",
+    )
     assert s.loopback and s.token is None and s.models.joinpath("manifest.json").is_file()
 
 
-def test_a_config_file_is_overridden_by_the_environment_then_by_options(tmp_path: Path,
-                                                                         monkeypatch: pytest.MonkeyPatch) -> None:
+def test_a_config_file_is_overridden_by_the_environment_then_by_options(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     config = tmp_path / "serve.toml"
     config.write_text('port = 9000\nhost = "0.0.0.0"\nbatch = 64\n[fit]\nmax_modes = 1\n')
     monkeypatch.setenv("MENISCOPE_PORT", "9100")
@@ -36,13 +43,16 @@ def test_a_config_file_is_overridden_by_the_environment_then_by_options(tmp_path
     assert load_settings(config).port == 9100
 
 
-@pytest.mark.parametrize("text, problem", [
-    ("prot = 1\n", "unknown setting 'prot'"),
-    ("port = -1\n", "port: Input should be greater than or equal to 0"),
-    ('method = "fastest"\n', "method: Input should be"),
-    ('method = "nearest"\n', "needs nearest_database"),
-    ("port = [\n", "not a TOML or JSON config"),
-])
+@pytest.mark.parametrize(
+    "text, problem",
+    [
+        ("prot = 1\n", "unknown setting 'prot'"),
+        ("port = -1\n", "port: Input should be greater than or equal to 0"),
+        ('method = "fastest"\n', "method: Input should be"),
+        ('method = "nearest"\n', "needs nearest_database"),
+        ("port = [\n", "not a TOML or JSON config"),
+    ],
+)
 def test_a_bad_config_is_one_line_naming_the_file_and_setting(tmp_path: Path, text: str, problem: str) -> None:
     config = tmp_path / "serve.toml"
     config.write_text(text)
@@ -72,8 +82,10 @@ def test_file_sources_resolve_inside_the_recordings_folder(tmp_path: Path) -> No
     assert resolve_source("zmq+tcp://10.0.0.5:5557", tmp_path) == "zmq+tcp://10.0.0.5:5557"
 
 
-@pytest.mark.parametrize("source", ["../secret.cine", "/etc/passwd", "file:///etc/passwd", "sub/../../x.cine",
-                                    "file://%2E%2E/x.cine", "link.cine"])
+@pytest.mark.parametrize(
+    "source",
+    ["../secret.cine", "/etc/passwd", "file:///etc/passwd", "sub/../../x.cine", "file://%2E%2E/x.cine", "link.cine"],
+)
 def test_no_file_source_can_leave_the_recordings_folder(tmp_path: Path, source: str) -> None:
     folder = tmp_path / "recordings"
     folder.mkdir()
@@ -88,7 +100,9 @@ def test_a_simulated_source_renders_the_service_scene_so_its_uri_names_no_file(t
     assert resolve_source("sim://?seed=3&noise=lab", tmp_path) == "sim://?seed=3&noise=lab"
     with pytest.raises(MeniscopeError) as err:
         load_settings(source="sim://?seed=3&scene=/etc/passwd", recordings_dir=tmp_path)
-    assert "source: sim://?seed=3&scene=/etc/passwd: sim:// renders the service's scene (setting scene)" in str(err.value)
+    assert "source: sim://?seed=3&scene=/etc/passwd: sim:// renders the service's scene (setting scene)" in str(
+        err.value
+    )
     assert "\n" not in str(err.value)
 
 
@@ -100,12 +114,15 @@ def test_settings_are_validated_once_so_an_option_mends_a_bad_value_of_the_confi
     assert (s.source, s.port) == ("rec.cine", 9000)
     with pytest.raises(MeniscopeError) as err:
         load_settings(config, recordings_dir=tmp_path / "recordings")
-    assert str(err.value) == (f"{config}: source: ../outside.cine: file sources must lie in the recordings folder "
-                              f"{tmp_path / 'recordings'} (setting recordings_dir, MENISCOPE_RECORDINGS_DIR)")
+    assert str(err.value) == (
+        f"{config}: source: ../outside.cine: file sources must lie in the recordings folder "
+        f"{tmp_path / 'recordings'} (setting recordings_dir, MENISCOPE_RECORDINGS_DIR)"
+    )
 
 
-def test_fallbacks_hold_only_where_no_file_environment_or_option_sets_the_key(tmp_path: Path,
-                                                                             monkeypatch: pytest.MonkeyPatch) -> None:
+def test_fallbacks_hold_only_where_no_file_environment_or_option_sets_the_key(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     config = tmp_path / "serve.toml"
     config.write_text("port = 9000\n")
     fallbacks = {"port": 1234, "threads": 3, "batch": 7, "host": "0.0.0.0"}

@@ -1,5 +1,6 @@
 """Synthetic recordings: ejections on schedule, motion drawn from physical ranges, a truth sidecar
 that reproduces every frame, files any reader opens, the same bytes for the same seed."""
+
 from __future__ import annotations
 
 import json
@@ -143,12 +144,21 @@ def test_the_sidecar_describes_the_recording(scene: Scene, ideal: tuple[Path, di
     assert truth_path(out) == out.with_name("rec.truth.json")
     assert json.loads(truth_path(out).read_text()) == truth
     assert truth["schema"] == SCHEMA and truth["seed"] == 3 and truth["ejection_hz"] == 100.0
-    assert truth["scene"] == scene.model_dump(mode="json") and truth["scene_sha256"] == scene.sha256
-    assert truth["recording"] == {"path": "rec.cine", "frames": 570, "fps": 19000.0, "width": 96, "height": 96,
-                                  "bit_depth": 12}
+    assert truth["scene"] == scene.as_dict() and truth["scene_sha256"] == scene.sha256
+    assert truth["recording"] == {
+        "path": "rec.cine",
+        "frames": 570,
+        "fps": 19000.0,
+        "width": 96,
+        "height": 96,
+        "bit_depth": 12,
+    }
     assert truth["ejections"] == [0, 190, 380]
     assert [(w["start_frame"], w["end_frame"], w["oscillation_start_frame"]) for w in truth["windows"]] == [
-        (0, 190, 5), (190, 380, 195), (380, 570, 385)]
+        (0, 190, 5),
+        (190, 380, 195),
+        (380, 570, 385),
+    ]
     assert truth["camera_effects"] == CameraEffects(bit_depth=12).model_dump(mode="json")
     for w in truth["windows"]:
         assert set(w["truth"]) == {"d", "p", "A1", "g1", "f1", "phi1", "A2", "g2", "f2", "phi2"}
@@ -175,8 +185,8 @@ def test_the_ejections_stand_out_in_the_video(ideal: tuple[Path, dict]) -> None:
     frames = frames_of(ideal[0]).astype(np.float64)
     change = np.abs(np.diff(frames, axis=0)).mean(axis=(1, 2))  # change[i]: frame i -> i + 1
     for start in ideal[1]["ejections"]:
-        transient = change[start:start + 4].max()
-        later = change[start + 20:start + 190 - 1].max()
+        transient = change[start : start + 4].max()
+        later = change[start + 20 : start + 190 - 1].max()
         assert transient > 2 * later, f"ejection at frame {start} is not visible"
 
 
@@ -185,7 +195,7 @@ def test_noise_does_not_hide_the_motion(ideal: tuple[Path, dict], lab: Path) -> 
     noisy = frames_of(lab).astype(np.float64) / 255
     assert frames_of(lab).dtype == np.uint8
     assert 0 < np.abs(noisy - clean).mean() < 0.05
-    flat = lambda x: (x - x.mean(axis=0)).reshape(len(x), -1)  # noqa: E731  the frames' motion
+    flat = lambda x: (x - x.mean(axis=0)).reshape(len(x), -1)
     r = np.corrcoef(flat(clean).ravel(), flat(noisy).ravel())[0, 1]
     assert r > 0.9
 
@@ -207,17 +217,22 @@ def test_an_avi_recording_is_8_bit(scene: Scene, renderer: Renderer, tmp_path: P
     assert truth_path(out).is_file()
 
 
-@pytest.mark.parametrize("name, bit_depth, message", [
-    ("rec.mp4", 8, "unknown recording format '.mp4': use .cine or .avi"),
-    ("rec", 8, "unknown recording format '(none)'"),
-    ("rec.avi", 12, ".avi stores bit depths [8], not 12"),
-    ("missing/rec.cine", 12, "does not exist"),
-])
-def test_unusable_outputs_are_refused_before_rendering(scene: Scene, tmp_path: Path, name: str, bit_depth: int,
-                                                        message: str) -> None:
+@pytest.mark.parametrize(
+    "name, bit_depth, message",
+    [
+        ("rec.mp4", 8, "unknown recording format '.mp4': use .cine or .avi"),
+        ("rec", 8, "unknown recording format '(none)'"),
+        ("rec.avi", 12, ".avi stores bit depths [8], not 12"),
+        ("missing/rec.cine", 12, "does not exist"),
+    ],
+)
+def test_unusable_outputs_are_refused_before_rendering(
+    scene: Scene, tmp_path: Path, name: str, bit_depth: int, message: str
+) -> None:
     with pytest.raises(MeniscopeError, match=re.escape(message)):
-        simulate(scene, tmp_path / name, windows=1, seed=0, effects=CameraEffects(bit_depth=bit_depth),
-                 renderer=object())
+        simulate(
+            scene, tmp_path / name, windows=1, seed=0, effects=CameraEffects(bit_depth=bit_depth), renderer=object()
+        )
 
 
 def test_the_verb_writes_a_recording_and_its_truth(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
@@ -228,14 +243,18 @@ def test_the_verb_writes_a_recording_and_its_truth(tmp_path: Path, capsys: pytes
     assert truth["noise"] == "none" and truth["recording"]["bit_depth"] == 12
 
 
-@pytest.mark.parametrize("argv, message", [
-    (["--windows", "0"], "--windows: must be at least 1"),
-    (["--ejection-hz", "nan"], "--ejection-hz: must be a positive number"),
-    (["--bit-depth", "10"], ".cine stores bit depths [8, 12, 16], not 10"),
-    (["--scene", "no-such-scene.json"], "no-such-scene.json: scene file not found"),
-])
-def test_the_verb_reports_bad_input_in_one_line(tmp_path: Path, capsys: pytest.CaptureFixture, argv: list[str],
-                                                message: str) -> None:
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["--windows", "0"], "--windows: must be at least 1"),
+        (["--ejection-hz", "nan"], "--ejection-hz: must be a positive number"),
+        (["--bit-depth", "10"], ".cine stores bit depths [8, 12, 16], not 10"),
+        (["--scene", "no-such-scene.json"], "no-such-scene.json: scene file not found"),
+    ],
+)
+def test_the_verb_reports_bad_input_in_one_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture, argv: list[str], message: str
+) -> None:
     assert main(["simulate", "--out", str(tmp_path / "x.cine"), *argv]) == 2
     err = capsys.readouterr().err
     assert message in err and err.count("\n") == 1
@@ -243,19 +262,34 @@ def test_the_verb_reports_bad_input_in_one_line(tmp_path: Path, capsys: pytest.C
 
 
 @pytest.mark.skipif(shutil.which("blender") is None, reason="blender not on PATH (Debian: apt install blender)")
-def test_the_verb_can_render_with_blender_as_a_second_renderer(tmp_path: Path, scene: Scene,
-                                                               capsys: pytest.CaptureFixture) -> None:
+def test_the_verb_can_render_with_blender_as_a_second_renderer(
+    tmp_path: Path, scene: Scene, capsys: pytest.CaptureFixture
+) -> None:
     """A 16-frame window (5 of transient, 11 of oscillation) through Cycles: the truth names the renderer,
     and the frames show the same scene as ours without being ours."""
     out = tmp_path / "cycles.cine"
-    argv = ["simulate", "--out", str(out), "--renderer", "blender", "--blender-samples", "4", "--windows", "1",
-            "--ejection-hz", str(19000 / 16), "--noise", "none", "--seed", "3"]
+    argv = [
+        "simulate",
+        "--out",
+        str(out),
+        "--renderer",
+        "blender",
+        "--blender-samples",
+        "4",
+        "--windows",
+        "1",
+        "--ejection-hz",
+        str(19000 / 16),
+        "--noise",
+        "none",
+        "--seed",
+        "3",
+    ]
     assert main(argv) == 0
     assert "16 frames" in capsys.readouterr().out
     truth = json.loads(truth_path(out).read_text())
     assert truth["renderer"] == "BlenderRenderer"
-    simulate(scene, tmp_path / "ours.cine", windows=1, seed=3, ejection_hz=19000 / 16,
-             effects=noise_preset("none", 12))
+    simulate(scene, tmp_path / "ours.cine", windows=1, seed=3, ejection_hz=19000 / 16, effects=noise_preset("none", 12))
     with open_recording(out) as rec, open_recording(tmp_path / "ours.cine") as other:
         cycles, ours = np.asarray(rec.read(0, 16), np.float64), np.asarray(other.read(0, 16), np.float64)
     assert not np.array_equal(cycles, ours)

@@ -5,6 +5,7 @@ in a simulated recording; the seed fixes every frame however the stream is read;
 scene's frame rate times ``speed`` (checked on a simulated clock). What every source does is checked
 in tests/test_sources_conformance.py.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -39,9 +40,12 @@ def test_frames_are_the_truth_it_reports_rendered_through_the_camera(scene: Scen
             info = source.describe()
             window = info["window"]
             assert (window["index"], window["start_frame"], window["end_frame"]) == (k, 190 * k, 190 * (k + 1))
-            truth = {"recording": {"fps": info["fps"], "frames": window["end_frame"]},
-                     "transient": {"frames": info["transient_frames"]}, "windows": [window]}
-            coeffs = truth_coefficients(truth)[window["start_frame"]:]
+            truth = {
+                "recording": {"fps": info["fps"], "frames": window["end_frame"]},
+                "transient": {"frames": info["transient_frames"]},
+                "windows": [window],
+            }
+            coeffs = truth_coefficients(truth)[window["start_frame"] :]
             np.testing.assert_array_equal(frames.indices, np.arange(190 * k, 190 * (k + 1)))
             np.testing.assert_allclose(frames.timestamps, frames.indices / FPS, rtol=0, atol=1e-12)
             expected = camera.apply(renderer.render(coeffs), np.random.default_rng())
@@ -62,7 +66,7 @@ def test_ejections_fall_every_period_rounded_to_the_nearest_frame() -> None:
     assert starts == [int(ejections[np.searchsorted(ejections, i, side="right") - 1]) for i in range(318)]
     change = np.abs(np.diff(frames, axis=0)).mean(axis=(1, 2))  # change[i]: frame i -> i + 1
     for start, end in zip(ejections[1:-1], ejections[2:]):  # each ejection stands out in the video
-        assert change[start - 1:start + 4].max() > 2 * change[start + 20:end - 1].max()
+        assert change[start - 1 : start + 4].max() > 2 * change[start + 20 : end - 1].max()
 
 
 def test_the_same_seed_gives_the_same_frames_however_they_are_read() -> None:
@@ -85,9 +89,13 @@ def test_reopening_starts_the_same_stream_again() -> None:
 
 def test_a_sensor_larger_than_the_roi_is_black_around_it(scene: Scene, tmp_path) -> None:  # type: ignore[no-untyped-def]
     shifted = tmp_path / "roi.json"
-    shifted.write_text(scene.model_copy(update={"camera": scene.camera.model_copy(update={"roi": (24, 8)})})
-                       .model_dump_json())
-    with open_source(f"sim://?noise=none&seed=2&scene={shifted}") as wide, open_source("sim://?noise=none&seed=2") as roi:
+    shifted.write_text(
+        scene.model_copy(update={"camera": scene.camera.model_copy(update={"roi": (24, 8)})}).model_dump_json()
+    )
+    with (
+        open_source(f"sim://?noise=none&seed=2&scene={shifted}") as wide,
+        open_source("sim://?noise=none&seed=2") as roi,
+    ):
         assert (wide.width, wide.height) == (120, 104)
         sensor, inside = read_frames(wide, 40).pixels, read_frames(roi, 40).pixels
     np.testing.assert_array_equal(sensor[:, 8:, 24:], inside)

@@ -6,6 +6,7 @@ runs on like a camera, ``GapContract`` one that loses frames on the way. Each ad
 the ``source`` fixture (an open source) and runs against the real thing: recordings on disk,
 ZeroMQ sockets on 127.0.0.1, Aravis's fake GigE Vision camera over loopback, a V4L2 device if any.
 """
+
 from __future__ import annotations
 
 import glob
@@ -134,6 +135,7 @@ class GapContract:
 
 # --- recordings on disk ------------------------------------------------------------------------------
 
+
 def counting_frames(n: int, height: int, width: int, bits: int) -> np.ndarray:
     """Frames whose words encode their index and position, so a misplaced frame cannot pass unnoticed."""
     k, y, x = np.ogrid[:n, :height, :width]
@@ -213,6 +215,7 @@ class TestReplayLoop(EndlessContract):
 
 
 # --- ZeroMQ over loopback -----------------------------------------------------------------------------
+
 
 @contextmanager
 def zmq_stream(recording: Path, keep: Callable[[np.ndarray], np.ndarray] = lambda i: i >= 0) -> Iterator[str]:
@@ -305,7 +308,9 @@ def fake_gige_camera(lost_per_thousand: int = 0) -> Iterator[str]:
         pytest.skip(missing)
     process = subprocess.Popen(
         [FAKE_CAMERA, "-i", "127.0.0.1", "-s", "MENISCOPE", "-r", str(lost_per_thousand)],
-        stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
     )
     try:
         uri = "aravis://127.0.0.1"
@@ -360,6 +365,7 @@ class TestAravisLossyNetwork(GapContract):
 
 # --- V4L2, where this machine has a device -----------------------------------------------------------
 
+
 @pytest.fixture(scope="module")
 def v4l2_device() -> str:
     """The first /dev/video* that opens as a capture device, or a skip saying why there is none."""
@@ -386,6 +392,7 @@ class TestV4l2(EndlessContract):
 
 # --- rendered live from the physics model ---------------------------------------------------------------
 
+
 class TestSimulated(EndlessContract):
     @pytest.fixture
     def source(self) -> Iterator[FrameSource]:
@@ -393,8 +400,11 @@ class TestSimulated(EndlessContract):
             yield source
 
     def test_renders_the_scene_at_its_rate_through_a_12_bit_camera(self, source: FrameSource, scene: Scene) -> None:
-        assert (source.width, source.height, source.fps) == (scene.camera.width_px, scene.camera.height_px,
-                                                             scene.camera.fps)
+        assert (source.width, source.height, source.fps) == (
+            scene.camera.width_px,
+            scene.camera.height_px,
+            scene.camera.fps,
+        )
         assert (source.dtype, source.bit_depth) == (np.uint16, 12)
         frames = FrameBatch.concatenate(collect(source, 40))
         np.testing.assert_allclose(frames.timestamps, frames.indices / scene.camera.fps, rtol=0, atol=1e-12)
@@ -402,6 +412,7 @@ class TestSimulated(EndlessContract):
 
 
 # --- the factory and the public API --------------------------------------------------------------------
+
 
 class TestOpenSource:
     @pytest.mark.parametrize(
@@ -443,8 +454,11 @@ class TestOpenSource:
             assert source.describe()["path"] == str(odd)
 
     def test_exports_are_complete(self) -> None:
-        public = {name for name, value in vars(sources).items()
-                  if not name.startswith("_") and not isinstance(value, types.ModuleType)}
+        public = {
+            name
+            for name, value in vars(sources).items()
+            if not name.startswith("_") and not isinstance(value, types.ModuleType)
+        }
         assert set(sources.__all__) == public
 
 
@@ -459,3 +473,12 @@ class TestFrameBatch:
     def test_frames_of_a_batch_carry_index_and_time(self) -> None:
         batch = FrameBatch(np.arange(24, dtype=np.uint16).reshape(2, 3, 4), np.array([7, 9]), np.array([0.5, 0.6]))
         assert (batch[1].index, batch[1].timestamp, int(batch[1].pixels[0, 0])) == (9, 0.6, 12)
+
+
+def test_a_replay_uri_names_the_recording_absolutely_whatever_the_working_folder(tmp_path, monkeypatch) -> None:
+    from service.sources.replay import replay_uri
+
+    monkeypatch.chdir(tmp_path)
+    uri = replay_uri("rec with space.cine", speed="max", loop=1)
+    assert uri == f"{(tmp_path / 'rec with space.cine').as_uri()}?speed=max&loop=1"
+    assert "%20" in uri and uri.startswith("file:///")

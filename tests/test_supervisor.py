@@ -1,11 +1,12 @@
 """The supervisor (service.pipeline.supervisor) keeps the pipeline running: what its health says about which run."""
+
 from __future__ import annotations
 
 from pathlib import Path
 
 from service.errors import MeniscopeError
 from service.pipeline.supervisor import Supervisor
-from service.settings import ServiceSettings
+from service.server.settings import ServiceSettings
 from tests.servicekit import wait_for
 
 
@@ -32,8 +33,7 @@ def test_a_failed_run_is_reported_with_its_own_source_though_the_source_changed_
     second = ServiceSettings(source="zmq+tcp://127.0.0.1:5002", data_dir=tmp_path)
     supervisor = FailsAsTheSourceChanges(first, second).start()
     try:
-        health = wait_for(lambda: (h := supervisor.health()).state == "retrying" and h, 10, "the retry",
-                          interval=0.005)
+        health = wait_for(lambda: (h := supervisor.health()).state == "retrying" and h, 10, "the retry", interval=0.005)
         assert health.reason.startswith("zmq+tcp://127.0.0.1:5001: the camera went away (attempt 1;")
         assert health.source == {"uri": "zmq+tcp://127.0.0.1:5001"}
         supervisor.reconfigure(second)

@@ -2,6 +2,7 @@
 the true motion from a poor start, through an unknown exposure and focus, and from the mirrored surface; its
 start undoes the window offset and reads the modes a per-frame start missed from the frames; implausible
 motions are told apart."""
+
 from __future__ import annotations
 
 from dataclasses import replace
@@ -12,8 +13,8 @@ import pytest
 from service import DEFAULT_SCENE
 from service.analysis.fit import fit_window
 from service.analysis.offline import _with_pixel_intervals
-from service.inverse.synthesis import frames_start, plausible, refine_window, standard_errors, start_motion
 from service.camera_effects import CameraEffects
+from service.inverse.synthesis import frames_start, plausible, refine_window, standard_errors, start_motion
 from service.physics import WindowTruth
 from service.render.renderer import Renderer
 from service.scene import Scene
@@ -39,11 +40,13 @@ def relative(found: float, true: float) -> float:
 
 
 def test_refinement_recovers_the_motion_from_a_poor_start_through_gain_offset_blur_and_noise(renderer):
-    camera = CameraEffects(gain=0.8, offset=0.02, blur_sigma_px=0.6, full_well_e=16000.0, read_noise_dn=5.0,
-                           bit_depth=12)
+    camera = CameraEffects(
+        gain=0.8, offset=0.02, blur_sigma_px=0.6, full_well_e=16000.0, read_noise_dn=5.0, bit_depth=12
+    )
     frames = frames_of(renderer, TRUE, camera)
-    start = WindowTruth(d=0.013, p=-0.06, A1=0.011, g1=250.0, f1=1390.0, phi1=1.4, A2=0.004, g2=600.0, f2=3150.0,
-                        phi2=3.5)
+    start = WindowTruth(
+        d=0.013, p=-0.06, A1=0.011, g1=250.0, f1=1390.0, phi1=1.4, A2=0.004, g2=600.0, f2=3150.0, phi2=3.5
+    )
     refined = refine_window(renderer, frames, T, start).motion
     assert relative(refined.f1, TRUE.f1) < 1e-3 and relative(refined.g1, TRUE.g1) < 0.02
     assert relative(refined.A1, TRUE.A1) < 0.03
@@ -100,8 +103,7 @@ def test_the_frames_give_the_start_the_modes_a_per_frame_start_missed(renderer):
 
 def test_a_motion_is_plausible_inside_the_coefficient_ranges_with_its_modes_in_order_below_nyquist():
     assert plausible(TRUE, T)
-    for wrong in (dict(A1=0.1), dict(A2=0.5, g2=100.0), dict(f2=12000.0), dict(f1=100.0),
-                  dict(f1=3300.0), dict(p=0.3)):
+    for wrong in (dict(A1=0.1), dict(A2=0.5, g2=100.0), dict(f2=12000.0), dict(f1=100.0), dict(f1=3300.0), dict(p=0.3)):
         assert not plausible(replace(TRUE, **wrong), T), wrong
 
 
@@ -124,8 +126,9 @@ def test_a_refined_window_reports_the_pixel_fit_s_intervals_for_each_mode_and_nu
     intervals = _with_pixel_intervals(result, TRUE, errors, FPS, 0.95)
     first, second = intervals.modes
     assert first.frequency_ci_hz == pytest.approx((first.frequency_hz - 0.98, first.frequency_hz + 0.98), abs=1e-3)
-    assert first.decay_rate_ci_per_s == pytest.approx((first.decay_rate_per_s - 3.92, first.decay_rate_per_s + 3.92),
-                                                      abs=1e-3)
+    assert first.decay_rate_ci_per_s == pytest.approx(
+        (first.decay_rate_per_s - 3.92, first.decay_rate_per_s + 3.92), abs=1e-3
+    )
     assert second.frequency_ci_hz == pytest.approx((second.frequency_hz - 2.94, second.frequency_hz + 2.94), abs=1e-3)
     errors[[7, 8]] = np.inf
     unknown = _with_pixel_intervals(result, TRUE, errors, FPS, 0.95)

@@ -1,5 +1,6 @@
 """``meniscope train`` end to end (quick settings): ONNX graphs that match torch, a manifest that guards
 them, the run-time method that loads them, and one-line errors for what users get wrong."""
+
 from __future__ import annotations
 
 import json
@@ -49,8 +50,9 @@ def test_train_exports_both_methods_with_a_manifest_and_plots(trained: tuple[Pat
     assert manifest.autoencoder.file == "autoencoder.onnx" and "autoencoder" not in manifest.methods
 
 
-def test_validate_shows_lab_frames_beside_their_vae_reconstructions(trained: tuple[Path, Path, Path], scene: Scene,
-                                                                    tmp_path: Path) -> None:
+def test_validate_shows_lab_frames_beside_their_vae_reconstructions(
+    trained: tuple[Path, Path, Path], scene: Scene, tmp_path: Path
+) -> None:
     """The exported autoencoder graph reproduces what the VAE saw: its ``normalised`` output is the
     pooled, standardised frame, and the reconstruction figure is drawn from it."""
     lab, holdout, models = trained

@@ -1,4 +1,5 @@
 """The training verbs after a runtime-only install (no torch, no onnx): one line saying how to add the extra."""
+
 from __future__ import annotations
 
 import subprocess
@@ -19,14 +20,23 @@ sys.meta_path.insert(0, Absent())
 """
 
 
-@pytest.mark.parametrize(("argv", "extra"), [
-    (["train", "--lab-video", "lab.cine", "--out", "models-x", "--quick"], "train"),
-    (["quantize", "--models", "models/default", "--out", "int8-x"], "train"),
-])
+@pytest.mark.parametrize(
+    ("argv", "extra"),
+    [
+        (["train", "--lab-video", "lab.cine", "--out", "models-x", "--quick"], "train"),
+        (["quantize", "--models", "models/default", "--out", "int8-x"], "train"),
+    ],
+)
 def test_a_missing_extra_is_one_line_naming_it(tmp_path: Path, argv: list[str], extra: str) -> None:
     code = WITHOUT + "from service.cli import main; sys.exit(main(sys.argv[1:]))"
-    done = subprocess.run([sys.executable, "-c", code, *argv], cwd=tmp_path, capture_output=True, text=True,
-                          timeout=120, env={"PYTHONPATH": str(ROOT), "PATH": "/usr/bin:/bin"})
+    done = subprocess.run(
+        [sys.executable, "-c", code, *argv],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=120,
+        env={"PYTHONPATH": str(ROOT), "PATH": "/usr/bin:/bin"},
+    )
     assert done.returncode == 2, done.stderr
     lines = done.stderr.strip().splitlines()
     assert len(lines) == 1 and "Traceback" not in done.stderr

@@ -1,4 +1,5 @@
 """The printer's trigger live: events over HTTP and ZeroMQ, windows cut at them, the video detector checking them."""
+
 from __future__ import annotations
 
 import json
@@ -14,8 +15,8 @@ from service.pipeline.ejections import EjectionDetector
 from service.pipeline.runtime import segmenter_for
 from service.pipeline.segmenter import StreamingSegmenter
 from service.pipeline.trigger import TriggerCheck, TriggerInbox
+from service.server.settings import ServiceSettings
 from service.server.trigger_zmq import TriggerSubscriber
-from service.settings import ServiceSettings
 from tests.servicekit import request, running_service, service_settings, wait_for
 from tests.test_live_segmentation import FPS, bursts, segment
 
@@ -35,7 +36,12 @@ def triggered(printer: list[int], video: list[int], n: int = 1200) -> tuple[list
 def test_windows_are_cut_at_the_printers_ejections_and_agreement_is_counted() -> None:
     closed, inbox = triggered([200, 401, 600, 800], [200, 400, 600, 801])  # within 2 frames: agreement
     assert [c.window.start for c in closed] == [0, 200, 401, 600, 800]
-    assert (inbox.counts.received, inbox.counts.agreed, inbox.counts.printer_only, inbox.counts.video_only) == (4, 4, 0, 0)
+    assert (inbox.counts.received, inbox.counts.agreed, inbox.counts.printer_only, inbox.counts.video_only) == (
+        4,
+        4,
+        0,
+        0,
+    )
 
 
 def test_a_trigger_the_video_does_not_show_and_an_ejection_the_printer_did_not_announce_are_disagreements() -> None:
@@ -87,20 +93,59 @@ def test_the_live_segmenter_takes_the_printers_events_only_when_asked() -> None:
 
 
 @pytest.fixture(scope="module")
-def printer_service(tmp_path_factory: pytest.TempPathFactory, demo_cine: Path) -> Iterator[str]:
-    settings = service_settings(tmp_path_factory.mktemp("trigger"), demo_cine.parent,
-                                f"file://{demo_cine}?speed=0.25&loop=1", token="s3cret", trigger="printer")
+def printer() -> Iterator[tuple[zmq.Socket, str]]:
+    """The printer's ZeroMQ PUB socket and its endpoint."""
+    pub = zmq.Context.instance().socket(zmq.PUB)
+    pub.setsockopt(zmq.LINGER, 0)
+    port = pub.bind_to_random_port("tcp://127.0.0.1")
+    yield pub, f"tcp://127.0.0.1:{port}"
+    pub.close()
+
+
+@pytest.fixture(scope="module")
+def printer_service(
+    tmp_path_factory: pytest.TempPathFactory, demo_cine: Path, printer: tuple[zmq.Socket, str]
+) -> Iterator[str]:
+    settings = service_settings(
+        tmp_path_factory.mktemp("trigger"),
+        demo_cine.parent,
+        f"file://{demo_cine}?speed=0.25&loop=1",
+        token="s3cret",
+        trigger="printer",
+        trigger_zmq=printer[1],
+    )
     with running_service(settings) as url:  # the trigger's route answers whether or not the pipeline is ready yet
         yield url
 
 
-def test_the_http_trigger_needs_the_token_and_is_counted_in_the_metrics(printer_service: str) -> None:
+def received(url: str) -> float:
+    """meniscope_trigger_ejections_total as the service's /metrics says (the pipeline process's count)."""
+    metrics = request("GET", url + "/metrics").body.decode()
+    assert 'meniscope_trigger_disagreements_total{side="printer_only"}' in metrics
+    return next(float(line.split()[-1]) for line in metrics.splitlines() if line.startswith("meniscope_trigger_ej"))
+
+
+def test_the_http_trigger_needs_the_token_and_reaches_the_pipeline_process(printer_service: str) -> None:
     url = printer_service + "/api/v1/ejections"
     assert request("POST", url, {"frame": 10}).status == 401
     assert request("POST", url, {"frame": 10, "time_s": 0.1}, TOKEN).status == 422
     assert request("POST", url, {"frame": -3}, TOKEN).status == 422
+    before = received(printer_service)
     reply = request("POST", url, {"frame": 10}, TOKEN)
     assert reply.status == 202 and reply.json() == {"received": 1}
-    metrics = request("GET", printer_service + "/metrics").body.decode()
-    assert "meniscope_trigger_ejections_total 1.0" in metrics
-    assert 'meniscope_trigger_disagreements_total{side="printer_only"}' in metrics
+    # counted where the segmenter runs, the pipeline process, and reported back to the web process's /metrics
+    wait_for(lambda: received(printer_service) == before + 1, 10, "the HTTP event in the pipeline process")
+
+
+def test_zeromq_trigger_events_reach_the_running_services_pipeline_process(
+    printer_service: str, printer: tuple[zmq.Socket, str]
+) -> None:
+    pub, _ = printer
+
+    def sent_and_counted() -> bool:  # a SUB joins a PUB after a moment: send until one arrives
+        before = received(printer_service)
+        pub.send_string(json.dumps({"frame": 20}))
+        time.sleep(0.3)
+        return received(printer_service) > before
+
+    wait_for(sent_and_counted, 30, "a ZeroMQ event in the pipeline process")

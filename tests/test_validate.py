@@ -1,5 +1,6 @@
 """``meniscope validate``: every inverse method scored on a simulated recording, figures drawn, the manifest kept
 loadable; and the ``database`` verb that builds what the nearest-neighbour methods search."""
+
 from __future__ import annotations
 
 import json
@@ -33,8 +34,14 @@ def inputs(scene: Scene, tmp_path_factory: pytest.TempPathFactory) -> tuple[Path
     """A two-window recording no model saw and two small render databases of different sizes."""
     folder = tmp_path_factory.mktemp("validate")
     rec = folder / "rec.cine"
-    simulate(scene, rec, windows=2, seed=41, effects=noise_preset("lab", 12),
-             renderer=Renderer(scene, supersample=1, sun_samples=2))
+    simulate(
+        scene,
+        rec,
+        windows=2,
+        seed=41,
+        effects=noise_preset("lab", 12),
+        renderer=Renderer(scene, supersample=1, sun_samples=2),
+    )
     databases = [folder / "small", folder / "large"]
     for db, samples in zip(databases, (256, 768)):
         generate(DatasetConfig(scene=scene, samples=samples, seed=1, chunk_size=256, supersample=1), db)
@@ -42,7 +49,9 @@ def inputs(scene: Scene, tmp_path_factory: pytest.TempPathFactory) -> tuple[Path
 
 
 @pytest.fixture(scope="module")
-def validated(scene: Scene, inputs: tuple[Path, list[Path]], tmp_path_factory: pytest.TempPathFactory) -> tuple[dict, Path]:
+def validated(
+    scene: Scene, inputs: tuple[Path, list[Path]], tmp_path_factory: pytest.TempPathFactory
+) -> tuple[dict, Path]:
     """The document ``validate`` returns and the folder it drew into."""
     rec, databases = inputs
     out = tmp_path_factory.mktemp("figures")
@@ -54,8 +63,9 @@ def document(validated: tuple[dict, Path]) -> dict:
     return validated[0]
 
 
-def test_every_method_is_scored_on_every_oscillating_frame(document: dict, inputs: tuple[Path, list[Path]],
-                                                            scene: Scene) -> None:
+def test_every_method_is_scored_on_every_oscillating_frame(
+    document: dict, inputs: tuple[Path, list[Path]], scene: Scene
+) -> None:
     rec, _ = inputs
     result = document["recordings"]["rec.cine"]
     idx, _ = oscillation_truth(read_truth(rec), scene)
@@ -75,8 +85,9 @@ def test_every_method_is_scored_on_every_oscillating_frame(document: dict, input
         assert fits["windows"] == 2 and np.isfinite(fits["frequency_rel_error_median"])
 
 
-def test_the_nearest_scores_match_an_independent_computation(document: dict, inputs: tuple[Path, list[Path]],
-                                                            scene: Scene) -> None:
+def test_the_nearest_scores_match_an_independent_computation(
+    document: dict, inputs: tuple[Path, list[Path]], scene: Scene
+) -> None:
     rec, databases = inputs
     idx, true = oscillation_truth(read_truth(rec), scene)
     frames, _ = read_roi_frames(rec, scene)
@@ -101,8 +112,9 @@ def test_the_figures_are_written_and_named_in_the_document(validated: tuple[dict
         assert (out / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n" and (out / name).stat().st_size > 10_000
 
 
-def test_recording_scores_in_the_manifest_keeps_the_model_loadable(scene: Scene, inputs: tuple[Path, list[Path]],
-                                                                   tmp_path: Path) -> None:
+def test_recording_scores_in_the_manifest_keeps_the_model_loadable(
+    scene: Scene, inputs: tuple[Path, list[Path]], tmp_path: Path
+) -> None:
     rec, databases = inputs
     models = tmp_path / "models"
     shutil.copytree(MODELS, models)
@@ -115,8 +127,9 @@ def test_recording_scores_in_the_manifest_keeps_the_model_loadable(scene: Scene,
     NetworkMethod(models, scene, "network")
 
 
-def test_bad_input_is_one_line_naming_the_file(inputs: tuple[Path, list[Path]], tmp_path: Path,
-                                               capsys: pytest.CaptureFixture) -> None:
+def test_bad_input_is_one_line_naming_the_file(
+    inputs: tuple[Path, list[Path]], tmp_path: Path, capsys: pytest.CaptureFixture
+) -> None:
     rec, databases = inputs
     bare = tmp_path / "bare.cine"
     shutil.copy(rec, bare)  # a recording without its truth file
@@ -126,8 +139,10 @@ def test_bad_input_is_one_line_naming_the_file(inputs: tuple[Path, list[Path]], 
     cases = [
         (["--recording", str(other)], "other.cine: simulated for scene 000000000000, not this one"),
         (["--recording", str(bare), "--database", str(databases[0])], f"{truth_path(bare)}: missing"),
-        (["--recording", str(rec), "--database", str(databases[0]), "--database", str(databases[0])],
-         "--database: file and folder names must differ"),
+        (
+            ["--recording", str(rec), "--database", str(databases[0]), "--database", str(databases[0])],
+            "--database: file and folder names must differ",
+        ),
         (["--recording", str(rec), "--database", str(tmp_path)], "frames.npy: missing"),
     ]
     for argv, message in cases:
@@ -137,7 +152,8 @@ def test_bad_input_is_one_line_naming_the_file(inputs: tuple[Path, list[Path]], 
 
 
 def test_a_database_of_another_roi_size_is_refused_as_the_service_refuses_it(
-        inputs: tuple[Path, list[Path]], scene: Scene, tmp_path: Path, capsys: pytest.CaptureFixture) -> None:
+    inputs: tuple[Path, list[Path]], scene: Scene, tmp_path: Path, capsys: pytest.CaptureFixture
+) -> None:
     rec, _ = inputs
     other = tmp_path / "48px"
     other.mkdir()
@@ -148,8 +164,17 @@ def test_a_database_of_another_roi_size_is_refused_as_the_service_refuses_it(
     with pytest.raises(MeniscopeError) as refused:
         open_method("nearest", scene, MODELS, other)
     assert "renders of 48x48 px do not match the scene's ROI 96x96" in str(refused.value)
-    argv = ["validate", "--models", str(MODELS), "--out", str(tmp_path / "out"), "--recording", str(rec),
-            "--database", str(other)]
+    argv = [
+        "validate",
+        "--models",
+        str(MODELS),
+        "--out",
+        str(tmp_path / "out"),
+        "--recording",
+        str(rec),
+        "--database",
+        str(other),
+    ]
     assert main(argv) == 2
     assert capsys.readouterr().err == f"meniscope validate: error: {refused.value}\n"
 

@@ -1,5 +1,6 @@
 """The window fit: damped modes recovered, the model order chosen honestly, and no crash, NaN or made-up
 frequency at the extremes the analysis issue lists (a test each)."""
+
 from __future__ import annotations
 
 import json
@@ -16,20 +17,27 @@ from hypothesis.extra.numpy import arrays
 from scipy.optimize import least_squares
 from scipy.special import logsumexp
 
-from service.analysis import fit as fit_module, kernels
+from service.analysis import fit as fit_module
+from service.analysis import kernels
 from service.analysis.fit import fit_window, model_curve
 from service.analysis.pencil import energy
-from service.bench.peers import available, harminv_modes
 from service.analysis.results import FitSettings, Report, Source
 from service.analysis.settling import envelope, settle, settling_time, tolerance
+from service.bench.peers import available, harminv_modes
 from service.physics import damped_mode
 
 FPS = 19000.0
 N = 190
 
 
-def series(modes: list[tuple[float, float, float, float]], n: int = N, offset: float = 0.0, drift: float = 0.0,
-           noise: float = 0.0, seed: int = 0) -> np.ndarray:
+def series(
+    modes: list[tuple[float, float, float, float]],
+    n: int = N,
+    offset: float = 0.0,
+    drift: float = 0.0,
+    noise: float = 0.0,
+    seed: int = 0,
+) -> np.ndarray:
     """offset + drift t + sum A exp(-g t) cos(2 pi f t + phi) + white noise, at FPS; modes as (A, g, f, phi)."""
     t = np.arange(n) / FPS
     y = offset + drift * t + sum((damped_mode(t, *m) for m in modes), np.zeros(n))
@@ -47,7 +55,9 @@ def test_two_modes_are_recovered_dominant_first_with_intervals_that_hold_the_tru
     r = fit_window(y, FPS)
     assert r.status == "ok" and len(r.modes) == 2
     first, second = r.modes
-    assert first.frequency_hz == pytest.approx(1500, rel=2e-3) and first.decay_rate_per_s == pytest.approx(400, rel=0.05)
+    assert first.frequency_hz == pytest.approx(1500, rel=2e-3) and first.decay_rate_per_s == pytest.approx(
+        400, rel=0.05
+    )
     assert second.frequency_hz == pytest.approx(3500, rel=5e-3)
     assert first.amplitude_mm == pytest.approx(0.02, rel=0.03) and r.offset_mm == pytest.approx(0.01, abs=5e-5)
     assert first.frequency_ci_hz[0] <= 1500 <= first.frequency_ci_hz[1]
@@ -58,10 +68,18 @@ def test_two_modes_are_recovered_dominant_first_with_intervals_that_hold_the_tru
 
 def test_the_model_order_is_the_one_the_data_needs():
     assert len(fit_window(series([(0.02, 400.0, 1500.0, 0.3)], noise=2e-4), FPS).modes) == 1
-    assert len(fit_window(series([(0.02, 400.0, 1500.0, 0.3), (0.008, 900.0, 3400.0, 1.0)], noise=2e-4), FPS).modes) == 2
+    assert (
+        len(fit_window(series([(0.02, 400.0, 1500.0, 0.3), (0.008, 900.0, 3400.0, 1.0)], noise=2e-4), FPS).modes) == 2
+    )
     assert fit_window(series([], offset=0.02, noise=2e-4), FPS).status == "settled"
-    assert len(fit_window(series([(0.02, 400.0, 1500.0, 0.3), (0.008, 900.0, 3400.0, 1.0)]), FPS,
-                          FitSettings(max_modes=1)).modes) == 1
+    assert (
+        len(
+            fit_window(
+                series([(0.02, 400.0, 1500.0, 0.3), (0.008, 900.0, 3400.0, 1.0)]), FPS, FitSettings(max_modes=1)
+            ).modes
+        )
+        == 1
+    )
 
 
 def test_poles_from_the_frames_brightness_amplitude_and_offset_from_the_series():
@@ -75,7 +93,9 @@ def test_poles_from_the_frames_brightness_amplitude_and_offset_from_the_series()
     assert plain.modes[0].frequency_hz == pytest.approx(3000, rel=0.02)  # the wandering series alone misleads
     assert pinned.poles_from == "frames" and plain.poles_from == "series"
     first = pinned.modes[0]
-    assert first.frequency_hz == pytest.approx(1500, rel=1e-3) and first.decay_rate_per_s == pytest.approx(400, rel=0.02)
+    assert first.frequency_hz == pytest.approx(1500, rel=1e-3) and first.decay_rate_per_s == pytest.approx(
+        400, rel=0.02
+    )
     assert first.frequency_ci_hz[0] < first.frequency_hz < first.frequency_ci_hz[1]  # the brightness fit's interval
     assert first.amplitude_mm == pytest.approx(0.01, rel=0.2) and pinned.offset_mm == pytest.approx(0.01, abs=5e-4)
     assert fit_window(shrunk, FPS, FitSettings(poles="series"), brightness=brightness) == plain
@@ -98,8 +118,11 @@ def test_the_frames_poles_hold_where_only_a_higher_order_of_the_brightness_is_un
     assert pinned.poles_from == "frames" and pinned.modes[0].frequency_hz == pytest.approx(1500, rel=2e-3)
 
 
-@pytest.mark.parametrize("brightness", [np.full(N, 80.0), 80.0 + np.random.default_rng(0).normal(0, 0.5, N),
-                                        np.full(N, np.nan)], ids=["constant", "noise", "missing"])
+@pytest.mark.parametrize(
+    "brightness",
+    [np.full(N, 80.0), 80.0 + np.random.default_rng(0).normal(0, 0.5, N), np.full(N, np.nan)],
+    ids=["constant", "noise", "missing"],
+)
 def test_frames_without_a_resolved_oscillation_leave_the_poles_to_the_series(brightness):
     y = series([(0.02, 400.0, 1500.0, 0.3)], noise=2e-4)
     r = fit_window(y, FPS, brightness=brightness)
@@ -124,7 +147,9 @@ def test_the_transient_after_an_ejection_is_left_out_and_time_still_counts_from_
     y[:5] += 0.1  # the droplet leaving
     r = fit_window(y, FPS, starts_at_ejection=True)
     assert r.transient_frames == 6 and r.samples == N - 6
-    assert r.modes[0].amplitude_mm == pytest.approx(0.02, rel=0.03) and r.modes[0].phase_rad == pytest.approx(0.3, abs=0.05)
+    assert r.modes[0].amplitude_mm == pytest.approx(0.02, rel=0.03) and r.modes[0].phase_rad == pytest.approx(
+        0.3, abs=0.05
+    )
 
 
 # --- the extremes of the analysis issue, one test each ------------------------------------------------
@@ -239,8 +264,14 @@ def test_any_series_at_all_gives_an_honest_status_and_clean_json(values):
 
 
 @settings(max_examples=60, deadline=None)
-@given(f=st.floats(0.02, 0.45), g=st.floats(0.0, 0.03), amp=st.floats(1e-6, 1e3), phase=st.floats(-np.pi, np.pi),
-       offset=st.floats(-1e3, 1e3), n=st.integers(12, 400))
+@given(
+    f=st.floats(0.02, 0.45),
+    g=st.floats(0.0, 0.03),
+    amp=st.floats(1e-6, 1e3),
+    phase=st.floats(-np.pi, np.pi),
+    offset=st.floats(-1e3, 1e3),
+    n=st.integers(12, 400),
+)
 def test_a_clean_mode_is_found_exactly_at_any_frequency_decay_scale_and_length(f, g, amp, phase, offset, n):
     """f in cycles per frame, g per frame: noise-free, so the fit must be exact where a cycle is visible."""
     t = np.arange(n)
@@ -293,9 +324,11 @@ def test_harminv_itself_finds_a_moderately_damped_pair_as_we_do():
 
 
 @settings(max_examples=300, deadline=None)
-@given(amplitudes=st.lists(st.floats(1e-9, 1e3), min_size=2, max_size=3),
-       decays=st.lists(st.one_of(st.just(0.0), st.floats(5e-324, 1e7)), min_size=3, max_size=3),
-       fraction=st.floats(0.01, 0.99))
+@given(
+    amplitudes=st.lists(st.floats(1e-9, 1e3), min_size=2, max_size=3),
+    decays=st.lists(st.one_of(st.just(0.0), st.floats(5e-324, 1e7)), min_size=3, max_size=3),
+    fraction=st.floats(0.01, 0.99),
+)
 def test_settling_time_meets_the_tolerance_at_any_scale_of_decay(amplitudes, decays, fraction):
     """The envelope E(t) crosses the tolerance at the settling time, whatever the decay rates span (1e-176 /s
     beside 1e3 /s made Brent's method give up over a linear bracket); never, for what would take past 1e17 s."""
@@ -315,14 +348,17 @@ def log_envelope(t: float, a: np.ndarray, g: np.ndarray) -> float:
     return float(logsumexp(np.log(a) - g * t))
 
 
-@pytest.mark.parametrize(("amplitudes", "decays", "tol", "expected"), [
-    ([1e300, 1e300], [1e3, 2e3], 1e-10, 310 * np.log(10.0) / 1e3),  # huge amplitude: a / budget overflowed
-    ([1e308, 1e308], [1.0, 1.0], 1.0, np.log(2.0) + 308 * np.log(10.0)),  # their sum leaves the float range
-    ([1e300], [1e3], 1e-10, 310 * np.log(10.0) / 1e3),  # one mode, closed form
-    ([1.0, 1.0], [5e-324, 1e-323], 0.1, np.inf),  # tiny decay: log(20) / 1e-323 overflowed
-    ([1e300, 1.0], [5e-324, 1e3], 1e-5, np.inf),
-    ([2.0], [5e-324], 1.0, np.inf),
-])
+@pytest.mark.parametrize(
+    ("amplitudes", "decays", "tol", "expected"),
+    [
+        ([1e300, 1e300], [1e3, 2e3], 1e-10, 310 * np.log(10.0) / 1e3),  # huge amplitude: a / budget overflowed
+        ([1e308, 1e308], [1.0, 1.0], 1.0, np.log(2.0) + 308 * np.log(10.0)),  # their sum leaves the float range
+        ([1e300], [1e3], 1e-10, 310 * np.log(10.0) / 1e3),  # one mode, closed form
+        ([1.0, 1.0], [5e-324, 1e-323], 0.1, np.inf),  # tiny decay: log(20) / 1e-323 overflowed
+        ([1e300, 1.0], [5e-324, 1e3], 1e-5, np.inf),
+        ([2.0], [5e-324], 1.0, np.inf),
+    ],
+)
 def test_settling_time_is_right_and_quiet_at_extreme_amplitudes_and_decays(amplitudes, decays, tol, expected):
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # an overflow warning fails the test
@@ -343,9 +379,11 @@ def test_settle_is_quiet_and_finite_where_the_amplitudes_sum_past_the_float_rang
 
 
 @settings(max_examples=300, deadline=None)
-@given(amplitudes=st.lists(st.floats(1e-300, 1e300), min_size=1, max_size=3),
-       decays=st.lists(st.floats(5e-324, 1e7), min_size=3, max_size=3),
-       tol=st.floats(1e-300, 1e300))
+@given(
+    amplitudes=st.lists(st.floats(1e-300, 1e300), min_size=1, max_size=3),
+    decays=st.lists(st.floats(5e-324, 1e7), min_size=3, max_size=3),
+    tol=st.floats(1e-300, 1e300),
+)
 def test_settling_time_meets_the_tolerance_without_a_warning_over_the_whole_float_range(amplitudes, decays, tol):
     a, g = np.array(amplitudes), np.array(decays[: len(amplitudes)])
     with warnings.catch_warnings():
@@ -366,13 +404,22 @@ def test_the_settling_time_that_stopped_bench_tradeoff():
 
 
 @settings(max_examples=40, deadline=None)
-@given(seed=st.integers(0, 10_000), noise=st.sampled_from([0.0, 2e-4, 1e-3, 5e-3]),
-       loss=st.sampled_from(["soft_l1", "linear"]))
+@given(
+    seed=st.integers(0, 10_000),
+    noise=st.sampled_from([0.0, 2e-4, 1e-3, 5e-3]),
+    loss=st.sampled_from(["soft_l1", "linear"]),
+)
 def test_the_compiled_levenberg_marquardt_reaches_scipy_s_optimum(seed, noise, loss):
     """From the fit's own two-mode start, our LM ends at a cost no worse than MINPACK's (scipy, same residuals)."""
     rng = np.random.default_rng(seed)
-    y = series([(0.02, rng.uniform(50, 1500), rng.uniform(300, 2700), rng.uniform(-3, 3)),
-                (0.006, rng.uniform(500, 3000), rng.uniform(700, 6500), rng.uniform(-3, 3))], noise=noise, seed=seed)
+    y = series(
+        [
+            (0.02, rng.uniform(50, 1500), rng.uniform(300, 2700), rng.uniform(-3, 3)),
+            (0.006, rng.uniform(500, 3000), rng.uniform(700, 6500), rng.uniform(-3, 3)),
+        ],
+        noise=noise,
+        seed=seed,
+    )
     n = np.arange(N, dtype=np.float64)
     window = fit_module._Window(n, (y - np.median(y)) / np.ptp(y), FitSettings(loss=loss))
     start = window.starts(2, fit_module._pencil_modes(n, window.y, N, 6))
@@ -382,10 +429,18 @@ def test_the_compiled_levenberg_marquardt_reaches_scipy_s_optimum(seed, noise, l
 
     # both search each mode's decay g as sqrt(g), so that g >= 0 (abs: np.where takes the root of every entry)
     decays = (np.arange(start.size) % 4 == 1) & (np.arange(start.size) > 1)
-    squared = lambda x: np.where(decays, x**2, x)  # noqa: E731
+    squared = lambda x: np.where(decays, x**2, x)
     ours = kernels.levenberg_marquardt(n, window.y, window.scale, window.robust, start, 1e-10, 2000)
-    minpack = squared(least_squares(lambda x: residuals(squared(x)), np.where(decays, np.sqrt(np.abs(start)), start),
-                                    method="lm", xtol=1e-12, ftol=1e-12, max_nfev=4000).x)
+    minpack = squared(
+        least_squares(
+            lambda x: residuals(squared(x)),
+            np.where(decays, np.sqrt(np.abs(start)), start),
+            method="lm",
+            xtol=1e-12,
+            ftol=1e-12,
+            max_nfev=4000,
+        ).x
+    )
     assert residuals(ours) @ residuals(ours) <= residuals(minpack) @ residuals(minpack) * (1 + 1e-6) + 1e-20
 
 
@@ -403,11 +458,15 @@ def test_an_empty_window_is_failed_not_a_crash():
 
 def test_warm_leaves_every_fit_kernel_in_numba_s_cache(tmp_path) -> None:
     """After one process has warmed the fit, a new process (a fit worker) loads every kernel and compiles none."""
-    report = ("from service.analysis import fit, kernels, pencil; fit.warm(); "
-              "import numba; print(sum(sum(f.stats.cache_misses.values()) for m in (kernels, pencil) "
-              "for f in vars(m).values() if isinstance(f, numba.core.registry.CPUDispatcher)))")
+    report = (
+        "from service.analysis import fit, kernels, pencil; fit.warm(); "
+        "import numba; print(sum(sum(f.stats.cache_misses.values()) for m in (kernels, pencil) "
+        "for f in vars(m).values() if isinstance(f, numba.core.registry.CPUDispatcher)))"
+    )
     env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path)}
-    runs = [subprocess.run([sys.executable, "-c", report], env=env, capture_output=True, text=True, timeout=300)
-            for _ in range(2)]
+    runs = [
+        subprocess.run([sys.executable, "-c", report], env=env, capture_output=True, text=True, timeout=300)
+        for _ in range(2)
+    ]
     assert all(r.returncode == 0 for r in runs), runs[-1].stderr
     assert int(runs[0].stdout) > 0 and int(runs[1].stdout) == 0

@@ -1,4 +1,5 @@
 """Frames over ZeroMQ (docs/zmq-frames.md): the wire format, its zero-copy path, PUB's drop-don't-block, the sender verb."""
+
 from __future__ import annotations
 
 import json
@@ -13,8 +14,7 @@ import zmq
 from service.cli import main
 from service.errors import MeniscopeError
 from service.recordings import open_writer
-from service.sources import FrameBatch, FrameSender, StreamFormat, open_source
-from service.sources import zmq_format
+from service.sources import FrameBatch, FrameSender, StreamFormat, open_source, zmq_format
 from tests.servicekit import free_port
 
 FMT16 = StreamFormat(width=5, height=3, dtype=np.dtype(np.uint16), bit_depth=12, fps=19000.0)
@@ -36,8 +36,15 @@ class TestWireFormat:
         sent = batch(FMT16, 4, first=7)
         parts = zmq_format.encode(sent, FMT16, sequence=3)
         assert header(parts) == {
-            "format": "meniscope.frames", "version": 1, "sequence": 3, "dtype": "uint16", "shape": [4, 3, 5],
-            "bit_depth": 12, "fps": 19000.0, "index": 7, "t0": 7 / 19000.0,
+            "format": "meniscope.frames",
+            "version": 1,
+            "sequence": 3,
+            "dtype": "uint16",
+            "shape": [4, 3, 5],
+            "bit_depth": 12,
+            "fps": 19000.0,
+            "index": 7,
+            "t0": 7 / 19000.0,
         }
         got = zmq_format.decode(parts)
         assert (got.sequence, got.format) == (3, FMT16)
@@ -100,6 +107,7 @@ def sender() -> Iterator[FrameSender]:
 
 def publish(sender: FrameSender, batches: list[FrameBatch], end: bool = True) -> threading.Thread:
     """A thread that waits for a subscriber, then sends ``batches`` and (``end``) ends the stream."""
+
     def run() -> None:
         if sender.wait_for_subscriber(10.0):
             for b in batches:
@@ -174,8 +182,10 @@ class TestPublishFramesVerb:
             writer.write(np.full((500, 32, 32), 4095, np.uint16))
         endpoint = f"tcp://127.0.0.1:{free_port()}"
         result: list[int] = []
-        verb = threading.Thread(target=lambda: result.append(main(
-            ["publish-frames", str(rec), "--bind", endpoint, "--speed", "0.5"])), daemon=True)
+        verb = threading.Thread(
+            target=lambda: result.append(main(["publish-frames", str(rec), "--bind", endpoint, "--speed", "0.5"])),
+            daemon=True,
+        )
         verb.start()
         with open_source(endpoint.replace("tcp://", "zmq+tcp://")) as source:
             batches = []

@@ -14,15 +14,17 @@ On disk, a folder that ``numpy.load(..., mmap_mode="r")`` maps without reading i
     centre.npy    (N,) float32, centre displacement D(0) = d + p R + a + b in mm
     manifest.json the config (scene included), counts, dtype, sha256 of each file; written last
 """
+
 from __future__ import annotations
 
 import json
+from collections.abc import Iterator
 from concurrent.futures import Future
 from dataclasses import dataclass
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from importlib.metadata import version
 from pathlib import Path
-from typing import Annotated, Any, Iterator
+from typing import Annotated, Any
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
@@ -159,8 +161,9 @@ def _write(config: DatasetConfig, out: Path, engine: Engine) -> dict[str, Any]:
     except OSError as exc:
         raise MeniscopeError(out, f"cannot create the folder: {exc.strerror or exc}") from None
     try:
-        frames = np.lib.format.open_memmap(out / "frames.npy", mode="w+", dtype=pixel_dtype(config.bit_depth),
-                                           shape=config.shape)
+        frames = np.lib.format.open_memmap(
+            out / "frames.npy", mode="w+", dtype=pixel_dtype(config.bit_depth), shape=config.shape
+        )
         coeffs = np.empty((config.samples, 4), np.float32)
         centre = np.empty(config.samples, np.float32)
         with tqdm(total=config.samples, unit="frame", desc=f"dataset {out.name}", disable=None) as bar:
@@ -175,7 +178,7 @@ def _write(config: DatasetConfig, out: Path, engine: Engine) -> dict[str, Any]:
         manifest = {
             "schema": SCHEMA,
             "generator": {"module": __name__, "version": GENERATOR_VERSION, "meniscope": version("meniscope")},
-            "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+            "created": datetime.now(UTC).isoformat(timespec="seconds"),
             "config": config.model_dump(mode="json"),
             "scene_sha256": config.scene.sha256,
             "samples": config.samples,
@@ -226,8 +229,11 @@ def open_dataset(path: str | Path, scene: Scene | None = None, verify: bool = Fa
     if scene is not None and scene.sha256 != config.scene.sha256:
         raise MeniscopeError(path, f"made for scene {config.scene.sha256[:12]}, not this one ({scene.sha256[:12]})")
     n, dtype = config.samples, pixel_dtype(config.bit_depth)
-    expected = {"frames.npy": (config.shape, dtype), "coeffs.npy": ((n, 4), np.dtype(np.float32)),
-                "centre.npy": ((n,), np.dtype(np.float32))}
+    expected = {
+        "frames.npy": (config.shape, dtype),
+        "coeffs.npy": ((n, 4), np.dtype(np.float32)),
+        "centre.npy": ((n,), np.dtype(np.float32)),
+    }
     arrays = {}
     for name, (shape, want) in expected.items():
         file = path / name

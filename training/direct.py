@@ -4,6 +4,7 @@ Same normalisation, convolutional trunk and head sizes as the latent regressor, 
 it learns the renderer's images, so any gap between renders and the real camera lands in its
 predictions. Kept as the ``direct`` inverse method so the two can be compared on the same data.
 """
+
 from __future__ import annotations
 
 import numpy as np

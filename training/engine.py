@@ -9,12 +9,14 @@ against Ray's platform-specific binary wheel), nothing runs but ``dask scheduler
 its client already offers the standard Executor interface (``Client.get_executor``) that a local
 ``ProcessPoolExecutor`` has.
 """
+
 from __future__ import annotations
 
+from collections.abc import Callable, Iterator
 from concurrent.futures import Executor, Future, ProcessPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass
-from typing import Any, Callable, Iterator
+from typing import Any
 
 from service.errors import MeniscopeError
 

@@ -12,6 +12,7 @@ uint16 input ("ScalarType UInt16 is an unexpected tensor scalar type"), so the g
 with a float32 input and a Cast from the stored dtype is put in front of it here. Weights stay
 inside the .onnx file (no .onnx.data beside it).
 """
+
 from __future__ import annotations
 
 import io
@@ -33,8 +34,14 @@ INPUT_DTYPES = {"uint8": TensorProto.UINT8, "uint16": TensorProto.UINT16}
 _FLOAT_INPUT = "frames_float32"
 
 
-def export_onnx(model: nn.Module, path: Path, height: int, width: int, dtype: str = "uint16",
-                outputs: tuple[str, ...] = tuple(OUTPUTS)) -> Path:
+def export_onnx(
+    model: nn.Module,
+    path: Path,
+    height: int,
+    width: int,
+    dtype: str = "uint16",
+    outputs: tuple[str, ...] = tuple(OUTPUTS),
+) -> Path:
     """Write ``model`` (frames (N, H, W) -> ``outputs``, by default coefficients and centre) as a single
     self-contained .onnx file.
 

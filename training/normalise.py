@@ -4,6 +4,7 @@ It lives inside the exported ONNX graphs (``training.export``) so that the runti
 exactly as stored. scene.md ("Camera") says absolute exposure is not part of the contract; the
 per-frame standardisation makes the models blind to gain and offset by construction.
 """
+
 from __future__ import annotations
 
 import torch

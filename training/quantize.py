@@ -11,22 +11,36 @@ renders' truth go into the manifest; ``meniscope bench inference --models DIR`` 
 tradeoff --more-models DIR`` measure the speed. On the development CPU (AVX2 without VNNI) neither mode
 was faster than float beyond the noise (static 0.87-1.02x, dynamic 0.2x: docs/benchmarks.md): the choice is there for CPUs where int8 pays.
 """
+
 from __future__ import annotations
 
 import tempfile
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from importlib.metadata import version
 from pathlib import Path
 
 import numpy as np
 import onnx
 from onnxruntime.quantization import (
-    CalibrationDataReader, QuantFormat, QuantType, quant_pre_process, quantize_dynamic, quantize_static,
+    CalibrationDataReader,
+    QuantFormat,
+    QuantType,
+    quant_pre_process,
+    quantize_dynamic,
+    quantize_static,
 )
 
 from service.errors import MeniscopeError
 from service.inverse.manifest import (
-    INPUT, MANIFEST, Manifest, MethodEntry, Parity, Quantisation, load_manifest, prepare_model_folder, sha256_file,
+    INPUT,
+    MANIFEST,
+    Manifest,
+    MethodEntry,
+    Parity,
+    Quantisation,
+    load_manifest,
+    prepare_model_folder,
+    sha256_file,
     write_manifest,
 )
 from service.inverse.network import onnx_outputs
@@ -80,12 +94,24 @@ def quantize_graph(source: Path, target: Path, mode: str, calibration: np.ndarra
         quant_pre_process(str(source), prepared)
         nodes = quantised_nodes(Path(prepared))
         if mode == "static":
-            quantize_static(prepared, str(target), _Batches(calibration), quant_format=QuantFormat.QDQ,
-                            activation_type=QuantType.QUInt8, weight_type=QuantType.QInt8,
-                            op_types_to_quantize=["Conv", "Relu"], nodes_to_quantize=nodes)
+            quantize_static(
+                prepared,
+                str(target),
+                _Batches(calibration),
+                quant_format=QuantFormat.QDQ,
+                activation_type=QuantType.QUInt8,
+                weight_type=QuantType.QInt8,
+                op_types_to_quantize=["Conv", "Relu"],
+                nodes_to_quantize=nodes,
+            )
         else:
-            quantize_dynamic(prepared, str(target), weight_type=QuantType.QInt8, op_types_to_quantize=["Conv", "Relu"],
-                             nodes_to_quantize=nodes)
+            quantize_dynamic(
+                prepared,
+                str(target),
+                weight_type=QuantType.QInt8,
+                op_types_to_quantize=["Conv", "Relu"],
+                nodes_to_quantize=nodes,
+            )
     return nodes
 
 
@@ -98,13 +124,18 @@ def _targets(path: Path, frames: np.ndarray) -> np.ndarray:
 def parity(source: Path, target: Path, frames: np.ndarray, truth: np.ndarray) -> Parity:
     """The int8 graph against its float source on the same renders: largest differences and both accuracies."""
     reference, got = _targets(source, frames), _targets(target, frames)
-    return Parity(frames=len(frames), seed=PARITY_SEED,
-                  max_abs={k: float(v) for k, v in zip(TARGETS, np.abs(got - reference).max(axis=0))},
-                  float32=score(reference, truth), int8=score(got, truth))
+    return Parity(
+        frames=len(frames),
+        seed=PARITY_SEED,
+        max_abs={k: float(v) for k, v in zip(TARGETS, np.abs(got - reference).max(axis=0))},
+        float32=score(reference, truth),
+        int8=score(got, truth),
+    )
 
 
-def quantize_models(models: Path, out: Path, scene: Scene, mode: str = "static", calibration_frames: int = 512,
-                    parity_frames: int = 512) -> Manifest:
+def quantize_models(
+    models: Path, out: Path, scene: Scene, mode: str = "static", calibration_frames: int = 512, parity_frames: int = 512
+) -> Manifest:
     """Everything ``meniscope quantize`` does: int8 copies of every inverse graph of ``models`` in ``out``,
     with a manifest that records how they were made and their parity against the float graphs."""
     if mode not in MODES:
@@ -125,17 +156,35 @@ def quantize_models(models: Path, out: Path, scene: Scene, mode: str = "static",
         target = Path(out) / entry.file
         nodes += [f"{name}: {node}" for node in quantize_graph(Path(models) / entry.file, target, mode, calibration)]
         parities[name] = parity(Path(models) / entry.file, target, frames, truth)
-        methods[name] = MethodEntry(file=entry.file, description=f"{entry.description}; int8 ({mode})",
-                                    parity_max_abs=max(parities[name].max_abs.values()))
-    activations = (f"uint8, ranges calibrated (min-max) on {calibration_frames} renders" if mode == "static"
-                   else "uint8, ranges measured per batch at run time")
+        methods[name] = MethodEntry(
+            file=entry.file,
+            description=f"{entry.description}; int8 ({mode})",
+            parity_max_abs=max(parities[name].max_abs.values()),
+        )
+    activations = (
+        f"uint8, ranges calibrated (min-max) on {calibration_frames} renders"
+        if mode == "static"
+        else "uint8, ranges measured per batch at run time"
+    )
     quantisation = Quantisation(
-        mode=mode, weights="int8, per tensor", activations=activations, nodes=nodes,
+        mode=mode,
+        weights="int8, per tensor",
+        activations=activations,
+        nodes=nodes,
         source={"path": str(models), "manifest_sha256": sha256_file(Path(models) / MANIFEST)},
         calibration={"renders": calibration_frames, "seed": CALIBRATION_SEED} if mode == "static" else {},
-        parity=parities)
-    manifest = source.model_copy(update={
-        "created": datetime.now(timezone.utc).isoformat(timespec="seconds"), "meniscope": version("meniscope"),
-        "methods": methods, "autoencoder": None, "validation": {}, "quantisation": quantisation, "files": {}})
+        parity=parities,
+    )
+    manifest = source.model_copy(
+        update={
+            "created": datetime.now(UTC).isoformat(timespec="seconds"),
+            "meniscope": version("meniscope"),
+            "methods": methods,
+            "autoencoder": None,
+            "validation": {},
+            "quantisation": quantisation,
+            "files": {},
+        }
+    )
     write_manifest(out, manifest)
     return load_manifest(out, scene)

@@ -4,6 +4,7 @@ Trained on synthetic renders through the frozen encoder of ``training.vae``; the
 from stored pixels to millimetres, is one module (:class:`LatentRegressor`) that
 ``training.export`` writes as one ONNX graph.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -31,7 +32,11 @@ class Head(nn.Module):
     def __init__(self, features: int, hidden: int, target_mean: np.ndarray, target_std: np.ndarray) -> None:
         super().__init__()
         self.mlp = nn.Sequential(
-            nn.Linear(features, hidden), nn.ReLU(), nn.Linear(hidden, hidden), nn.ReLU(), nn.Linear(hidden, len(TARGETS))
+            nn.Linear(features, hidden),
+            nn.ReLU(),
+            nn.Linear(hidden, hidden),
+            nn.ReLU(),
+            nn.Linear(hidden, len(TARGETS)),
         )
         self.register_buffer("mean", torch.as_tensor(target_mean, dtype=torch.float32).reshape(len(TARGETS)))
         self.register_buffer("std", torch.as_tensor(target_std, dtype=torch.float32).reshape(len(TARGETS)))

@@ -7,16 +7,17 @@
 Deterministic by seed on the CPU (fixed thread count, deterministic algorithms, seeded shuffles).
 Inputs are normalised once by the same ``Normalise`` module the exported graphs contain.
 """
+
 from __future__ import annotations
 
 import math
 import tempfile
 import time
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from importlib.metadata import version
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 import torch
@@ -25,7 +26,13 @@ from tqdm import tqdm
 
 from service.errors import MeniscopeError
 from service.inverse.manifest import (
-    AUTOENCODER_OUTPUTS, InputSpec, Manifest, MethodEntry, TrainingSummary, load_manifest, prepare_model_folder,
+    AUTOENCODER_OUTPUTS,
+    InputSpec,
+    Manifest,
+    MethodEntry,
+    TrainingSummary,
+    load_manifest,
+    prepare_model_folder,
     write_manifest,
 )
 from service.plotting import pyplot
@@ -71,7 +78,7 @@ class TrainConfig:
     direct_lr: float = 2e-3
 
     @classmethod
-    def quick(cls) -> "TrainConfig":
+    def quick(cls) -> TrainConfig:
         """A run of seconds for tests and smoke checks; the models it makes are not useful."""
         return cls(samples=1536, lab_frames=1024, vae_epochs=2, regressor_epochs=4, direct_epochs=2)
 
@@ -85,7 +92,9 @@ def seed_everything(seed: int, threads: int) -> torch.Generator:
 
 
 @torch.no_grad()
-def in_chunks(fn: Callable[[torch.Tensor], torch.Tensor], x: torch.Tensor | np.ndarray, desc: str | None = None) -> torch.Tensor:
+def in_chunks(
+    fn: Callable[[torch.Tensor], torch.Tensor], x: torch.Tensor | np.ndarray, desc: str | None = None
+) -> torch.Tensor:
     """``fn`` applied to ``x`` in chunks of :data:`CHUNK` rows (numpy input copied per chunk: it may be a read-only map)."""
     parts = []
     for start in tqdm(range(0, len(x), CHUNK), desc=desc, unit="chunk", disable=None if desc else True):
@@ -175,8 +184,13 @@ def standardised_mse(head: Head, pred: torch.Tensor, y: torch.Tensor) -> torch.T
 
 
 def train_regressor(
-    encoder: Encoder, renders: torch.Tensor, y: torch.Tensor, train_idx: torch.Tensor, val_idx: torch.Tensor,
-    config: TrainConfig, generator: torch.Generator,
+    encoder: Encoder,
+    renders: torch.Tensor,
+    y: torch.Tensor,
+    train_idx: torch.Tensor,
+    val_idx: torch.Tensor,
+    config: TrainConfig,
+    generator: torch.Generator,
 ) -> tuple[Head, History]:
     """The head on encoder means of normalised renders (N, 1, h, w); targets ``y`` (N, 5), :data:`TARGETS`.
 
@@ -189,14 +203,24 @@ def train_regressor(
         head,
         lambda idx: standardised_mse(head, head(mu[train_idx[idx]]), y[train_idx[idx]]),
         lambda: standardised_mse(head, head(mu[val_idx]), y[val_idx]).item(),
-        len(train_idx), config.regressor_epochs, config.batch, config.regressor_lr, generator, "regressor",
+        len(train_idx),
+        config.regressor_epochs,
+        config.batch,
+        config.regressor_lr,
+        generator,
+        "regressor",
     )
     return head, history
 
 
 def train_direct(
-    normalise: Normalise, renders: torch.Tensor, y: torch.Tensor, train_idx: torch.Tensor, val_idx: torch.Tensor,
-    config: TrainConfig, generator: torch.Generator,
+    normalise: Normalise,
+    renders: torch.Tensor,
+    y: torch.Tensor,
+    train_idx: torch.Tensor,
+    val_idx: torch.Tensor,
+    config: TrainConfig,
+    generator: torch.Generator,
 ) -> tuple[DirectCNN, History]:
     """The direct CNN end to end on normalised renders (N, 1, h, w); the baseline Sec. 3.2 argued against."""
     h, w = renders.shape[2], renders.shape[3]
@@ -209,7 +233,13 @@ def train_direct(
     history = fit(
         model,
         lambda idx: standardised_mse(model.head, model.predict(renders[train_idx[idx]]), y[train_idx[idx]]),
-        val_loss, len(train_idx), config.direct_epochs, config.batch, config.direct_lr, generator, "direct CNN",
+        val_loss,
+        len(train_idx),
+        config.direct_epochs,
+        config.batch,
+        config.direct_lr,
+        generator,
+        "direct CNN",
     )
     return model, history
 
@@ -247,8 +277,11 @@ def plot_validation(results: dict[str, dict[str, tuple[np.ndarray, np.ndarray]]]
             ax.plot(true[:, 4] * 1e3, pred[:, 4] * 1e3, ",", alpha=0.5)
             lo, hi = np.percentile(true[:, 4] * 1e3, [0, 100])
             ax.plot([lo, hi], [lo, hi], "k-", lw=0.8)
-            ax.set(title=f"{method}, {data}: RMSE {s.rmse['centre'] * 1e3:.2f} um", xlabel="true D(0) (um)",
-                   ylabel="predicted D(0) (um)")
+            ax.set(
+                title=f"{method}, {data}: RMSE {s.rmse['centre'] * 1e3:.2f} um",
+                xlabel="true D(0) (um)",
+                ylabel="predicted D(0) (um)",
+            )
     fig.tight_layout()
     fig.savefig(path, dpi=80)
     plt.close(fig)
@@ -261,8 +294,11 @@ def _open_or_render(scene: Scene, folder: Path | None, scratch: Path, config: Tr
     if folder is not None and (folder / "manifest.json").exists():
         return open_dataset(folder, scene)
     target = folder if folder is not None else scratch / "renders"
-    generate(DatasetConfig(scene=scene, samples=config.samples, seed=config.seed, bit_depth=bit_depth), target,
-             workers=config.threads)
+    generate(
+        DatasetConfig(scene=scene, samples=config.samples, seed=config.seed, bit_depth=bit_depth),
+        target,
+        workers=config.threads,
+    )
     return open_dataset(target, scene)
 
 
@@ -272,7 +308,11 @@ def _predict(model: nn.Module, frames: np.ndarray) -> np.ndarray:
 
 
 def train_models(
-    scene: Scene, lab_video: Path, out: Path, config: TrainConfig, dataset: Path | None = None,
+    scene: Scene,
+    lab_video: Path,
+    out: Path,
+    config: TrainConfig,
+    dataset: Path | None = None,
     holdout_video: Path | None = None,
 ) -> Manifest:
     """Everything ``meniscope train`` does: train, validate, export and describe the models in ``out``.
@@ -295,9 +335,12 @@ def train_models(
         y = torch.from_numpy(targets(np.asarray(renders.coeffs), np.asarray(renders.centre)))  # (N, 5)
         train_idx, val_idx = split(len(y), config.val_fraction, generator)
         val_frames = np.asarray(renders.frames[val_idx.numpy()])  # (V, H, W), as stored
-        dataset_facts = {"path": str(renders.path) if dataset is not None else None,
-                         **{k: renders.manifest[k] for k in ("schema", "generator", "scene_sha256", "samples", "frames", "files")},
-                         "seed": renders.config.seed, "bit_depth": renders.config.bit_depth}
+        dataset_facts = {
+            "path": str(renders.path) if dataset is not None else None,
+            **{k: renders.manifest[k] for k in ("schema", "generator", "scene_sha256", "samples", "frames", "files")},
+            "seed": renders.config.seed,
+            "bit_depth": renders.config.bit_depth,
+        }
     vae, vae_history = train_vae(in_chunks(normalise, lab_frames, "normalise lab frames"), config, generator)
     head, regressor_history = train_regressor(vae.encoder, x, y, train_idx, val_idx, config, generator)
     direct, direct_history = train_direct(normalise, x, y, train_idx, val_idx, config, generator)
@@ -313,28 +356,47 @@ def train_models(
     methods = {}
     for name, model in models.items():
         path = export_onnx(model, out / f"{name}.onnx", height, width, config.input_dtype)
-        methods[name] = MethodEntry(file=path.name, description=DESCRIPTIONS[name], parity_max_abs=parity(model, path, probe))
+        methods[name] = MethodEntry(
+            file=path.name, description=DESCRIPTIONS[name], parity_max_abs=parity(model, path, probe)
+        )
     reconstruction = Reconstruction(normalise, vae).eval()
-    path = export_onnx(reconstruction, out / "autoencoder.onnx", height, width, config.input_dtype,
-                       tuple(AUTOENCODER_OUTPUTS))
-    autoencoder = MethodEntry(file=path.name, description=DESCRIPTIONS["autoencoder"],
-                              parity_max_abs=parity(reconstruction, path, probe, tuple(AUTOENCODER_OUTPUTS)))
-    histories = {"VAE (negative ELBO)": vae_history, "regressor (standardised MSE)": regressor_history,
-                 "direct CNN (standardised MSE)": direct_history}
+    path = export_onnx(
+        reconstruction, out / "autoencoder.onnx", height, width, config.input_dtype, tuple(AUTOENCODER_OUTPUTS)
+    )
+    autoencoder = MethodEntry(
+        file=path.name,
+        description=DESCRIPTIONS["autoencoder"],
+        parity_max_abs=parity(reconstruction, path, probe, tuple(AUTOENCODER_OUTPUTS)),
+    )
+    histories = {
+        "VAE (negative ELBO)": vae_history,
+        "regressor (standardised MSE)": regressor_history,
+        "direct CNN (standardised MSE)": direct_history,
+    }
     plot_losses(histories, out / "losses.png")
     plot_validation(results, out / "validation.png")
     manifest = Manifest(
-        created=datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        created=datetime.now(UTC).isoformat(timespec="seconds"),
         meniscope=version("meniscope"),
         scene=scene.model_dump(mode="json"),
         scene_sha256=scene.sha256,
-        input=InputSpec(height=height, width=width, dtype=config.input_dtype, downsample=normalise.factor,
-                        model_height=x.shape[2], model_width=x.shape[3]),
+        input=InputSpec(
+            height=height,
+            width=width,
+            dtype=config.input_dtype,
+            downsample=normalise.factor,
+            model_height=x.shape[2],
+            model_width=x.shape[3],
+        ),
         methods=methods,
         autoencoder=autoencoder,
-        training=TrainingSummary(dataset=dataset_facts, lab_video=lab_facts, config=asdict(config),
-                                 seconds=time.perf_counter() - started,
-                                 losses={name: h["val"][-1] for name, h in histories.items()}),
+        training=TrainingSummary(
+            dataset=dataset_facts,
+            lab_video=lab_facts,
+            config=asdict(config),
+            seconds=time.perf_counter() - started,
+            losses={name: h["val"][-1] for name, h in histories.items()},
+        ),
         validation={name: {data: score(*by_method[name]) for data, by_method in results.items()} for name in models},
         files={},
     )

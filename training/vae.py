@@ -5,6 +5,7 @@ real camera sees; the regressor (``training.regressor``) then maps that space to
 coefficients using renders passed through the frozen encoder. Inputs are the standardised images
 of ``training.normalise.Normalise``, shape (N, 1, h, w).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass

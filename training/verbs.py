@@ -7,6 +7,7 @@ coefficients they were made from. ``meniscope database`` renders one apart from 
 keeps its training renders in DIR, which is a database too. Model folders stay small (they are committed)
 and never hold a database; ``meniscope validate --database DIR`` and the nearest-neighbour methods name it.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -15,8 +16,8 @@ import os
 from collections.abc import Callable
 from pathlib import Path
 
-from service.verbs import add_scene_option
 from service.errors import MeniscopeError
+from service.verbs import add_scene_option
 
 #: Top-level modules of the train extra -> the extra (the scale extra's Dask is checked where --scheduler is read).
 EXTRA_OF = {"torch": "train", "onnx": "train"}
@@ -28,6 +29,7 @@ def _needs_extras(run: Callable[[argparse.Namespace], int]) -> Callable[[argpars
     The verbs are listed after a runtime-only install too (training/ is in the package), so their
     libraries load only when one runs, and a missing one must say which extra brings it.
     """
+
     @functools.wraps(run)
     def checked(args: argparse.Namespace) -> int:
         try:
@@ -37,9 +39,13 @@ def _needs_extras(run: Callable[[argparse.Namespace], int]) -> Callable[[argpars
             if module not in EXTRA_OF:
                 raise
             extra = EXTRA_OF[module]
-            raise MeniscopeError(None, f"needs {module} (meniscope's {extra} extra), not installed here: in the "
-                                 f"checkout run `bash deploy/install.sh --dev`, or `pip install -e '.[{extra}]'` with "
-                                 "meniscope's environment's pip") from None
+            raise MeniscopeError(
+                None,
+                f"needs {module} (meniscope's {extra} extra), not installed here: in the "
+                f"checkout run `bash deploy/install.sh --dev`, or `pip install -e '.[{extra}]'` with "
+                "meniscope's environment's pip",
+            ) from None
+
     return checked
 
 
@@ -48,13 +54,24 @@ def _render_options(p: argparse.ArgumentParser, seed: int) -> None:
     add_scene_option(p)
     p.add_argument("--out", type=Path, required=True, help="folder to create (new or empty)")
     p.add_argument("--samples", type=int, default=20000, help="frames to render (default 20000)")
-    p.add_argument("--seed", type=int, default=seed, help=f"seed (default {seed}); the files do not depend on --workers")
-    p.add_argument("--workers", type=int, default=os.cpu_count() or 1,
-                   help="processes rendering chunks (default: one per CPU core)")
-    p.add_argument("--scheduler", metavar="ADDRESS",
-                   help="render the chunks on the Dask cluster of this scheduler (tcp://host:8786) instead of local "
-                   "processes; needs the scale extra here and meniscope on every worker")
-    p.add_argument("--chunk-size", type=int, default=2048, help="frames per chunk and per jittered scene (default 2048)")
+    p.add_argument(
+        "--seed", type=int, default=seed, help=f"seed (default {seed}); the files do not depend on --workers"
+    )
+    p.add_argument(
+        "--workers",
+        type=int,
+        default=os.cpu_count() or 1,
+        help="processes rendering chunks (default: one per CPU core)",
+    )
+    p.add_argument(
+        "--scheduler",
+        metavar="ADDRESS",
+        help="render the chunks on the Dask cluster of this scheduler (tcp://host:8786) instead of local "
+        "processes; needs the scale extra here and meniscope on every worker",
+    )
+    p.add_argument(
+        "--chunk-size", type=int, default=2048, help="frames per chunk and per jittered scene (default 2048)"
+    )
     p.add_argument("--bit-depth", type=int, default=8, help="stored bits: 8 (uint8) or 10, 12, 16 (uint16); default 8")
 
 
@@ -89,12 +106,20 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--lab-video", type=Path, required=True, help="unlabeled lab recording (.cine or .avi)")
     p.add_argument("--out", type=Path, required=True, help="model folder to write (new or empty)")
     p.add_argument("--samples", type=int, help="synthetic renders to train on (default 50000; --quick 1536)")
-    p.add_argument("--dataset", type=Path, help="a dataset folder from `meniscope dataset` to use (or create, and keep: it then serves as the "
-                   "nearest-neighbour database too)")
+    p.add_argument(
+        "--dataset",
+        type=Path,
+        help="a dataset folder from `meniscope dataset` to use (or create, and keep: it then serves as the "
+        "nearest-neighbour database too)",
+    )
     p.add_argument("--holdout", type=Path, help="a simulated recording (with .truth.json) no model sees, scored")
     p.add_argument("--seed", type=int, default=0, help="seed (default 0)")
-    p.add_argument("--input-px", type=int, help="model input height after in-graph pooling (default 32: the ROI "
-                   "pooled 3x3; 48 pools 2x2, slower and sees finer highlights); must divide the ROI")
+    p.add_argument(
+        "--input-px",
+        type=int,
+        help="model input height after in-graph pooling (default 32: the ROI "
+        "pooled 3x3; 48 pools 2x2, slower and sees finer highlights); must divide the ROI",
+    )
     p.add_argument("--quick", action="store_true", help="a run of seconds for tests; its models are not useful")
     p.set_defaults(func=run_train)
 
@@ -108,21 +133,25 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     add_scene_option(p)
     p.add_argument("--models", type=Path, required=True, help="the float model folder (`meniscope train`)")
     p.add_argument("--out", type=Path, required=True, help="model folder to write (new or empty)")
-    p.add_argument("--mode", choices=["static", "dynamic"], default="static",
-                   help="static: activation ranges calibrated on renders, fast on the CPU (default); dynamic: "
-                   "ranges measured per batch at run time")
+    p.add_argument(
+        "--mode",
+        choices=["static", "dynamic"],
+        default="static",
+        help="static: activation ranges calibrated on renders, fast on the CPU (default); dynamic: "
+        "ranges measured per batch at run time",
+    )
     p.add_argument("--calibration", type=int, default=512, help="renders the static ranges come from (default 512)")
-    p.add_argument("--parity", type=int, default=512, help="renders the int8 and float outputs are compared on "
-                   "(default 512)")
+    p.add_argument(
+        "--parity", type=int, default=512, help="renders the int8 and float outputs are compared on (default 512)"
+    )
     p.set_defaults(func=run_quantize)
 
 
 @_needs_extras
 def run_train(args: argparse.Namespace) -> int:
-    from service.scene import Scene
-
     from dataclasses import replace
 
+    from service.scene import Scene
     from training.normalise import downsample_factor  # torch loads only when the verb runs
     from training.train import TrainConfig, train_models
 
@@ -141,8 +170,7 @@ def run_train(args: argparse.Namespace) -> int:
         except MeniscopeError as exc:
             raise MeniscopeError("--input-px", exc.problem) from None
         config = replace(config, net=replace(config.net, input_px=args.input_px))
-    manifest = train_models(scene, args.lab_video, args.out, config, dataset=args.dataset,
-                            holdout_video=args.holdout)
+    manifest = train_models(scene, args.lab_video, args.out, config, dataset=args.dataset, holdout_video=args.holdout)
     print(f"{args.out}: {', '.join(sorted(manifest.methods))} exported in {manifest.training.seconds:.0f} s")
     for name, by_data in manifest.validation.items():
         for data, s in by_data.items():
@@ -155,7 +183,6 @@ def run_train(args: argparse.Namespace) -> int:
 @_needs_extras
 def run_quantize(args: argparse.Namespace) -> int:
     from service.scene import Scene
-
     from training.quantize import quantize_models  # onnx loads only when the verb runs
 
     for option, value in (("--calibration", args.calibration), ("--parity", args.parity)):
@@ -164,30 +191,36 @@ def run_quantize(args: argparse.Namespace) -> int:
     manifest = quantize_models(args.models, args.out, Scene.load(args.scene), args.mode, args.calibration, args.parity)
     for name, p in manifest.quantisation.parity.items():
         diffs = ", ".join(f"{k} {v:.3g}" for k, v in p.max_abs.items())
-        print(f"{args.out}: {name} int8 ({args.mode}); largest |int8 - float| on {p.frames} renders: {diffs}; "
-              f"D(0) RMSE {p.float32.rmse['centre']:.4g} -> {p.int8.rmse['centre']:.4g} mm")
+        print(
+            f"{args.out}: {name} int8 ({args.mode}); largest |int8 - float| on {p.frames} renders: {diffs}; "
+            f"D(0) RMSE {p.float32.rmse['centre']:.4g} -> {p.int8.rmse['centre']:.4g} mm"
+        )
     return 0
 
 
 @_needs_extras
 def run(args: argparse.Namespace) -> int:
-    from service.scene import Scene
-
     from pydantic import ValidationError
 
+    from service.scene import Scene
     from training.dataset import DatasetConfig, generate  # the renderer loads only when the verb runs
 
     scene = Scene.load(args.scene)
     try:
-        config = DatasetConfig(scene=scene, samples=args.samples, seed=args.seed, chunk_size=args.chunk_size,
-                               bit_depth=args.bit_depth)
+        config = DatasetConfig(
+            scene=scene, samples=args.samples, seed=args.seed, chunk_size=args.chunk_size, bit_depth=args.bit_depth
+        )
     except ValidationError as exc:
         err = exc.errors()[0]
-        raise MeniscopeError(f"--{str(err['loc'][0]).replace('_', '-')}", f"{err['msg']}, got {err['input']!r}") from None
+        raise MeniscopeError(
+            f"--{str(err['loc'][0]).replace('_', '-')}", f"{err['msg']}, got {err['input']!r}"
+        ) from None
     manifest = generate(config, args.out, workers=args.workers, scheduler=args.scheduler)
     frames = manifest["frames"]
-    print(f"{args.out}: {manifest['samples']} frames {frames['dtype']} {frames['shape'][1]}x{frames['shape'][2]} "
-          f"in {manifest['chunks']} chunks")
+    print(
+        f"{args.out}: {manifest['samples']} frames {frames['dtype']} {frames['shape'][1]}x{frames['shape'][2]} "
+        f"in {manifest['chunks']} chunks"
+    )
     if args.index:
         import time
 

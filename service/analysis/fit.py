@@ -17,10 +17,12 @@ optimum (Student t); a mode whose frequency interval reaches under 0.8 cycles in
 resolved, so that a slow swing is never reported as a frequency. ``meniscope bench fit`` measures
 all of this against peers and the Cramer-Rao bound (docs/benchmarks.md).
 """
+
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Literal, Sequence
+from typing import Literal
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -29,7 +31,8 @@ from threadpoolctl import ThreadpoolController
 from tqdm import tqdm
 
 from service.analysis import kernels, pencil
-from service.analysis.kernels import BASE as _BASE, PER_MODE as _PER_MODE
+from service.analysis.kernels import BASE as _BASE
+from service.analysis.kernels import PER_MODE as _PER_MODE
 from service.analysis.results import FitSettings, WindowResult
 from service.analysis.segment import Window, robust_sigma
 from service.analysis.settling import Settling, damping_ratio, quality_factor, settle, tolerance
@@ -121,7 +124,7 @@ class _Window:
         w, g = np.clip(w, 1e-3, np.pi - 1e-3), np.clip(g, 1e-4, _MAX_DECAY)
         return kernels.linear_start(self.n, self.y, w, g)
 
-    def without(self, samples: np.ndarray) -> "_Window":
+    def without(self, samples: np.ndarray) -> _Window:
         """This window with the ``samples`` (mask over its finite ones) left out."""
         return _Window(self.n[~samples], self.y[~samples], self.settings)
 
@@ -176,8 +179,9 @@ class _Window:
 
     def _refine(self, start: np.ndarray, free: np.ndarray) -> np.ndarray:
         """The LM optimum from ``start`` over the ``free`` parameters."""
-        return kernels.levenberg_marquardt(self.n, self.y, self.scale, self.robust, start, _LM_TOLERANCE,
-                                           _LM_EVALUATIONS * (start.size + 1), free)
+        return kernels.levenberg_marquardt(
+            self.n, self.y, self.scale, self.robust, start, _LM_TOLERANCE, _LM_EVALUATIONS * (start.size + 1), free
+        )
 
     def pinned(self, poles: _OrderFit) -> _OrderFit:
         """This window fitted with another series' poles (each mode's w and g, and their intervals): offset,
@@ -205,8 +209,9 @@ class _Window:
         half = np.zeros(params.size)
         variance = kernels.covariance_diagonal(np.ascontiguousarray(j[:, fitted])) * cost / (n - k)
         half[fitted] = stdtrit(n - k, 0.5 + self.settings.confidence / 2) * np.sqrt(variance)
-        return _OrderFit(order, params, half, cost, bic, _unresolved(params, half, self.n[-1] - self.n[0] + 1),
-                         drift=drift)
+        return _OrderFit(
+            order, params, half, cost, bic, _unresolved(params, half, self.n[-1] - self.n[0] + 1), drift=drift
+        )
 
 
 def _slow_swing(params: np.ndarray, span: float) -> bool:
@@ -235,8 +240,10 @@ def _unresolved(params: np.ndarray, half: np.ndarray, span: float) -> str | None
         if not np.all(np.isfinite(halves[k])):
             problems.append(f"mode at {w / (2 * np.pi):.3g} cycles/frame is not identifiable (singular Jacobian)")
         elif w * span / (2 * np.pi) < _MIN_CYCLES:
-            problems.append(f"mode at {w / (2 * np.pi):.3g} cycles/frame turns only {w * span / (2 * np.pi):.2g} "
-                            f"cycles in the window (fewer than {_MIN_CYCLES}): a slow swing, not a frequency")
+            problems.append(
+                f"mode at {w / (2 * np.pi):.3g} cycles/frame turns only {w * span / (2 * np.pi):.2g} "
+                f"cycles in the window (fewer than {_MIN_CYCLES}): a slow swing, not a frequency"
+            )
         elif g > _MAX_DECAY:
             problems.append(f"mode at {w / (2 * np.pi):.3g} cycles/frame dies within a frame (decay {g:.3g}/frame)")
         elif (w - halves[k, 2]) * span / (2 * np.pi) < _MIN_CYCLES:
@@ -293,12 +300,19 @@ def fit_window(
     WindowResult with modes in mm, Hz, 1/s, rad (dominant, i.e. smallest decay rate, first).
     """
     with _BLAS.limit(limits=1, user_api="blas"):
-        return _fit_window(values, fps, settings, index, start_frame, starts_at_ejection, ends_at_ejection,
-                           brightness)
+        return _fit_window(values, fps, settings, index, start_frame, starts_at_ejection, ends_at_ejection, brightness)
 
 
-def _fit_window(values: ArrayLike, fps: float, settings: FitSettings, index: int, start_frame: int,
-                starts_at_ejection: bool, ends_at_ejection: bool, brightness: ArrayLike | None) -> WindowResult:
+def _fit_window(
+    values: ArrayLike,
+    fps: float,
+    settings: FitSettings,
+    index: int,
+    start_frame: int,
+    starts_at_ejection: bool,
+    ends_at_ejection: bool,
+    brightness: ArrayLike | None,
+) -> WindowResult:
     """:func:`fit_window` on the calling thread's BLAS settings."""
     x = np.asarray(values, dtype=np.float64).reshape(-1)
     missing = int(x.size - np.isfinite(x).sum())
@@ -306,26 +320,42 @@ def _fit_window(values: ArrayLike, fps: float, settings: FitSettings, index: int
     x = _after_transient(x, skip)
     finite = np.isfinite(x)
     common = dict(
-        index=index, start_frame=start_frame, end_frame=start_frame + x.size,
-        samples=int(finite.sum()), missing=missing, transient_frames=skip,
-        starts_at_ejection=starts_at_ejection, ends_at_ejection=ends_at_ejection,
+        index=index,
+        start_frame=start_frame,
+        end_frame=start_frame + x.size,
+        samples=int(finite.sum()),
+        missing=missing,
+        transient_frames=skip,
+        starts_at_ejection=starts_at_ejection,
+        ends_at_ejection=ends_at_ejection,
     )
     need = min_samples(min(1, settings.max_modes))
     if finite.sum() < need:
         return WindowResult(
-            status="failed", **common,
+            status="failed",
+            **common,
             reason=f"{int(finite.sum())} finite samples of {x.size}; testing for an oscillation needs {need}",
         )
     largest = float(np.max(np.abs(x[finite])))
     if largest > _MAX_VALUE:
-        return WindowResult(status="failed", **common, reason=f"values up to {largest:.3g}: beyond {_MAX_VALUE:.0e} "
-                            "the fit's sums of squares would overflow (a unit or a corrupt sample?)")
+        return WindowResult(
+            status="failed",
+            **common,
+            reason=f"values up to {largest:.3g}: beyond {_MAX_VALUE:.0e} "
+            "the fit's sums of squares would overflow (a unit or a corrupt sample?)",
+        )
     n, raw, centre, spread = _centred(x)
     if spread <= 8 * np.finfo(float).eps * max(abs(centre), np.finfo(float).tiny):
         return WindowResult(
-            status="settled", reason="constant series: no oscillation (r2 undefined)", **common,
-            offset_mm=centre, drift_mm_per_s=0.0, settling_time_s=0.0, settled=True,
-            residual_amplitude_mm=0.0, noise_mm=0.0,
+            status="settled",
+            reason="constant series: no oscillation (r2 undefined)",
+            **common,
+            offset_mm=centre,
+            drift_mm_per_s=0.0,
+            settling_time_s=0.0,
+            settled=True,
+            residual_amplitude_mm=0.0,
+            noise_mm=0.0,
         )
     window = _Window(n, (raw - centre) / spread, settings)
     use_frames = settings.poles == "frames" and brightness is not None
@@ -340,8 +370,10 @@ def _fit_window(values: ArrayLike, fps: float, settings: FitSettings, index: int
             fits = _order_fits(window, x.size, settings)
         chosen, problem = _choose(fits)
         if outliers.any():
-            problem = "; ".join([p for p in [problem] if p] + [f"{int(outliers.sum())} samples left out as outliers "
-                                                               f"(over {_OUTLIER:g} sd off the fit)"])
+            problem = "; ".join(
+                [p for p in [problem] if p]
+                + [f"{int(outliers.sum())} samples left out as outliers (over {_OUTLIER:g} sd off the fit)"]
+            )
     return _result(chosen, problem, window, centre, spread, fps, settings, common)
 
 
@@ -387,8 +419,10 @@ def _order_fits(window: _Window, length: int, settings: FitSettings) -> list[_Or
         run = _strongest_run(window.n, window.y, 3 * poles)
         if run is not None:  # gaps: their linear filling misleads the pencil, which a gap-free stretch does not
             starts.append(_pencil_modes(window.n[run] - window.n[run[0]], window.y[run], run.size, poles))
-        fits += [min((window.fit(m, window.starts(m, modes), fits[0].drift) for modes in starts), key=lambda f: f.cost)
-                 for m in orders]
+        fits += [
+            min((window.fit(m, window.starts(m, modes), fits[0].drift) for modes in starts), key=lambda f: f.cost)
+            for m in orders
+        ]
     return fits
 
 
@@ -438,8 +472,14 @@ def _pencil_modes(n: np.ndarray, y: np.ndarray, length: int, order: int) -> tupl
 
 
 def _result(
-    fit: _OrderFit, problem: str | None, window: _Window,
-    centre: float, spread: float, fps: float, settings: FitSettings, common: dict,
+    fit: _OrderFit,
+    problem: str | None,
+    window: _Window,
+    centre: float,
+    spread: float,
+    fps: float,
+    settings: FitSettings,
+    common: dict,
 ) -> WindowResult:
     """Back to mm, Hz and 1/s; the status, the settling metrics and r2 of the chosen fit."""
     model, _ = kernels.columns(window.n, fit.params)
@@ -464,10 +504,14 @@ def _result(
     zeta, q = damping_ratio(f, decay), quality_factor(f, decay)
     estimates = [
         dict(
-            frequency_hz=f[k], decay_rate_per_s=decay[k], amplitude_mm=amp[k], phase_rad=float(np.arctan2(-b[k], a[k])),
+            frequency_hz=f[k],
+            decay_rate_per_s=decay[k],
+            amplitude_mm=amp[k],
+            phase_rad=float(np.arctan2(-b[k], a[k])),
             frequency_ci_hz=(max(f[k] - f_half[k], 0.0), min(f[k] + f_half[k], fps / 2)),
             decay_rate_ci_per_s=(max(decay[k] - g_half[k], 0.0), decay[k] + g_half[k]),
-            damping_ratio=zeta[k], quality_factor=q[k],
+            damping_ratio=zeta[k],
+            quality_factor=q[k],
         )
         for k in range(len(order))
     ]
@@ -477,21 +521,35 @@ def _result(
     if not s.settled:
         problem = "; ".join([p for p in [problem] if p] + [_still_running(s, common["ends_at_ejection"])])
     return WindowResult(
-        status=status, reason=problem, **common, **numbers, modes=estimates, poles_from=fit.poles_from,
-        settling_time_s=s.time_s, settled=s.settled, residual_amplitude_mm=s.residual_amplitude_mm,
+        status=status,
+        reason=problem,
+        **common,
+        **numbers,
+        modes=estimates,
+        poles_from=fit.poles_from,
+        settling_time_s=s.time_s,
+        settled=s.settled,
+        residual_amplitude_mm=s.residual_amplitude_mm,
     )
 
 
 def _still_running(s: Settling, at_ejection: bool) -> str:
     """What a window whose oscillation had not settled when it ended says of it."""
     end = "the next ejection" if at_ejection else "the end of the window"
-    return (f"still oscillating at {end}: residual amplitude {s.residual_amplitude_mm:.3g} mm over the settling "
-            f"tolerance {s.tolerance_mm:.3g} mm")
+    return (
+        f"still oscillating at {end}: residual amplitude {s.residual_amplitude_mm:.3g} mm over the settling "
+        f"tolerance {s.tolerance_mm:.3g} mm"
+    )
 
 
 def _without_modes(
-    fit: _OrderFit, problem: str | None, window: _Window, spread: float, settings: FitSettings,
-    common: dict, numbers: dict,
+    fit: _OrderFit,
+    problem: str | None,
+    window: _Window,
+    spread: float,
+    settings: FitSettings,
+    common: dict,
+    numbers: dict,
 ) -> WindowResult:
     """Order 0 chosen: settled, unless the displacement trends (evidently, and beyond the settling tolerance)."""
     note = f" ({problem})" if problem else ""
@@ -499,7 +557,10 @@ def _without_modes(
     tol = tolerance([], settings.settle_fraction, settings.settle_floor_mm)
     if change > tol and fit.drift:
         return WindowResult(
-            status="unresolved", **common, **numbers, residual_amplitude_mm=None,
+            status="unresolved",
+            **common,
+            **numbers,
+            residual_amplitude_mm=None,
             reason=f"no resolved oscillation, but the displacement trends by {change:.3g} mm over the window "
             f"(settling tolerance {tol:.3g} mm): a slow motion under one cycle, or drift{note}",
         )
@@ -507,7 +568,12 @@ def _without_modes(
     residual = spread * np.sqrt(2 * np.mean((window.y - model) ** 2))
     alone = "offset and drift" if fit.drift else "an offset"
     return WindowResult(
-        status="settled", **common, **numbers, settling_time_s=0.0, settled=True, residual_amplitude_mm=residual,
+        status="settled",
+        **common,
+        **numbers,
+        settling_time_s=0.0,
+        settled=True,
+        residual_amplitude_mm=residual,
         reason=f"settled: no oscillation above the noise ({settings.criterion} prefers {alone} alone; what is left "
         f"moves {residual:.3g} mm, the amplitude of a sinusoid of its power){note}",
     )
@@ -534,7 +600,11 @@ def warm() -> None:
 
 
 def fit_windows(
-    series: ArrayLike, fps: float, windows: Sequence[Window], settings: FitSettings = FitSettings(), progress: bool = True,
+    series: ArrayLike,
+    fps: float,
+    windows: Sequence[Window],
+    settings: FitSettings = FitSettings(),
+    progress: bool = True,
     brightness: ArrayLike | None = None,
 ) -> list[WindowResult]:
     """One :func:`fit_window` per window of ``series`` (mm per frame), with a progress bar over windows;
@@ -542,8 +612,13 @@ def fit_windows(
     x = np.asarray(series, dtype=np.float64).reshape(-1)
     return [
         fit_window(
-            x[w.start : w.end], fps, settings, index=w.index, start_frame=w.start,
-            starts_at_ejection=w.starts_at_ejection, ends_at_ejection=w.ends_at_ejection,
+            x[w.start : w.end],
+            fps,
+            settings,
+            index=w.index,
+            start_frame=w.start,
+            starts_at_ejection=w.starts_at_ejection,
+            ends_at_ejection=w.ends_at_ejection,
             brightness=None if brightness is None else np.asarray(brightness)[w.start : w.end],
         )
         for w in tqdm(windows, desc="fit", unit="window", disable=not progress)

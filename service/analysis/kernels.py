@@ -12,6 +12,7 @@ with parameters (c, v, a_1, b_1, w_1, g_1, ...). ``robust`` selects the soft-L1 
 Compiled code is cached next to this file (``cache=True``); ``deploy/install.sh`` and the container
 build call :func:`service.analysis.fit.warm` so that the service's first window does not wait for the compiler.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -68,8 +69,9 @@ def rescaled(r: np.ndarray, scale: float, robust: bool) -> tuple[np.ndarray, np.
 
 
 @njit(**_JIT)
-def weighted_jacobian(n: np.ndarray, y: np.ndarray, scale: float, robust: bool,
-                      params: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def weighted_jacobian(
+    n: np.ndarray, y: np.ndarray, scale: float, robust: bool, params: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """Residuals as minimised (N,) and their Jacobian in the model parameters (N, k)."""
     model, jac = columns(n, params)
     r, slope = rescaled(model - y, scale, robust)
@@ -79,8 +81,9 @@ def weighted_jacobian(n: np.ndarray, y: np.ndarray, scale: float, robust: bool,
 
 
 @njit(**_JIT)
-def _search_point(n: np.ndarray, y: np.ndarray, scale: float, robust: bool,
-                  x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _search_point(
+    n: np.ndarray, y: np.ndarray, scale: float, robust: bool, x: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """Residuals and Jacobian at a search point x, where each decay g is x^2 (so g >= 0 without bounds)."""
     params = x.copy()
     for j in range(BASE + 3, x.size, PER_MODE):
@@ -92,8 +95,16 @@ def _search_point(n: np.ndarray, y: np.ndarray, scale: float, robust: bool,
 
 
 @njit(**_JIT)
-def levenberg_marquardt(n: np.ndarray, y: np.ndarray, scale: float, robust: bool, params: np.ndarray,
-                        tolerance: float, evaluations: int, free: np.ndarray | None = None) -> np.ndarray:
+def levenberg_marquardt(
+    n: np.ndarray,
+    y: np.ndarray,
+    scale: float,
+    robust: bool,
+    params: np.ndarray,
+    tolerance: float,
+    evaluations: int,
+    free: np.ndarray | None = None,
+) -> np.ndarray:
     """Least-squares optimum of the model near ``params``, by Levenberg-Marquardt with Marquardt's scaling.
 
     Each trial solves (J'J + mu D) h = -J'r, D the largest diag(J'J) seen so far (as MINPACK scales),
@@ -171,8 +182,7 @@ def linear_start(n: np.ndarray, y: np.ndarray, w: np.ndarray, g: np.ndarray) -> 
 
 
 @njit(**_JIT)
-def linear_fit(design: np.ndarray, y: np.ndarray, scale: float, robust: bool,
-               steps: int) -> tuple[np.ndarray, float]:
+def linear_fit(design: np.ndarray, y: np.ndarray, scale: float, robust: bool, steps: int) -> tuple[np.ndarray, float]:
     """Coefficients of ``design`` (N, k) and their robust cost, by iteratively reweighted least squares.
 
     For a linear model this reaches the optimum LM would; the soft-L1 weight is
@@ -204,7 +214,6 @@ def covariance_diagonal(jac: np.ndarray) -> np.ndarray:
     if sv[-1] <= 1e-10 * sv[0]:
         return np.full(k, np.inf)
     return np.sum((vt.T / sv) ** 2, axis=1) / norms**2
-
 
 
 @njit(**_JIT)

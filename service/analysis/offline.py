@@ -7,41 +7,45 @@ sinusoid passes through. With ``refine``, each window's motion is then refined o
 renderer (:mod:`service.inverse.synthesis`), starting from the per-frame values, and replaces them. Every
 window's steady D(0, t) (:mod:`service.analysis.steady`) is fitted by :func:`service.analysis.fit.fit_windows`.
 """
+
 from __future__ import annotations
 
-from concurrent.futures import ThreadPoolExecutor
+from collections import deque
 from collections.abc import Iterator
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TypeVar
 
 import numpy as np
 from scipy.stats import norm
 from tqdm import tqdm
 
-from service.inverse import synthesis
 from service.analysis.fit import fit_windows
 from service.analysis.results import FitSettings, Report, Source, WindowResult
 from service.analysis.segment import Window, find_ejections, frame_activity, series_activity, windows_between
 from service.analysis.steady import steady_centre
 from service.csvtable import write_columns
 from service.errors import MeniscopeError
-from service.inverse import regularised
+from service.inverse import regularised, synthesis
 from service.inverse.base import InverseMethod, InverseOutput
 from service.inverse.manifest import sha256_file
 from service.inverse.methods import open_method
 from service.inverse.nearest import NearestDatabase
 from service.physics import WindowTruth, centre_displacement
-from service.pipeline.records import COEFFICIENTS, coefficients_of
 from service.pipeline.ejections import detect_ejections_streamed
+from service.pipeline.records import COEFFICIENTS, FRAME, coefficients_of
 from service.pipeline.segmenter import StreamingSegmenter
 from service.pipeline.stages import FrameStages
-from service.pipeline.windows import JobRunner, gather, job_for
+from service.pipeline.windows import JobRunner, job_for
 from service.recordings import open_recording
 from service.recordings.roi import roi_frames
 from service.render.renderer import Renderer
 from service.scene import Scene
 from service.sources import FrameBatch
 from service.sources.replay import ReplaySource
+
+_T = TypeVar("_T")
 
 #: Neighbours per frame among which the regularised fit chooses (the paper's 10).
 CANDIDATES = 10
@@ -68,10 +72,18 @@ class Analysis:
 
 
 def analyse_recording(
-    path: Path, scene: Scene, method: str, models: Path, database: Path | None = None,
-    ejections: Ejections = Ejections(), settings: FitSettings = FitSettings(), progress: bool = True,
-    opened: tuple[InverseMethod, NearestDatabase | None] | None = None, refine: bool = False,
-    scheduler: str | None = None, workers: int | None = None,
+    path: Path,
+    scene: Scene,
+    method: str,
+    models: Path,
+    database: Path | None = None,
+    ejections: Ejections = Ejections(),
+    settings: FitSettings = FitSettings(),
+    progress: bool = True,
+    opened: tuple[InverseMethod, NearestDatabase | None] | None = None,
+    refine: bool = False,
+    scheduler: str | None = None,
+    workers: int | None = None,
 ) -> Analysis:
     """The pipeline's stages over a recording replayed at full speed, its windows, (``refine``) each window's motion
     refined on its frames, and one fit per window as independent tasks (:class:`JobRunner`: a local process
@@ -83,15 +95,27 @@ def analyse_recording(
     """
     if refine:
         settings = settings.model_copy(update={"poles": "series"})
-    fps = fps_of(path)
+    with open_recording(path) as rec:
+        fps, frames, width, height = rec.fps, len(rec), rec.width, rec.height
     inverse, db = opened or open_method(method, scene, models, database)
     db = db if method == "regularised" else None
     transient, radius = settings.transient_frames(fps), scene.nozzle.radius_mm
     with JobRunner(settings, scheduler, workers) as runner, ThreadPoolExecutor(1) as hasher:
         digest = hasher.submit(sha256_file, path)  # hashlib lets go of the interpreter lock: read while it hashes
-        # look ahead: every frame's change first (cheap), so that the ejections are known before the frames are
-        # inferred and each window's fit starts as soon as its frames are, alongside the inference
-        records = np.concatenate([stages.measure(batch) for stages, batch in _replay(path, scene, inverse)])
+        # one pass over the frames (each read once: reading was a fifth of the CPU); the ejections, found over the
+        # whole recording's changes, are known at its end, when the windows' fits start on both cores
+        parts, found = [], []
+        with tqdm(total=frames, unit="frame", desc=f"{inverse.name} {path.name}", disable=not progress) as bar:
+            for stages, batch, part in _ahead(_measured(path, scene, inverse)):
+                if db is None:
+                    stages.infer(batch.pixels, part)
+                else:  # the window fit picks every frame's values among these; one search serves
+                    index = db.search(batch.pixels, k=CANDIDATES, exact=True).index
+                    _set_coefficients(part, db.coeffs[index[:, 0]], db.centre[index[:, 0]])
+                    found.append(index)
+                parts.append(part)
+                bar.update(len(batch))
+        records = np.concatenate(parts) if parts else np.empty(0, FRAME)
         n = len(records)
         if n < 2:
             raise MeniscopeError(path, f"{n} frame(s): a window analysis needs at least 2")
@@ -100,43 +124,29 @@ def analyse_recording(
         else:
             cuts, _ = find_ejections(frame_activity(records["change"]), fps, ejections.file, ejections.hz)
         segmenter = StreamingSegmenter(n)  # cut at the ejections found: the whole recording looked ahead
-        at_once = db is None and not refine  # else the windows' per-frame values change once all are known
-        windows, futures, found = [], [], []
-        with tqdm(total=n, unit="frame", desc=f"{inverse.name} {path.name}", disable=not progress) as bar:
-            for stages, batch in _replay(path, scene, inverse):
-                part = records[batch.indices[0] : batch.indices[-1] + 1]  # a view: filled in place
-                if db is None:
-                    stages.infer(batch.pixels, part)
-                else:  # the window fit picks every frame's values among these; one search serves
-                    index = db.search(batch.pixels, k=CANDIDATES, exact=True).index
-                    _set_coefficients(part, db.coeffs[index[:, 0]], db.centre[index[:, 0]])
-                    found.append(index)
-                closed = segmenter.push(batch.indices, part, part["change"], np.zeros(len(batch)), cuts)
-                windows += [c.window for c in closed]
-                futures += [runner.submit(job_for(c.window, c.values, radius, transient), fps) for c in closed
-                            if at_once]
-                bar.update(len(batch))
-        last = [c.window for c in segmenter.finish(np.nan)]
-        windows += last
+        closed = segmenter.push(np.arange(n), records, records["change"], np.zeros(n), cuts)
+        windows = [c.window for c in closed + segmenter.finish(np.nan)]
         if db is not None:
             _set_coefficients(records, *_regularise(db, np.concatenate(found), windows, fps, settings, progress))
         motions = {}
         if refine:
-            coefficients, centre, motions = _refine(path, scene, coefficients_of(records), windows, fps, settings,
-                                                    runner, progress)
+            coefficients, centre, motions = _refine(
+                path, scene, coefficients_of(records), windows, fps, settings, runner, progress
+            )
             _set_coefficients(records, coefficients, centre)
-        jobs = [job_for(w, records[w.start : w.end], radius, transient) for w in (last if at_once else windows)]
-        results = gather(futures + [runner.submit(job, fps) for job in jobs], progress)
-        with open_recording(path) as rec:
-            source = Source(path=str(path), frames=n, fps=fps, width=rec.width, height=rec.height,
-                            sha256=digest.result())
-    results = [_with_pixel_intervals(r, *motions[r.index], fps, settings.confidence) if r.index in motions else r
-               for r in results]
-    report = Report(source=source, method=method_label(method, refine), ejections=cuts.tolist(), windows=results,
-                    fit=settings)
+        results = runner.run([job_for(w, records[w.start : w.end], radius, transient) for w in windows], fps, progress)
+        source = Source(path=str(path), frames=n, fps=fps, width=width, height=height, sha256=digest.result())
+    results = [
+        _with_pixel_intervals(r, *motions[r.index], fps, settings.confidence) if r.index in motions else r
+        for r in results
+    ]
+    report = Report(
+        source=source, method=method_label(method, refine), ejections=cuts.tolist(), windows=results, fit=settings
+    )
     steady = steady_centre(coefficients_of(records), windows, radius, transient)
-    return Analysis(report, InverseOutput(coefficients=coefficients_of(records), centre=records["centre"].copy()),
-                    steady)
+    return Analysis(
+        report, InverseOutput(coefficients=coefficients_of(records), centre=records["centre"].copy()), steady
+    )
 
 
 def fps_of(path: Path) -> float:
@@ -145,13 +155,28 @@ def fps_of(path: Path) -> float:
         return rec.fps
 
 
-def _replay(path: Path, scene: Scene, inverse: InverseMethod) -> Iterator[tuple[FrameStages, FrameBatch]]:
-    """The recording replayed at full speed in reads of :data:`READ_FRAMES`, each read's ROI with the stages of
-    the stream."""
+def _measured(path: Path, scene: Scene, inverse: InverseMethod) -> Iterator[tuple[FrameStages, FrameBatch, np.ndarray]]:
+    """The recording replayed at full speed in reads of :data:`READ_FRAMES`: each read's ROI and its records as
+    far as the pixels alone fill them (:meth:`FrameStages.measure`), with the stages of the stream."""
     with ReplaySource(path, speed=0.0) as source:
-        stages = FrameStages(scene, source.width, source.height, str(path), inverse)
+        stages = FrameStages(scene, source.format, str(path), inverse)
         while (batch := source.read(READ_FRAMES)) is not None:
-            yield stages, stages.roi(batch)
+            batch = stages.roi(batch)
+            yield stages, batch, stages.measure(batch)
+
+
+_END = object()
+
+
+def _ahead(items: Iterator[_T], depth: int = 2) -> Iterator[_T]:
+    """``items``, each made on a thread of its own up to ``depth`` ahead, in order: reading and measuring the next
+    frames overlaps the inference of these on two cores (the file reads, numpy, OpenCV and onnxruntime let go of
+    the interpreter lock)."""
+    with ThreadPoolExecutor(1) as thread:  # one thread: ``items`` is advanced by it alone, one step at a time
+        pending = deque(thread.submit(next, items, _END) for _ in range(depth))
+        while (item := pending.popleft().result()) is not _END:
+            pending.append(thread.submit(next, items, _END))
+            yield item
 
 
 def _set_coefficients(records: np.ndarray, coefficients: np.ndarray, centre: np.ndarray) -> None:
@@ -161,8 +186,14 @@ def _set_coefficients(records: np.ndarray, coefficients: np.ndarray, centre: np.
     records["centre"] = centre
 
 
-def _regularise(db: NearestDatabase, candidates: np.ndarray, windows: list[Window], fps: float,
-                settings: FitSettings, progress: bool) -> tuple[np.ndarray, np.ndarray]:
+def _regularise(
+    db: NearestDatabase,
+    candidates: np.ndarray,
+    windows: list[Window],
+    fps: float,
+    settings: FitSettings,
+    progress: bool,
+) -> tuple[np.ndarray, np.ndarray]:
     """Per frame, the candidate the window's regularised fit chose (the nearest in a window's transient)."""
     chosen = candidates[:, 0].copy()
     skip = settings.transient_frames(fps)
@@ -170,8 +201,7 @@ def _regularise(db: NearestDatabase, candidates: np.ndarray, windows: list[Windo
         lo = w.oscillation_start(skip)
         if w.end - lo < 4:  # too short to fit a sinusoid: keep the nearest
             continue
-        fit = regularised.choose_candidates(db.centre[candidates[lo:w.end]], fps)
-        chosen[lo:w.end] = candidates[np.arange(lo, w.end), fit.chosen]
+        chosen[lo : w.end] = regularised.chosen_rows(candidates[lo : w.end], db.centre, fps)[0]
     return db.coeffs[chosen], db.centre[chosen]
 
 
@@ -180,9 +210,16 @@ def method_label(method: str, refine: bool) -> str:
     return f"{method}+synthesis" if refine else method
 
 
-def _refine(path: Path, scene: Scene, coefficients: np.ndarray, windows: list[Window], fps: float,
-            settings: FitSettings, runner: JobRunner, progress: bool) -> tuple[np.ndarray, np.ndarray, dict[int, tuple[
-                WindowTruth, np.ndarray]]]:
+def _refine(
+    path: Path,
+    scene: Scene,
+    coefficients: np.ndarray,
+    windows: list[Window],
+    fps: float,
+    settings: FitSettings,
+    runner: JobRunner,
+    progress: bool,
+) -> tuple[np.ndarray, np.ndarray, dict[int, tuple[WindowTruth, np.ndarray]]]:
     """Per frame, the coefficients of its window's motion refined on the window's frames (after the ejection's
     transient; windows too short for the search keep their per-frame values), and per refined window (by index)
     its motion and the standard errors of the pixel fit (:func:`synthesis.standard_errors`). Each window is an
@@ -200,8 +237,9 @@ def _refine(path: Path, scene: Scene, coefficients: np.ndarray, windows: list[Wi
             spans.append((w.index, lo, w.end))
             futures.append(runner.call(refine_task, scene, roi_frames(rec, scene, lo, w.end - lo), t, start))
     motions = {}
-    for (index, lo, end), future in zip(spans, tqdm(futures, desc="refine by synthesis", unit="window",
-                                                     disable=not progress)):
+    for (index, lo, end), future in zip(
+        spans, tqdm(futures, desc="refine by synthesis", unit="window", disable=not progress)
+    ):
         coefficients[lo:end], motion, errors = future.result()
         motions[index] = motion, errors
     return coefficients, centre_displacement(*coefficients.T, scene.nozzle.radius_mm), motions
@@ -211,19 +249,24 @@ def _refine(path: Path, scene: Scene, coefficients: np.ndarray, windows: list[Wi
 _RENDERERS: dict[str, Renderer] = {}
 
 
-def refine_task(scene: Scene, frames: np.ndarray, t: np.ndarray, start: WindowTruth) -> tuple[np.ndarray, WindowTruth,
-                                                                                               np.ndarray]:
+def refine_task(
+    scene: Scene, frames: np.ndarray, t: np.ndarray, start: WindowTruth
+) -> tuple[np.ndarray, WindowTruth, np.ndarray]:
     """One window's refinement by synthesis (a task that runs wherever the runner sends it): the refined motion's
     coefficients at times ``t`` (m, 4), the motion, and the pixel fit's standard errors."""
     key = scene.model_dump_json()
     renderer = _RENDERERS.get(key) or _RENDERERS.setdefault(key, Renderer(scene))
     refined = synthesis.refine_window(renderer, frames, t, start)
-    return (refined.motion.coefficients(t).to_array(), refined.motion,
-            synthesis.standard_errors(renderer, frames, t, refined))
+    return (
+        refined.motion.coefficients(t).to_array(),
+        refined.motion,
+        synthesis.standard_errors(renderer, frames, t, refined),
+    )
 
 
-def _with_pixel_intervals(result: WindowResult, motion: WindowTruth, errors: np.ndarray, fps: float,
-                          confidence: float) -> WindowResult:
+def _with_pixel_intervals(
+    result: WindowResult, motion: WindowTruth, errors: np.ndarray, fps: float, confidence: float
+) -> WindowResult:
     """A refined window's result with each mode's frequency and decay intervals from the pixel fit's standard
     errors (the mode of the motion nearest in frequency), not from the window fit of its noise-free D(0, t)."""
     z = float(norm.ppf(0.5 + confidence / 2))  # ~10^5 pixel residuals: Student's t is the normal
@@ -233,14 +276,23 @@ def _with_pixel_intervals(result: WindowResult, motion: WindowTruth, errors: np.
         k = int(np.argmin(np.abs(np.array([motion.f1, motion.f2]) - mode["frequency_hz"]))) + 1
         f_error, g_error = errors[names.index(f"f{k}")], errors[names.index(f"g{k}")]
         f, g = mode["frequency_hz"], mode["decay_rate_per_s"]
-        modes.append({**mode, "frequency_ci_hz": (max(f - z * f_error, 0.0), min(f + z * f_error, fps / 2)),
-                      "decay_rate_ci_per_s": (max(g - z * g_error, 0.0), g + z * g_error)})
+        modes.append(
+            {
+                **mode,
+                "frequency_ci_hz": (max(f - z * f_error, 0.0), min(f + z * f_error, fps / 2)),
+                "decay_rate_ci_per_s": (max(g - z * g_error, 0.0), g + z * g_error),
+            }
+        )
     return WindowResult.model_validate({**fields, "modes": modes})
 
 
 def analyse_series(
-    values: np.ndarray, fps: float, source: Source, ejections: Ejections = Ejections(),
-    settings: FitSettings = FitSettings(), progress: bool = True,
+    values: np.ndarray,
+    fps: float,
+    source: Source,
+    ejections: Ejections = Ejections(),
+    settings: FitSettings = FitSettings(),
+    progress: bool = True,
 ) -> Report:
     """The window fit alone on a displacement series (mm per frame, NaN missing); one window without ejections."""
     if ejections.file is None and ejections.hz is None:
@@ -259,5 +311,9 @@ PER_FRAME_COLUMNS = ("frame", "t_s", "d_mm", "p", "a_mm", "b_mm", "centre_mm")
 def write_per_frame(path: Path, per_frame: InverseOutput, fps: float) -> Path:
     """One row per frame: index, time (s) since frame 0, d, p, a, b and D(0, t) (mm)."""
     n = len(per_frame.centre)
-    return write_columns(path, PER_FRAME_COLUMNS, [np.arange(n), np.arange(n) / fps, *per_frame.coefficients.T,
-                                                   per_frame.centre], "per-frame table")
+    return write_columns(
+        path,
+        PER_FRAME_COLUMNS,
+        [np.arange(n), np.arange(n) / fps, *per_frame.coefficients.T, per_frame.centre],
+        "per-frame table",
+    )

@@ -9,6 +9,7 @@ A damped sinusoid ``A exp(-g n) cos(w n + phi)`` is the pole pair ``exp(-g +- i 
 Compiled (numba) like :mod:`service.analysis.kernels`: in numpy its dozen small calls were a
 quarter of a window's fit.
 """
+
 from __future__ import annotations
 
 import numpy as np

@@ -1,5 +1,6 @@
 """The PNG beside a report: the per-frame centre displacement, each window's fitted curve, the ejections
 (Price et al. 2022, Figs. 16 and 17), and when there is truth, the true curve too."""
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -44,18 +45,31 @@ def plot_report(report: Report, centre_mm: np.ndarray, path: Path, truth_mm: np.
             ax.axvspan(w.start_frame / fps * 1e3, w.end_frame / fps * 1e3, color=colour, alpha=0.12, lw=0)
         if w.end_frame - w.start_frame < 0.5 * end / len(windows):
             continue  # a sliver before the first ejection: no room for a label
-        ax.annotate(f"{w.status}{modes}", (w.start_frame / fps * 1e3, 1.0), xycoords=("data", "axes fraction"),
-                    va="top", fontsize=7, color=colour)
+        ax.annotate(
+            f"{w.status}{modes}",
+            (w.start_frame / fps * 1e3, 1.0),
+            xycoords=("data", "axes fraction"),
+            va="top",
+            fontsize=7,
+            color=colour,
+        )
     for e in report.ejections:
         if e < end:
             ax.axvline(e / fps * 1e3, color="k", lw=0.7, ls="--")
-    shown = f"first {len(windows)} of {len(report.windows)} windows" if len(report.windows) > len(windows) else \
-        f"{len(windows)} windows"
-    ax.set(xlabel="time (ms)", ylabel="centre displacement D(0, t) (mm)",
-           title=f"{Path(report.source.path).name}: {shown}; dashed lines: ejections; fitted curves coloured by status")
+    shown = (
+        f"first {len(windows)} of {len(report.windows)} windows"
+        if len(report.windows) > len(windows)
+        else f"{len(windows)} windows"
+    )
+    ax.set(
+        xlabel="time (ms)",
+        ylabel="centre displacement D(0, t) (mm)",
+        title=f"{Path(report.source.path).name}: {shown}; dashed lines: ejections; fitted curves coloured by status",
+    )
     statuses = dict.fromkeys(w.status for w in windows)  # those drawn, in order of appearance
     handles = ax.get_legend_handles_labels()[0] + [
-        Line2D([], [], lw=1.4, color=STATUS_COLOURS.get(s, OTHER_STATUS), label=f"fit: {s}") for s in statuses]
+        Line2D([], [], lw=1.4, color=STATUS_COLOURS.get(s, OTHER_STATUS), label=f"fit: {s}") for s in statuses
+    ]
     ax.legend(handles=handles, loc="upper left", bbox_to_anchor=(1.0, 1.0), fontsize=8)  # beside the plot, off the data
     try:
         fig.savefig(path, dpi=110)

@@ -4,6 +4,7 @@ The same frozen pydantic objects go to REPORT.json, REST, WebSocket, ZeroMQ and 
 number they hold is finite: an optional quantity that arrives as NaN or Infinity becomes null
 and the window's ``reason`` says which one; a required quantity that is not finite is refused.
 """
+
 from __future__ import annotations
 
 import json
@@ -71,7 +72,12 @@ class ModeEstimate(_Frozen):
 
 _MODE_OPTIONAL = ("frequency_ci_hz", "decay_rate_ci_per_s", "damping_ratio", "quality_factor")
 _WINDOW_OPTIONAL = (
-    "offset_mm", "drift_mm_per_s", "settling_time_s", "residual_amplitude_mm", "r2", "noise_mm",
+    "offset_mm",
+    "drift_mm_per_s",
+    "settling_time_s",
+    "residual_amplitude_mm",
+    "r2",
+    "noise_mm",
 )
 
 
@@ -135,10 +141,12 @@ class WindowResult(_Frozen):
         return data
 
     @model_validator(mode="after")
-    def _consistent(self) -> "WindowResult":
+    def _consistent(self) -> WindowResult:
         if self.end_frame < self.start_frame or (self.end_frame == self.start_frame and self.status != "failed"):
-            raise ValueError(f"end_frame {self.end_frame} must exceed start_frame {self.start_frame} "
-                             "(only a failed window may be empty)")
+            raise ValueError(
+                f"end_frame {self.end_frame} must exceed start_frame {self.start_frame} "
+                "(only a failed window may be empty)"
+            )
         if self.status != "ok" and not self.reason:
             raise ValueError(f"status {self.status!r} needs a reason")
         if self.status in ("settled", "failed") and self.modes:
@@ -177,7 +185,7 @@ class Report(_Frozen):
     )
 
     @model_validator(mode="after")
-    def _ordered(self) -> "Report":
+    def _ordered(self) -> Report:
         if self.ejections != sorted(set(self.ejections)):
             raise ValueError("ejections must be strictly increasing frame indices")
         if [w.index for w in self.windows] != list(range(len(self.windows))):
@@ -197,7 +205,7 @@ class Report(_Frozen):
         return path
 
     @classmethod
-    def load(cls, path: str | Path) -> "Report":
+    def load(cls, path: str | Path) -> Report:
         """Read and validate a report; any problem is one MeniscopeError naming the file."""
         try:
             return cls.model_validate_json(Path(path).read_bytes())

@@ -13,6 +13,7 @@ indices) or ``time_s`` (seconds since frame 0; frame = round(time_s * fps)). Exa
     0.0012
     0.0112
 """
+
 from __future__ import annotations
 
 import csv
@@ -86,7 +87,9 @@ def read_ejections(path: str | Path, fps: float, n_frames: int) -> np.ndarray:
         if not np.isfinite(value) or value < 0:
             raise MeniscopeError(path, f"line {line}: {cell!r} is not a non-negative number")
         if unit != "time_s" and value != int(value):
-            raise MeniscopeError(path, f"line {line}: {cell!r} is not a whole frame index (times need a 'time_s' header)")
+            raise MeniscopeError(
+                path, f"line {line}: {cell!r} is not a whole frame index (times need a 'time_s' header)"
+            )
         values.append(value)
     frames = np.round(np.asarray(values) * (fps if unit == "time_s" else 1.0)).astype(np.int64)
     if np.unique(frames).size != frames.size:
@@ -140,7 +143,9 @@ def frame_steps(frames: np.ndarray, previous: np.ndarray | None = None) -> np.nd
         chunk = np.concatenate([before, frames[lo : lo + _CHUNK_FRAMES]])
         if exact:
             flat = chunk.reshape(len(chunk), -1)
-            step[lo : lo + len(chunk) - 1] = cv2.absdiff(flat[1:], flat[:-1]).sum(axis=1, dtype=_sum_type(flat)) / flat.shape[1]
+            step[lo : lo + len(chunk) - 1] = (
+                cv2.absdiff(flat[1:], flat[:-1]).sum(axis=1, dtype=_sum_type(flat)) / flat.shape[1]
+            )
         else:
             diff = np.abs(np.diff(chunk.astype(np.float32), axis=0))
             step[lo : lo + len(chunk) - 1] = diff.mean(axis=(1, 2))
@@ -236,7 +241,11 @@ def burst_period(bursts: np.ndarray, min_frames: int, min_correlation: float = 0
 
 
 def detect_ejections(
-    activity: ArrayLike, fps: float, transient_frames: int = 6, threshold: float = 8.0, relative: float = 0.3,
+    activity: ArrayLike,
+    fps: float,
+    transient_frames: int = 6,
+    threshold: float = 8.0,
+    relative: float = 0.3,
 ) -> np.ndarray:
     """Ejection frames: the starts of the activity's strongest bursts, followed from one to the next.
 
@@ -288,7 +297,10 @@ def _follow(bursts: np.ndarray, period: float, relative: float, frames: int) -> 
 
 
 def find_ejections(
-    activity: ArrayLike, fps: float, ejections_file: str | Path | None = None, ejection_hz: float | None = None,
+    activity: ArrayLike,
+    fps: float,
+    ejections_file: str | Path | None = None,
+    ejection_hz: float | None = None,
     transient_frames: int = 6,
 ) -> tuple[np.ndarray, str]:
     """Ejection frames and how they were found: from the printer's file, at its known rate, or detected.
@@ -301,7 +313,9 @@ def find_ejections(
         return read_ejections(ejections_file, fps, z.size), f"read from {Path(ejections_file).name}"
     if ejection_hz is not None:
         try:
-            return ejections_at_rate(z, fps, ejection_hz, transient_frames), f"every {fps / ejection_hz:.4g} frames, phase from the video"
+            return ejections_at_rate(
+                z, fps, ejection_hz, transient_frames
+            ), f"every {fps / ejection_hz:.4g} frames, phase from the video"
         except ValueError as exc:
             raise MeniscopeError("--ejection-hz", str(exc)) from None
     return detect_ejections(z, fps, transient_frames=transient_frames), "detected from the video"

@@ -4,6 +4,7 @@ The fitted oscillation ``sum_k A_k exp(-g_k t) cos(2 pi f_k t + phi_k)`` (Eq. 1,
 start) never exceeds its envelope ``E(t) = sum_k |A_k| exp(-g_k t)``; the metrics use ``E``, so a
 window declared settled is settled whatever the phases. ``E`` never increases (``g_k >= 0``).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass

@@ -3,6 +3,7 @@
 The window fit therefore takes each window's steady D(0, t): its d + p R once (medians) plus each
 frame's a + b, in ``meniscope analyze`` and ``meniscope serve`` alike.
 """
+
 from __future__ import annotations
 
 import warnings
@@ -13,8 +14,9 @@ from service.analysis.segment import Window
 from service.physics import centre_displacement
 
 
-def window_steady_centre(coefficients: np.ndarray, radius_mm: float, transient: int,
-                         starts_at_ejection: bool) -> np.ndarray:
+def window_steady_centre(
+    coefficients: np.ndarray, radius_mm: float, transient: int, starts_at_ejection: bool
+) -> np.ndarray:
     """D(0, t) of one window's frames as Eq. 1 has it: the window's d + p R (medians over its frames, after
     the ``transient`` frames of the ejection when it starts at one) plus each frame's a + b.
     (m, 4) -> (m,), mm; NaN rows stay NaN.
@@ -34,6 +36,7 @@ def steady_centre(coefficients: np.ndarray, windows: list[Window], radius_mm: fl
     """:func:`window_steady_centre` of every window of a recording, shape (N,), mm."""
     steady = np.empty(len(coefficients))
     for w in windows:
-        steady[w.start : w.end] = window_steady_centre(coefficients[w.start : w.end], radius_mm, transient,
-                                                       w.starts_at_ejection)
+        steady[w.start : w.end] = window_steady_centre(
+            coefficients[w.start : w.end], radius_mm, transient, w.starts_at_ejection
+        )
     return steady

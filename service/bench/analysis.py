@@ -7,51 +7,64 @@ recall (+-2 frames), median and 90th-percentile relative errors of the dominant 
 rate and amplitude, offset error (mm), per-frame RMSE of D(0, t) and of the coefficients, D(0, t)
 correlation, and the peak memory of the process that ran the method. Recordings are every ``*.cine``/``*.avi`` with a ``.truth.json`` in ``--recordings``.
 """
+
 from __future__ import annotations
 
 import argparse
 import multiprocessing
 import resource
 import time
-from concurrent.futures import ProcessPoolExecutor
 from collections import defaultdict
+from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
 
 from service import DEFAULT_MODELS
 from service.analysis.offline import analyse_recording, method_label
-from service.validation.score import summary
-from service.verbs import add_scene_option
+from service.bench.results import write_results
 from service.errors import MeniscopeError, require_folder_of
 from service.inverse.methods import DATABASE_METHODS, METHODS, database_folder, open_method
 from service.scene import Scene
 from service.simulate import truth_path
+from service.validation.score import summary
 from service.validation.truth import read_truth
-from service.bench.results import write_results
+from service.verbs import add_scene_option
 
 #: Summary figures averaged over a method's recordings, as (key, label, format) of the table.
 COLUMNS = (
-    ("frames_per_s", "frames/s", ".0f"), ("precision", "seg. precision", ".3f"), ("recall", "seg. recall", ".3f"),
-    ("frequency_median", "freq. err. median", ".2%"), ("frequency_p90", "p90", ".2%"),
-    ("decay_median", "decay err. median", ".1%"), ("decay_p90", "p90", ".1%"),
-    ("amplitude_median", "ampl. err. median", ".1%"), ("offset_mm_median", "offset err. median (um)", "um"),
-    ("centre_rmse_mm", "D(0,t) RMSE (um)", "um"), ("centre_correlation", "D(0,t) corr.", ".3f"),
-    ("a_mm_rmse", "a RMSE (um)", "um"), ("b_mm_rmse", "b RMSE (um)", "um"), ("p_rmse", "p RMSE", ".3f"),
+    ("frames_per_s", "frames/s", ".0f"),
+    ("precision", "seg. precision", ".3f"),
+    ("recall", "seg. recall", ".3f"),
+    ("frequency_median", "freq. err. median", ".2%"),
+    ("frequency_p90", "p90", ".2%"),
+    ("decay_median", "decay err. median", ".1%"),
+    ("decay_p90", "p90", ".1%"),
+    ("amplitude_median", "ampl. err. median", ".1%"),
+    ("offset_mm_median", "offset err. median (um)", "um"),
+    ("centre_rmse_mm", "D(0,t) RMSE (um)", "um"),
+    ("centre_correlation", "D(0,t) corr.", ".3f"),
+    ("a_mm_rmse", "a RMSE (um)", "um"),
+    ("b_mm_rmse", "b RMSE (um)", "um"),
+    ("p_rmse", "p RMSE", ".3f"),
     ("peak_memory_mb", "peak MB", ".0f"),
 )
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    p = subparsers.add_parser("analysis", help="each inverse method through the analysis, scored on simulated recordings",
-                              description=__doc__)
+    p = subparsers.add_parser(
+        "analysis", help="each inverse method through the analysis, scored on simulated recordings", description=__doc__
+    )
     p.add_argument("--recordings", type=Path, required=True, help="folder of simulated recordings with truth")
     add_scene_option(p)
     p.add_argument("--methods", default="network,direct", help=f"comma-separated, of {', '.join(METHODS)}")
     p.add_argument("--models", type=Path, default=DEFAULT_MODELS, help="model folder (default: the shipped one)")
     p.add_argument("--database", type=Path, help="render database of the nearest-neighbour methods")
-    p.add_argument("--refine", action="store_true",
-                   help="each window's motion refined on its frames through the renderer (analyze --refine)")
+    p.add_argument(
+        "--refine",
+        action="store_true",
+        help="each window's motion refined on its frames through the renderer (analyze --refine)",
+    )
     p.add_argument("--out", type=Path, default=Path("bench-analysis.json"), help="JSON of the results (+ .md)")
     p.set_defaults(func=run)
 
@@ -64,8 +77,9 @@ def recordings_in(folder: Path) -> list[Path]:
     return found
 
 
-def run_method(method: str, recordings: list[Path], scene: Scene, models: Path, database: Path | None,
-               refine: bool = False) -> dict:
+def run_method(
+    method: str, recordings: list[Path], scene: Scene, models: Path, database: Path | None, refine: bool = False
+) -> dict:
     """Open ``method`` once (timed), then one row per recording: noise preset, wall time, frames and
     :func:`summary` figures; with this process's peak resident memory. Run in a fresh process per method.
     ``refine``: each window's motion refined on its frames (:mod:`service.inverse.synthesis`)."""
@@ -76,18 +90,27 @@ def run_method(method: str, recordings: list[Path], scene: Scene, models: Path, 
     for path in recordings:
         truth = read_truth(path)
         start = time.perf_counter()
-        analysis = analyse_recording(path, scene, method, models, database, progress=False, opened=opened,
-                                     refine=refine)
+        analysis = analyse_recording(
+            path, scene, method, models, database, progress=False, opened=opened, refine=refine
+        )
         seconds = time.perf_counter() - start
-        rows.append({"recording": path.name, "noise": truth.get("noise"), "seconds": seconds,
-                     "frames": analysis.report.source.frames, "windows_fitted": len(analysis.report.windows),
-                     **summary(analysis.report, truth, analysis.per_frame)})
+        rows.append(
+            {
+                "recording": path.name,
+                "noise": truth.get("noise"),
+                "seconds": seconds,
+                "frames": analysis.report.source.frames,
+                "windows_fitted": len(analysis.report.windows),
+                **summary(analysis.report, truth, analysis.per_frame),
+            }
+        )
     peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     return {"setup_s": setup_s, "peak_memory_mb": peak_mb, "rows": rows}
 
 
-def run_method_apart(method: str, recordings: list[Path], scene: Scene, models: Path, database: Path | None,
-                     refine: bool = False) -> dict:
+def run_method_apart(
+    method: str, recordings: list[Path], scene: Scene, models: Path, database: Path | None, refine: bool = False
+) -> dict:
     """:func:`run_method` in a fresh process, so that its peak memory is the method's own."""
     with ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn")) as pool:
         return pool.submit(run_method, method, recordings, scene, models, database, refine).result()
@@ -109,8 +132,10 @@ def _cell(value: float | None, spec: str) -> str:
 
 
 def markdown(results: dict) -> str:
-    lines = ["| method | noise | " + " | ".join(label for _, label, _ in COLUMNS) + " |",
-             "|---" * (len(COLUMNS) + 2) + "|"]
+    lines = [
+        "| method | noise | " + " | ".join(label for _, label, _ in COLUMNS) + " |",
+        "|---" * (len(COLUMNS) + 2) + "|",
+    ]
     for method, by_noise in results["methods"].items():
         for noise, figures in by_noise.items():
             lines.append(f"| {method} | {noise} | " + " | ".join(_cell(figures[k], s) for k, _, s in COLUMNS) + " |")
@@ -138,8 +163,11 @@ def run(args: argparse.Namespace) -> int:
         results["per_recording"][method] = rows
         results["methods"][method] = {
             noise: {**aggregate(group), "setup_s": measured["setup_s"], "peak_memory_mb": measured["peak_memory_mb"]}
-            for noise, group in sorted(by_noise.items())}
-        print(f"{method}: done ({len(rows)} recordings, setup {measured['setup_s']:.1f} s, "
-              f"peak {measured['peak_memory_mb']:.0f} MB)")
+            for noise, group in sorted(by_noise.items())
+        }
+        print(
+            f"{method}: done ({len(rows)} recordings, setup {measured['setup_s']:.1f} s, "
+            f"peak {measured['peak_memory_mb']:.0f} MB)"
+        )
     write_results(args.out, results, markdown(results))
     return 0

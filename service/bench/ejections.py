@@ -6,6 +6,7 @@ presets, rendered by our renderer into a scratch folder; or the recordings given
 a Blender one for footage our renderer did not make). The recording's first ejection (frame 0, with no frames
 before it to compare with) is not scored.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -17,16 +18,25 @@ TOLERANCE = 2  # frames
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    p = subparsers.add_parser("ejections", help="precision and recall of ejection detection per kind of window",
-                              description=__doc__)
+    p = subparsers.add_parser(
+        "ejections", help="precision and recall of ejection detection per kind of window", description=__doc__
+    )
     add_scene_option(p)
-    p.add_argument("--kinds", default="settled,heavy,light,4khz,drift,skip,faint,spatter,nominal,mixed",
-                   help="kinds to draw, each alone, 'mixed' for all in turn (default: all and mixed)")
+    p.add_argument(
+        "--kinds",
+        default="settled,heavy,light,4khz,drift,skip,faint,spatter,nominal,mixed",
+        help="kinds to draw, each alone, 'mixed' for all in turn (default: all and mixed)",
+    )
     p.add_argument("--seeds", default="0,1,2", help="seeds per kind and noise (default 0,1,2)")
     p.add_argument("--noise", default="lab,high", help="noise presets (default lab,high)")
     p.add_argument("--windows", type=int, default=20, help="windows per recording (default 20)")
-    p.add_argument("--recordings", type=Path, nargs="*", default=(),
-                   help="score these recordings (with REC.truth.json) instead of drawing new ones")
+    p.add_argument(
+        "--recordings",
+        type=Path,
+        nargs="*",
+        default=(),
+        help="score these recordings (with REC.truth.json) instead of drawing new ones",
+    )
     p.add_argument("--out", type=Path, required=True, help="EJECTIONS.json to write; a Markdown table beside it")
     p.set_defaults(func=run)
 
@@ -56,17 +66,21 @@ def measure(recording: Path) -> dict:
     fps = float(truth["recording"]["fps"])
     with open_recording(recording) as rec:
         change = frame_steps(rec.read_grey(0, len(rec)))
-    runs = {"live": detect_ejections_streamed(change, fps, offline=False),
-            "offline": detect_ejections_streamed(change, fps, offline=True),
-            "former offline": detect_ejections(frame_activity(change), fps)}
+    runs = {
+        "live": detect_ejections_streamed(change, fps, offline=False),
+        "offline": detect_ejections_streamed(change, fps, offline=True),
+        "former offline": detect_ejections(frame_activity(change), fps),
+    }
     return {name: score(found, truth["ejections"]) for name, found in runs.items()}
 
 
 def markdown(results: dict) -> str:
     """One row per kind: precision and recall of each detector, summed over seeds and noise levels."""
     names = ("live", "offline", "former offline")
-    lines = ["| kind | ejections | " + " | ".join(f"{n} P | {n} R" for n in names) + " |",
-             "|---|---:|" + "---:|---:|" * len(names)]
+    lines = [
+        "| kind | ejections | " + " | ".join(f"{n} P | {n} R" for n in names) + " |",
+        "|---|---:|" + "---:|---:|" * len(names),
+    ]
     for kind, rows in results["kinds"].items():
         cells = []
         for n in names:
@@ -103,11 +117,21 @@ def run(args: argparse.Namespace) -> int:
         for kind, seed, noise in tqdm(jobs, desc="bench ejections", unit="recording"):
             names = ",".join(KINDS) if kind == "mixed" else kind
             out = Path(scratch) / f"{kind}-{noise}-{seed}.cine"
-            simulate(scene, out, windows=args.windows, seed=seed, effects=noise_preset(noise, 12), noise=noise,
-                     kinds=kinds_named(names), kind_names=names.split(","))
+            simulate(
+                scene,
+                out,
+                windows=args.windows,
+                seed=seed,
+                effects=noise_preset(noise, 12),
+                noise=noise,
+                kinds=kinds_named(names),
+                kind_names=names.split(","),
+            )
             results["kinds"].setdefault(kind, []).append({"seed": seed, "noise": noise, **measure(out)})
             out.unlink()
-    results["setup"] = (f"our renderer, {args.windows} windows per recording, seeds {args.seeds}, noise {args.noise}, "
-                        f"scene {args.scene or 'default'}")
+    results["setup"] = (
+        f"our renderer, {args.windows} windows per recording, seeds {args.seeds}, noise {args.noise}, "
+        f"scene {args.scene or 'default'}"
+    )
     write_results(args.out, results, markdown(results))
     return 0

@@ -14,6 +14,7 @@ For each: whether the service stayed up, how soon readiness dropped and came bac
 last two the windows published on ZeroMQ that the history lacks afterwards. Writes ``faults.json`` and
 ``faults.md`` to ``--out``.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -31,11 +32,13 @@ from pathlib import Path
 
 from service.bench.live import ServeProcess, free_port, subscribe
 from service.errors import MeniscopeError
+from service.sources.replay import replay_uri
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    p = subparsers.add_parser("faults", help="the service through file, sender, disk and crash faults",
-                              description=__doc__)
+    p = subparsers.add_parser(
+        "faults", help="the service through file, sender, disk and crash faults", description=__doc__
+    )
     p.add_argument("--unwritable-s", type=float, default=20.0, help="how long the data folder is full (default 20)")
     p.add_argument("--out", type=Path, default=Path("bench-faults"), help="folder for the results")
     p.set_defaults(func=run)
@@ -91,8 +94,13 @@ def stored_ids(service: ServeProcess) -> set[int]:
         since = page["last_id"]
 
 
-def fault(service: ServeProcess, name: str, apply: Callable[[], None], restore: Callable[[], None] | None,
-          timeout: float = 60.0) -> dict:
+def fault(
+    service: ServeProcess,
+    name: str,
+    apply: Callable[[], None],
+    restore: Callable[[], None] | None,
+    timeout: float = 60.0,
+) -> dict:
     """Apply a fault, time readiness dropping, restore (if anything), time readiness coming back."""
     apply()
     dropped = until(lambda: ready(service) is False, 15.0)
@@ -107,17 +115,24 @@ def replay_faults(tmp: Path, demo: Path) -> list[dict]:
     recordings.mkdir()
     rec = recordings / "rec.cine"
     shutil.copy(demo, rec)
-    service = ServeProcess(tmp / "data-replay", {"MENISCOPE_SOURCE": f"file://{rec}?speed=1&loop=1",
-                                            "MENISCOPE_RECORDINGS_DIR": str(recordings)}, tmp / "replay.log")
+    service = ServeProcess(
+        tmp / "data-replay",
+        {"MENISCOPE_SOURCE": replay_uri(rec, speed=1, loop=1), "MENISCOPE_RECORDINGS_DIR": str(recordings)},
+        tmp / "replay.log",
+    )
     try:
         service.wait_ready()
-        restore = lambda: shutil.copy(demo, rec)  # noqa: E731 - one line each, read beside the fault
-        results = [fault(service, "replayed file truncated to 1000 bytes, then restored",
-                         lambda: os.truncate(rec, 1000), restore)]
+        restore = lambda: shutil.copy(demo, rec)
+        results = [
+            fault(
+                service, "replayed file truncated to 1000 bytes, then restored", lambda: os.truncate(rec, 1000), restore
+            )
+        ]
         other = recordings / "other.cine"
         shutil.copy(demo, other)
-        results.append(fault(service, "replayed file replaced (another file renamed over it)",
-                             lambda: other.replace(rec), None))
+        results.append(
+            fault(service, "replayed file replaced (another file renamed over it)", lambda: other.replace(rec), None)
+        )
         results.append(fault(service, "replayed file deleted, then restored", rec.unlink, restore))
     finally:
         service.stop()
@@ -126,16 +141,31 @@ def replay_faults(tmp: Path, demo: Path) -> list[dict]:
 
 def sender_fault(tmp: Path, demo: Path) -> dict:
     port = free_port()
-    sender_cmd = [sys.executable, "-m", "service.cli", "publish-frames", str(demo), "--bind",
-                  f"tcp://127.0.0.1:{port}", "--speed", "1", "--loop"]
+    sender_cmd = [
+        sys.executable,
+        "-m",
+        "service.cli",
+        "publish-frames",
+        str(demo),
+        "--bind",
+        f"tcp://127.0.0.1:{port}",
+        "--speed",
+        "1",
+        "--loop",
+    ]
     sender = subprocess.Popen(sender_cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     service = ServeProcess(tmp / "data-zmq", {"MENISCOPE_SOURCE": f"zmq+tcp://127.0.0.1:{port}"}, tmp / "zmq.log")
     try:
         service.wait_ready()
         restarted: list[subprocess.Popen] = []
-        result = fault(service, "ZeroMQ frame sender killed (SIGKILL), then started again", sender.kill,
-                       lambda: restarted.append(subprocess.Popen(sender_cmd, stdout=subprocess.DEVNULL,
-                                                                 stderr=subprocess.DEVNULL)))
+        result = fault(
+            service,
+            "ZeroMQ frame sender killed (SIGKILL), then started again",
+            sender.kill,
+            lambda: restarted.append(
+                subprocess.Popen(sender_cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+            ),
+        )
     finally:
         service.stop()
         for proc in [sender, *restarted]:
@@ -166,6 +196,7 @@ def unwritable_fault(tmp: Path, seconds: float) -> dict:
                             f.write(bytes(1 << 20))
                     except OSError:
                         pass
+
             result = fault(service, name, fill, lambda: (time.sleep(seconds), ballast.unlink()))
             time.sleep(5.0)
             published = ids.stop()
@@ -194,8 +225,13 @@ def crash_fault(tmp: Path) -> dict:
         lost = published - stored_ids(service)
     finally:
         service.stop()
-    return {"fault": "meniscope serve killed (SIGKILL), then started again", "service_up": True,
-            "ready_again_after_s": back, "windows_published": len(published), "windows_lost_from_history": len(lost)}
+    return {
+        "fault": "meniscope serve killed (SIGKILL), then started again",
+        "service_up": True,
+        "ready_again_after_s": back,
+        "windows_published": len(published),
+        "windows_lost_from_history": len(lost),
+    }
 
 
 def measure(unwritable_s: float) -> list[dict]:
@@ -215,18 +251,21 @@ def markdown(results: list[dict]) -> str:
     def s(value: float | None) -> str:
         return "-" if value is None else f"{value:.1f}"
 
-    lines = [f"Fault benchmark: `meniscope serve`, {os.cpu_count()} CPUs, load average "
-             f"{os.getloadavg()[0]:.1f} at the end.", "",
-             "| fault | service up | not ready after (s) | ready again after (s) | windows published / lost from history |",
-             "|---|---|---|---|---|"]
+    lines = [
+        f"Fault benchmark: `meniscope serve`, {os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.1f} at the end.",
+        "",
+        "| fault | service up | not ready after (s) | ready again after (s) | windows published / lost from history |",
+        "|---|---|---|---|---|",
+    ]
     for r in results:
         if "skipped" in r:
             lines.append(f"| {r['fault']} | skipped: {r['skipped']} | | | |")
             continue
-        history = (f"{r['windows_published']} / {r['windows_lost_from_history']}"
-                   if "windows_published" in r else "-")
-        lines.append(f"| {r['fault']} | {'yes' if r['service_up'] else 'NO'} | {s(r.get('not_ready_after_s'))} | "
-                     f"{s(r.get('ready_again_after_s'))} | {history} |")
+        history = f"{r['windows_published']} / {r['windows_lost_from_history']}" if "windows_published" in r else "-"
+        lines.append(
+            f"| {r['fault']} | {'yes' if r['service_up'] else 'NO'} | {s(r.get('not_ready_after_s'))} | "
+            f"{s(r.get('ready_again_after_s'))} | {history} |"
+        )
     return "\n".join(lines) + "\n"
 
 

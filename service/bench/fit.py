@@ -1,5 +1,6 @@
 """``meniscope bench fit``: the window-fit suite (:mod:`service.bench.fitsuite`), our fit beside curve_fit, a matrix
 pencil and harminv, per category, against the truth and the Cramer-Rao bound; the targets it misses are listed."""
+
 from __future__ import annotations
 
 import argparse
@@ -18,19 +19,29 @@ SPIKES_OK = 0.90
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    p = subparsers.add_parser("fit", help="the window-fit suite: our fit against its peers and the Cramer-Rao bound",
-                              description=__doc__)
+    p = subparsers.add_parser(
+        "fit", help="the window-fit suite: our fit against its peers and the Cramer-Rao bound", description=__doc__
+    )
     p.add_argument("--per-category", type=int, default=25, help="windows per category (default 25: 550 windows)")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--out", type=Path, default=Path("bench-fit.json"), help="JSON of the results (the table beside it, .md)")
+    p.add_argument(
+        "--out", type=Path, default=Path("bench-fit.json"), help="JSON of the results (the table beside it, .md)"
+    )
     p.set_defaults(func=run)
 
 
 def measure(per_category: int, seed: int, progress: bool = True) -> dict:
     """The suite's per-category and pooled results, as plain JSON-ready data (null where a score is not defined)."""
     results, pooled = fitsuite.run_suite(fitsuite.suite(per_category, seed), progress=progress)
-    return _plain({"fps": fitsuite.FPS, "per_category": per_category, "seed": seed,
-                   "categories": [asdict(r) for r in results], "pooled": pooled})
+    return _plain(
+        {
+            "fps": fitsuite.FPS,
+            "per_category": per_category,
+            "seed": seed,
+            "categories": [asdict(r) for r in results],
+            "pooled": pooled,
+        }
+    )
 
 
 def misses(results: dict) -> list[str]:
@@ -65,20 +76,27 @@ def markdown(results: dict) -> str:
     """One row per category: ok share of each method, false detections, our efficiency (curve_fit's beside it),
     our interval coverage and time; then the pooled row and the targets missed."""
     names = list(results["categories"][0]["ok"])
-    lines = ["| category | windows | " + " | ".join(f"ok {n}" for n in names) + " | false det. ours | "
-             "efficiency f / g ours | efficiency f / g curve_fit | coverage f / g ours | ms ours |",
-             "|---" * (len(names) + 7) + "|"]
+    lines = [
+        "| category | windows | " + " | ".join(f"ok {n}" for n in names) + " | false det. ours | "
+        "efficiency f / g ours | efficiency f / g curve_fit | coverage f / g ours | ms ours |",
+        "|---" * (len(names) + 7) + "|",
+    ]
     for c in results["categories"]:
-        lines.append(f"| {c['name']} | {c['windows']} | " + " | ".join(f"{100 * c['ok'][n]:.0f} %" for n in names)
-                     + f" | {c['false_detections']['ours']} | {_pair(c['efficiency'].get('ours'))} | "
-                     f"{_pair(c['efficiency'].get('curve_fit'))} | {_pair(c['coverage'].get('ours'))} | "
-                     f"{c['ms_median']['ours']:.2f} |")
+        lines.append(
+            f"| {c['name']} | {c['windows']} | "
+            + " | ".join(f"{100 * c['ok'][n]:.0f} %" for n in names)
+            + f" | {c['false_detections']['ours']} | {_pair(c['efficiency'].get('ours'))} | "
+            f"{_pair(c['efficiency'].get('curve_fit'))} | {_pair(c['coverage'].get('ours'))} | "
+            f"{c['ms_median']['ours']:.2f} |"
+        )
     p = results["pooled"]
-    lines.append(f"| **all** | {sum(c['windows'] for c in results['categories'])} | "
-                 + " | ".join(f"{100 * p[n]['ok']:.1f} %" for n in names)
-                 + f" | {sum(c['false_detections']['ours'] for c in results['categories'])} | "
-                 f"{_pair(p['ours']['efficiency'])} | {_pair(p['curve_fit']['efficiency'])} | "
-                 f"{_pair(p['ours']['coverage'])} | |")
+    lines.append(
+        f"| **all** | {sum(c['windows'] for c in results['categories'])} | "
+        + " | ".join(f"{100 * p[n]['ok']:.1f} %" for n in names)
+        + f" | {sum(c['false_detections']['ours'] for c in results['categories'])} | "
+        f"{_pair(p['ours']['efficiency'])} | {_pair(p['curve_fit']['efficiency'])} | "
+        f"{_pair(p['ours']['coverage'])} | |"
+    )
     missed = misses(results)
     lines += ["", "Targets missed: " + ("; ".join(missed) if missed else "none") + "."]
     return "\n".join(lines) + "\n"

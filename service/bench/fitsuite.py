@@ -19,11 +19,12 @@ when its status is ``ok``). Scores:
 The CRB is the inverse of the Fisher information ``J'J / sigma^2`` of the true model's parameters (offset, the
 drift where the category has one, and ``a, b, w, g`` per mode) at the true values, over the finite samples.
 """
+
 from __future__ import annotations
 
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Callable
 
 import numpy as np
 from tqdm import tqdm
@@ -61,26 +62,47 @@ class Category:
     notes: str = ""
 
 
-def _series(rng: np.random.Generator, modes: list[tuple[float, float, float, float]], n: int, snr: float,
-            offset: float = 0.0, drift: float = 0.0) -> tuple[np.ndarray, float]:
+def _series(
+    rng: np.random.Generator,
+    modes: list[tuple[float, float, float, float]],
+    n: int,
+    snr: float,
+    offset: float = 0.0,
+    drift: float = 0.0,
+) -> tuple[np.ndarray, float]:
     """The model at (A, g, f, phi) modes over n frames, plus noise at A_1 / snr (none for snr = inf)."""
     t = np.arange(n) / FPS
-    y = offset + drift * np.arange(n) + sum((a * np.exp(-g * t) * np.cos(2 * np.pi * f * t + p) for a, g, f, p in modes),
-                                             np.zeros(n))
+    y = (
+        offset
+        + drift * np.arange(n)
+        + sum((a * np.exp(-g * t) * np.cos(2 * np.pi * f * t + p) for a, g, f, p in modes), np.zeros(n))
+    )
     sigma = 0.0 if not np.isfinite(snr) else modes[0][0] / snr if modes else AMPLITUDE_MM / snr
     return y + rng.normal(0.0, sigma, n) if sigma else y, sigma
 
 
-def _mode(rng: np.random.Generator, f: tuple[float, float] = (600.0, 3000.0), g: tuple[float, float] = (100.0, 600.0),
-          a: float = AMPLITUDE_MM) -> tuple[float, float, float, float]:
+def _mode(
+    rng: np.random.Generator,
+    f: tuple[float, float] = (600.0, 3000.0),
+    g: tuple[float, float] = (100.0, 600.0),
+    a: float = AMPLITUDE_MM,
+) -> tuple[float, float, float, float]:
     """One mode with frequency (Hz) and decay (1/s) drawn uniformly from the ranges, a random phase."""
     return a, rng.uniform(*g), rng.uniform(*f), rng.uniform(-np.pi, np.pi)
 
 
-def _simple(name: str, snr: float, n: int | tuple[int, int] = FRAMES, offset: float = 0.0,
-            drift_per_window: float = 0.0, scale: float = 1.0, **mode) -> Callable[[np.random.Generator], Window]:
+def _simple(
+    name: str,
+    snr: float,
+    n: int | tuple[int, int] = FRAMES,
+    offset: float = 0.0,
+    drift_per_window: float = 0.0,
+    scale: float = 1.0,
+    **mode,
+) -> Callable[[np.random.Generator], Window]:
     """A single-mode category: the mode from ``mode``'s ranges, noise at ``snr``, an offset and a drift (total
     change over the window, in dominant amplitudes), everything times ``scale``."""
+
     def draw(rng: np.random.Generator) -> Window:
         size = n if isinstance(n, int) else int(rng.integers(n[0], n[1] + 1))
         modes = [_mode(rng, **mode)]
@@ -88,19 +110,27 @@ def _simple(name: str, snr: float, n: int | tuple[int, int] = FRAMES, offset: fl
         y, sigma = _series(rng, modes, size, snr, offset, drift)
         scaled = [(a * scale, g, f, p) for a, g, f, p in modes]
         return Window(name, y * scale, scaled, sigma * scale, offset * scale, drift * scale)
+
     return draw
 
 
-def _two(name: str, ratio: tuple[float, float], amplitude: tuple[float, float], decay: tuple[float, float],
-         snr: float) -> Callable[[np.random.Generator], Window]:
+def _two(
+    name: str, ratio: tuple[float, float], amplitude: tuple[float, float], decay: tuple[float, float], snr: float
+) -> Callable[[np.random.Generator], Window]:
     """Two modes: the second at ``ratio`` times the first's frequency, ``amplitude`` times its amplitude and
     ``decay`` times its decay rate (each drawn uniformly)."""
+
     def draw(rng: np.random.Generator) -> Window:
         first = _mode(rng)
-        second = (first[0] * rng.uniform(*amplitude), first[1] * rng.uniform(*decay), first[2] * rng.uniform(*ratio),
-                  rng.uniform(-np.pi, np.pi))
+        second = (
+            first[0] * rng.uniform(*amplitude),
+            first[1] * rng.uniform(*decay),
+            first[2] * rng.uniform(*ratio),
+            rng.uniform(-np.pi, np.pi),
+        )
         y, sigma = _series(rng, [first, second], FRAMES, snr)
         return Window(name, y, [first, second], sigma)
+
     return draw
 
 
@@ -115,11 +145,13 @@ def _heavy(rng: np.random.Generator) -> Window:
 
 def _cycles(name: str, low: float, high: float, honest_only: bool) -> Callable[[np.random.Generator], Window]:
     """One lightly damped mode turning ``low``-``high`` cycles over the window."""
+
     def draw(rng: np.random.Generator) -> Window:
         f = rng.uniform(low, high) * FPS / FRAMES
         modes = [(AMPLITUDE_MM, rng.uniform(0.0, 20.0), f, rng.uniform(-np.pi, np.pi))]
         y, sigma = _series(rng, modes, FRAMES, 50.0)
         return Window(name, y, modes, sigma, honest_only=honest_only)
+
     return draw
 
 
@@ -163,8 +195,9 @@ CATEGORIES = [
     Category("nominal, SNR 5", _simple("nominal, SNR 5", 5.0)),
     Category("noiseless", _simple("noiseless", np.inf)),
     Category("two modes, ratio 2.2-2.4", _two("two modes, ratio 2.2-2.4", (2.2, 2.4), (0.2, 0.6), (1.0, 2.5), 50.0)),
-    Category("close modes, ratio 1.05-1.2", _two("close modes, ratio 1.05-1.2", (1.05, 1.2), (0.5, 1.0), (0.8, 1.2),
-                                                  200.0)),
+    Category(
+        "close modes, ratio 1.05-1.2", _two("close modes, ratio 1.05-1.2", (1.05, 1.2), (0.5, 1.0), (0.8, 1.2), 200.0)
+    ),
     Category("heavy damping (1-3 visible cycles)", _heavy),
     Category("light damping", _simple("light damping", 20.0, g=(5.0, 50.0))),
     Category("zero damping", _simple("zero damping", 20.0, g=(0.0, 0.0))),
@@ -175,7 +208,9 @@ CATEGORIES = [
     Category("constants", _constant),
     Category("12-30 samples", _simple("12-30 samples", 50.0, n=(12, 30), f=(2000.0, 8000.0), g=(100.0, 600.0))),
     Category("2,000 samples", _simple("2,000 samples", 20.0, n=2000, g=(20.0, 200.0))),
-    Category("huge offset (1e6 x amplitude)", _simple("huge offset (1e6 x amplitude)", 50.0, offset=1e6 * AMPLITUDE_MM)),
+    Category(
+        "huge offset (1e6 x amplitude)", _simple("huge offset (1e6 x amplitude)", 50.0, offset=1e6 * AMPLITUDE_MM)
+    ),
     Category("linear drift (5x amplitude)", _simple("linear drift (5x amplitude)", 50.0, drift_per_window=5.0)),
     Category("spikes (20x amplitude)", _spikes),
     Category("runs of NaN", _nan_runs),
@@ -219,10 +254,19 @@ def ours(values: np.ndarray, fps: float) -> list[Found]:
     r = fit_window(values, fps)
     if r.status != "ok":
         return []
-    return [Found(m.frequency_hz, m.decay_rate_per_s,
-                  ((m.frequency_ci_hz[1] - m.frequency_ci_hz[0]) / 2, (m.decay_rate_ci_per_s[1] - m.decay_rate_ci_per_s[0]) / 2)
-                  if m.frequency_ci_hz and m.decay_rate_ci_per_s else None)
-            for m in r.modes]
+    return [
+        Found(
+            m.frequency_hz,
+            m.decay_rate_per_s,
+            (
+                (m.frequency_ci_hz[1] - m.frequency_ci_hz[0]) / 2,
+                (m.decay_rate_ci_per_s[1] - m.decay_rate_ci_per_s[0]) / 2,
+            )
+            if m.frequency_ci_hz and m.decay_rate_ci_per_s
+            else None,
+        )
+        for m in r.modes
+    ]
 
 
 def methods() -> dict[str, Callable[[np.ndarray, float], list[Found]]]:
@@ -293,16 +337,19 @@ class CategoryResult:
     ms_median: dict[str, float] = field(default_factory=dict)
 
 
-def run_suite(windows: list[Window], chosen: dict[str, Callable] | None = None,
-              progress: bool = True) -> tuple[list[CategoryResult], dict]:
+def run_suite(
+    windows: list[Window], chosen: dict[str, Callable] | None = None, progress: bool = True
+) -> tuple[list[CategoryResult], dict]:
     """Every method on every window: per-category results and the pooled efficiency and coverage (exact
     categories with noise) per method."""
     chosen = chosen or methods()
     ours(windows[0].values, FPS)  # warm-up: compilation and imports are not a window's cost
     crb = np.array([cramer_rao_sd(w) for w in windows])
     names = list(dict.fromkeys(w.category for w in windows))
-    scores = {name: [score(w, m) for w in tqdm(windows, desc=name, unit="window", disable=not progress)]
-              for name, m in chosen.items()}
+    scores = {
+        name: [score(w, m) for w in tqdm(windows, desc=name, unit="window", disable=not progress)]
+        for name, m in chosen.items()
+    }
     results, pooled = [], {}
     exact = np.array([w.exact and w.sigma > 0 and not w.honest_only for w in windows])
     for cat in names:
@@ -319,8 +366,11 @@ def run_suite(windows: list[Window], chosen: dict[str, Callable] | None = None,
         results.append(r)
     for name, s in scores.items():
         picked = [x for x, keep in zip(s, exact) if keep]
-        pooled[name] = {"efficiency": _efficiency(picked, crb[exact]), "coverage": _coverage(picked),
-                        "ok": float(np.mean([x.ok for x in s]))}
+        pooled[name] = {
+            "efficiency": _efficiency(picked, crb[exact]),
+            "coverage": _coverage(picked),
+            "ok": float(np.mean([x.ok for x in s])),
+        }
     return results, pooled
 
 
@@ -329,8 +379,10 @@ def _efficiency(scores: list[Score], crb: np.ndarray) -> tuple[float, float]:
     5 % in frequency: a tighter cut would leave out the large errors and flatter the median)."""
     errors = np.array([s.error for s in scores]).reshape(-1, 2)
     ratio = errors / crb
-    return tuple(float(np.nanmedian(ratio[:, j]) / MEDIAN_ABS_NORMAL) if np.isfinite(ratio[:, j]).any() else np.nan
-                 for j in range(2))
+    return tuple(
+        float(np.nanmedian(ratio[:, j]) / MEDIAN_ABS_NORMAL) if np.isfinite(ratio[:, j]).any() else np.nan
+        for j in range(2)
+    )
 
 
 def _coverage(scores: list[Score]) -> tuple[float, float]:

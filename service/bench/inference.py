@@ -7,6 +7,7 @@ graph optimisation level: the same ROI frames of one recording are run through
 times, in turns; the median pass gives frames/s. The first pass after opening is a warm-up and not counted.
 Writes JSON and a Markdown table (``--out``, ``.md`` beside it).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -17,15 +18,14 @@ from pathlib import Path
 import numpy as np
 
 from service import DEFAULT_MODELS
-from service.verbs import add_scene_option
+from service.bench.results import write_results
 from service.errors import MeniscopeError, require_folder_of
 from service.inverse.manifest import load_manifest
 from service.inverse.network import OPTIMISATION, NetworkMethod
 from service.pipeline.demo import DEMO_AVI
 from service.recordings.roi import read_roi_frames
 from service.scene import Scene
-from service.bench.results import write_results
-
+from service.verbs import add_scene_option
 
 
 def _choices(option: str, text: str, allowed: set[str] | None = None) -> list:
@@ -41,17 +41,23 @@ def _choices(option: str, text: str, allowed: set[str] | None = None) -> list:
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    p = subparsers.add_parser("inference", help="the learned methods' graphs alone: threads, batch, optimisation",
-                              description=__doc__)
+    p = subparsers.add_parser(
+        "inference", help="the learned methods' graphs alone: threads, batch, optimisation", description=__doc__
+    )
     add_scene_option(p)
-    p.add_argument("--models", type=Path, action="append", help="model folder; repeat for more (default: the shipped one)")
+    p.add_argument(
+        "--models", type=Path, action="append", help="model folder; repeat for more (default: the shipped one)"
+    )
     p.add_argument("--recording", type=Path, default=DEMO_AVI, help="whose ROI frames are inferred (default: the demo)")
     p.add_argument("--frames", type=int, default=2048, help="frames per pass, at most the recording's (default 2048)")
     p.add_argument("--repeats", type=int, default=7, help="timed passes per setting; the median counts (default 7)")
     p.add_argument("--threads", default="1,2", help="intra-op thread counts (default 1,2)")
     p.add_argument("--batches", default="16,64,256,1024", help="batch sizes (default 16,64,256,1024)")
-    p.add_argument("--optimisation", default="basic,all",
-                   help=f"graph optimisation levels, of {', '.join(OPTIMISATION)} (default basic,all)")
+    p.add_argument(
+        "--optimisation",
+        default="basic,all",
+        help=f"graph optimisation levels, of {', '.join(OPTIMISATION)} (default basic,all)",
+    )
     p.add_argument("--out", type=Path, default=Path("bench-inference.json"), help="JSON of the results (+ .md)")
     p.set_defaults(func=run)
 
@@ -63,8 +69,15 @@ def _pass(method: NetworkMethod, frames: np.ndarray) -> float:
     return time.perf_counter() - start
 
 
-def measure(models: list[Path], scene: Scene, frames: np.ndarray, threads: list[int], batches: list[int],
-            levels: list[str], repeats: int) -> list[dict]:
+def measure(
+    models: list[Path],
+    scene: Scene,
+    frames: np.ndarray,
+    threads: list[int],
+    batches: list[int],
+    levels: list[str],
+    repeats: int,
+) -> list[dict]:
     """One row per model folder, method and setting: its label, the setting and median frames/s.
 
     Every setting is opened and warmed first, then timed in turns (one pass each per round), so
@@ -75,8 +88,15 @@ def measure(models: list[Path], scene: Scene, frames: np.ndarray, threads: list[
         manifest = load_manifest(folder, scene)
         for name, n, batch, level in itertools.product(manifest.methods, threads, batches, levels):
             methods.append(NetworkMethod(folder, scene, name, threads=n, batch=batch, optimisation=level))
-            rows.append({"label": manifest.label(name), "models": str(folder), "threads": n, "batch": batch,
-                         "optimisation": level})
+            rows.append(
+                {
+                    "label": manifest.label(name),
+                    "models": str(folder),
+                    "threads": n,
+                    "batch": batch,
+                    "optimisation": level,
+                }
+            )
             _pass(methods[-1], frames)
     seconds = np.array([[_pass(m, frames) for m in methods] for _ in range(repeats)])  # (repeats, settings)
     for row, median in zip(rows, np.median(seconds, axis=0)):
@@ -89,11 +109,16 @@ def markdown(rows: list[dict]) -> str:
     best = {}
     for r in rows:
         best[r["label"]] = max(best.get(r["label"], 0.0), r["frames_per_s"])
-    lines = ["| method | threads | batch | optimisation | frames/s (median) | of its fastest |", "|---|---|---|---|---|---|"]
+    lines = [
+        "| method | threads | batch | optimisation | frames/s (median) | of its fastest |",
+        "|---|---|---|---|---|---|",
+    ]
     for r in rows:
         share = r["frames_per_s"] / best[r["label"]]
-        lines.append(f"| {r['label']} | {r['threads']} | {r['batch']} | {r['optimisation']} | {r['frames_per_s']:.0f} | "
-                     f"{share:.0%}{' (fastest)' if share == 1 else ''} |")
+        lines.append(
+            f"| {r['label']} | {r['threads']} | {r['batch']} | {r['optimisation']} | {r['frames_per_s']:.0f} | "
+            f"{share:.0%}{' (fastest)' if share == 1 else ''} |"
+        )
     return "\n".join(lines) + "\n"
 
 

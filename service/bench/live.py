@@ -9,6 +9,7 @@ each of its bounds (the p99 lies under the first bound holding 99 %), the window
 received meanwhile, and frames dropped and windows left unfitted meanwhile. Writes ``live.json`` and
 ``live.md`` to ``--out`` and prints the table.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -25,15 +26,16 @@ import urllib.request
 from collections.abc import Callable
 from pathlib import Path
 
-from service.errors import MeniscopeError
 from service.bench.results import write_results
+from service.errors import MeniscopeError
 
 LATENCY = "meniscope_window_publish_latency_seconds"
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    p = subparsers.add_parser("live", help="the real service's publish latency with a WebSocket and a ZeroMQ client",
-                              description=__doc__)
+    p = subparsers.add_parser(
+        "live", help="the real service's publish latency with a WebSocket and a ZeroMQ client", description=__doc__
+    )
     p.add_argument("--seconds", type=float, default=30.0, help="length of each run (default 30)")
     p.add_argument("--runs", type=int, default=3, help="runs, each a fresh service (default 3)")
     p.add_argument("--out", type=Path, default=Path("bench-live"), help="folder for the results")
@@ -54,14 +56,22 @@ class ServeProcess:
         """``extra_env``: further MENISCOPE_ settings (source, ...); ``log``: its output, appended (default
         ``DATA_DIR/serve.log``; bench faults keeps it out of a data folder it makes unwritable)."""
         self.port, self.zmq_port = free_port(), free_port()
-        env = dict(os.environ, MENISCOPE_DATA_DIR=str(data_dir),
-                   MENISCOPE_ZMQ_PUBLISH=f"tcp://127.0.0.1:{self.zmq_port}", **(extra_env or {}))
+        env = dict(
+            os.environ,
+            MENISCOPE_DATA_DIR=str(data_dir),
+            MENISCOPE_ZMQ_PUBLISH=f"tcp://127.0.0.1:{self.zmq_port}",
+            **(extra_env or {}),
+        )
         self._log = (log or data_dir / "serve.log").open("a+")
-        self._process = subprocess.Popen([sys.executable, "-m", "service.cli", "serve", "--port", str(self.port)],
-                                         env=env, stdout=self._log, stderr=subprocess.STDOUT)
+        self._process = subprocess.Popen(
+            [sys.executable, "-m", "service.cli", "serve", "--port", str(self.port)],
+            env=env,
+            stdout=self._log,
+            stderr=subprocess.STDOUT,
+        )
 
-    def get(self, path: str) -> str:
-        with urllib.request.urlopen(f"http://127.0.0.1:{self.port}{path}", timeout=5) as response:
+    def get(self, path: str, timeout: float = 5.0) -> str:
+        with urllib.request.urlopen(f"http://127.0.0.1:{self.port}{path}", timeout=timeout) as response:
             return response.read().decode()
 
     def wait_ready(self, timeout: float = 120.0) -> None:
@@ -192,31 +202,47 @@ def measure(seconds: float) -> dict:
     bounds = sorted((float(k), v) for k, v in grown.items())
     within = {f"{b * 1e3:g}": v / max(published, 1) for b, v in bounds}
     p99_under = next((f"{b * 1e3:g}" for b, v in bounds if v >= 0.99 * published), None)
-    return {"seconds": elapsed, "load_average": [load0, load1], "windows_published": published,
-            "received": received, "within_ms": within, "p99_under_ms": p99_under,
-            **{key: after[1].get(name, 0.0) - before[1].get(name, 0.0)
-               for key, name in zip(("frames_dropped", "windows_skipped"), COUNTERS)}}
+    return {
+        "seconds": elapsed,
+        "load_average": [load0, load1],
+        "windows_published": published,
+        "received": received,
+        "within_ms": within,
+        "p99_under_ms": p99_under,
+        **{
+            key: after[1].get(name, 0.0) - before[1].get(name, 0.0)
+            for key, name in zip(("frames_dropped", "windows_skipped"), COUNTERS)
+        },
+    }
 
 
 def markdown(runs: list[dict]) -> str:
     shown = ("2.5", "5", "10", "25")
-    lines = [f"Live service benchmark: `meniscope serve` on the demo, a WebSocket and a ZeroMQ client attached, "
-             f"{os.cpu_count()} CPUs.", "",
-             "| run | windows published | received by WebSocket / ZeroMQ | "
-             + " | ".join(f"within {b} ms" for b in shown) + " | p99 under (ms) | frames dropped | windows unfitted "
-             "| load average |",
-             "|" + "---|" * (8 + len(shown))]
+    lines = [
+        f"Live service benchmark: `meniscope serve` on the demo, a WebSocket and a ZeroMQ client attached, "
+        f"{os.cpu_count()} CPUs.",
+        "",
+        "| run | windows published | received by WebSocket / ZeroMQ | "
+        + " | ".join(f"within {b} ms" for b in shown)
+        + " | p99 under (ms) | frames dropped | windows unfitted "
+        "| load average |",
+        "|" + "---|" * (8 + len(shown)),
+    ]
     for k, r in enumerate(runs, 1):
-        lines.append(f"| {k} | {r['windows_published']:.0f} | {r['received']['websocket']} / {r['received']['zeromq']} | "
-                     + " | ".join(f"{r['within_ms'].get(b, 0.0):.2%}" for b in shown)
-                     + f" | {r['p99_under_ms'] or '-'} | {r['frames_dropped']:.0f} | {r['windows_skipped']:.0f} | "
-                     f"{r['load_average'][0]:.1f} -> {r['load_average'][1]:.1f} |")
+        lines.append(
+            f"| {k} | {r['windows_published']:.0f} | {r['received']['websocket']} / {r['received']['zeromq']} | "
+            + " | ".join(f"{r['within_ms'].get(b, 0.0):.2%}" for b in shown)
+            + f" | {r['p99_under_ms'] or '-'} | {r['frames_dropped']:.0f} | {r['windows_skipped']:.0f} | "
+            f"{r['load_average'][0]:.1f} -> {r['load_average'][1]:.1f} |"
+        )
     return "\n".join(lines) + "\n"
 
 
 def run(args: argparse.Namespace) -> int:
     if args.runs < 1 or args.seconds <= 0:
-        raise MeniscopeError("--runs/--seconds", f"need at least one run of some seconds, got {args.runs} x {args.seconds}")
+        raise MeniscopeError(
+            "--runs/--seconds", f"need at least one run of some seconds, got {args.runs} x {args.seconds}"
+        )
     args.out.mkdir(parents=True, exist_ok=True)
     runs = []
     for k in range(args.runs):

@@ -8,6 +8,7 @@ dropped, windows published and left unfitted (from /metrics), what the clients g
 The web side shares the machine with the frame path: on a loaded machine the figures say little; rerun on a
 quiet one. Writes ``load.json`` and ``load.md`` to ``--out``.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -24,15 +25,19 @@ from service.bench.live import ServeProcess
 from service.errors import MeniscopeError
 
 #: The counters each phase reads before and after.
-COUNTERS = {"frames_acquired": "meniscope_frames_acquired_total", "frames_dropped": "meniscope_frames_dropped_total",
-            "windows_skipped": "meniscope_windows_skipped_total"}
+COUNTERS = {
+    "frames_acquired": "meniscope_frames_acquired_total",
+    "frames_dropped": "meniscope_frames_dropped_total",
+    "windows_skipped": "meniscope_windows_skipped_total",
+}
 #: The largest history page the API serves.
 PAGE = "/api/v1/windows?limit=1000"
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    p = subparsers.add_parser("load", help="frames the service loses to WebSocket readers and history readers",
-                              description=__doc__)
+    p = subparsers.add_parser(
+        "load", help="frames the service loses to WebSocket readers and history readers", description=__doc__
+    )
     p.add_argument("--seconds", type=float, default=30.0, help="length of each phase (default 30)")
     p.add_argument("--readers", type=int, default=90, help="WebSocket clients reading (default 90)")
     p.add_argument("--stalled", type=int, default=10, help="WebSocket clients that never read (default 10)")
@@ -46,7 +51,8 @@ def counters(service: ServeProcess) -> dict[str, float]:
 
     values = dict.fromkeys([*COUNTERS, "windows_published"], 0.0)
     names = {v: k for k, v in COUNTERS.items()}
-    for family in text_string_to_metric_families(service.get("/metrics")):
+    # the web process yields the CPU to the frames (web_nice): under a flood of clients a scrape may wait
+    for family in text_string_to_metric_families(service.get("/metrics", timeout=60.0)):
         for sample in family.samples:
             if sample.name in names:
                 values[names[sample.name]] = sample.value
@@ -88,8 +94,9 @@ class WebSocketCrowd:
                 self.connected += 1
                 await self._stop.wait()
 
-        await asyncio.gather(*[reader() for _ in range(self.readers)], *[stalled() for _ in range(self.stalled)],
-                             return_exceptions=True)
+        await asyncio.gather(
+            *[reader() for _ in range(self.readers)], *[stalled() for _ in range(self.stalled)], return_exceptions=True
+        )
 
     def stop(self) -> None:
         if self._stop is not None:
@@ -128,8 +135,14 @@ def phase(service: ServeProcess, seconds: float, name: str, clients: object | No
     if clients is not None:
         clients.stop()  # type: ignore[attr-defined]
     grown = {k: after[k] - before[k] for k in after}
-    return {"phase": name, "seconds": elapsed, "load_average": [load0, load1], **grown,
-            "dropped_share": grown["frames_dropped"] / max(grown["frames_acquired"], 1.0), "clients": got}
+    return {
+        "phase": name,
+        "seconds": elapsed,
+        "load_average": [load0, load1],
+        **grown,
+        "dropped_share": grown["frames_dropped"] / max(grown["frames_acquired"], 1.0),
+        "clients": got,
+    }
 
 
 def measure(seconds: float, readers: int, stalled: int) -> list[dict]:
@@ -149,14 +162,20 @@ def measure(seconds: float, readers: int, stalled: int) -> list[dict]:
 
 
 def markdown(phases: list[dict]) -> str:
-    lines = [f"Load benchmark: `meniscope serve` on the demo at 19,000 frames/s, {os.cpu_count()} CPUs.", "",
-             "| phase | s | frames acquired | frames dropped | windows published | windows unfitted | clients got "
-             "| load average |", "|---|---|---|---|---|---|---|---|"]
+    lines = [
+        f"Load benchmark: `meniscope serve` on the demo at 19,000 frames/s, {os.cpu_count()} CPUs.",
+        "",
+        "| phase | s | frames acquired | frames dropped | windows published | windows unfitted | clients got "
+        "| load average |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
     for p in phases:
         got = ", ".join(f"{k} {v:g}" for k, v in p["clients"].items()) or "-"
-        lines.append(f"| {p['phase']} | {p['seconds']:.0f} | {p['frames_acquired']:.0f} | {p['frames_dropped']:.0f} "
-                     f"({p['dropped_share']:.2%}) | {p['windows_published']:.0f} | {p['windows_skipped']:.0f} | {got} | "
-                     f"{p['load_average'][0]:.1f} -> {p['load_average'][1]:.1f} |")
+        lines.append(
+            f"| {p['phase']} | {p['seconds']:.0f} | {p['frames_acquired']:.0f} | {p['frames_dropped']:.0f} "
+            f"({p['dropped_share']:.2%}) | {p['windows_published']:.0f} | {p['windows_skipped']:.0f} | {got} | "
+            f"{p['load_average'][0]:.1f} -> {p['load_average'][1]:.1f} |"
+        )
     return "\n".join(lines) + "\n"
 
 

@@ -1,6 +1,7 @@
 """The window fit's peers, for agreement tests and ``meniscope bench fit``: the same damped sinusoids found by other
 methods. harminv (Mandelshtam & Taylor's filter diagonalisation, Debian package ``harminv``), scipy's ``curve_fit``
 and a matrix pencil (Hua & Sarkar), each as its users would run it on a window."""
+
 from __future__ import annotations
 
 import shutil
@@ -14,7 +15,6 @@ from scipy.optimize import curve_fit
 from scipy.special import stdtrit
 
 from service.analysis import pencil
-
 from service.errors import MeniscopeError
 
 
@@ -56,10 +56,17 @@ def harminv_modes(values: ArrayLike, fps: float, f_min: float = 0.0, f_max: floa
     x = np.asarray(values, dtype=np.float64)
     text = "\n".join(f"{v:.17g}" for v in x - x.mean())
     f_max = fps / 2 if f_max is None else f_max
-    done = subprocess.run(["harminv", "-Q", "0.1", "-e", "1e300", "-E", "0.1", "-t", f"{1 / fps:.17g}", f"0-{f_max:.17g}"], input=text,
-                          capture_output=True, text=True, check=False)
+    done = subprocess.run(
+        ["harminv", "-Q", "0.1", "-e", "1e300", "-E", "0.1", "-t", f"{1 / fps:.17g}", f"0-{f_max:.17g}"],
+        input=text,
+        capture_output=True,
+        text=True,
+        check=False,
+    )
     if done.returncode != 0:
-        raise MeniscopeError("harminv", f"failed: {done.stderr.strip().splitlines()[-1] if done.stderr.strip() else done.returncode}")
+        raise MeniscopeError(
+            "harminv", f"failed: {done.stderr.strip().splitlines()[-1] if done.stderr.strip() else done.returncode}"
+        )
     rows = [line.split(",") for line in done.stdout.splitlines()[1:] if line.strip()]
     table = np.array(rows, dtype=np.float64).reshape(-1, 6)  # frequency, decay, Q, amplitude, phase, error
     positive = table[(table[:, 0] >= max(f_min, 0.0)) & (table[:, 0] > 0) & (table[:, 0] <= f_max)]
@@ -134,9 +141,12 @@ def curve_fit_found(values: np.ndarray, fps: float, confidence: float = 0.95) ->
             half = stdtrit(n - k, 0.5 + confidence / 2) * np.sqrt(np.abs(np.diag(cov)))
             modes = np.reshape(p[2:], (-1, 4))
             halves = np.reshape(half[2:], (-1, 4))
-            best_bic, best = bic, [
-                Found(abs(w) * fps / (2 * np.pi), g * fps, (hw * fps / (2 * np.pi), hg * fps))
-                for (_, g, w, _), (_, hg, hw, _) in zip(modes, halves)
-                if abs(w) * values.size / (2 * np.pi) >= 0.8
-            ]
+            best_bic, best = (
+                bic,
+                [
+                    Found(abs(w) * fps / (2 * np.pi), g * fps, (hw * fps / (2 * np.pi), hg * fps))
+                    for (_, g, w, _), (_, hg, hw, _) in zip(modes, halves)
+                    if abs(w) * values.size / (2 * np.pi) >= 0.8
+                ],
+            )
     return best

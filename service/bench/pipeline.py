@@ -5,8 +5,11 @@
 - live: the live :class:`service.pipeline.runtime.Pipeline` (acquisition and inference threads, the fit workers)
   on the same recording replayed at full speed: its capacity, the frames/s it infers when no camera paces it.
 
-Each ``--repeat`` times, alternating, so that both see the same load; medians and the ratio to the camera's rate.
+Each ``--repeat`` times, alternating, so that both see the same load; medians and the ratio to the camera's rate,
+and the CPU each spent per frame (this process and its fit processes), which a loaded machine changes less than it
+changes frames/s.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -16,8 +19,9 @@ from service.verbs import add_scene_option
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    p = subparsers.add_parser("pipeline", help="offline analysis and the live pipeline's capacity on one recording",
-                              description=__doc__)
+    p = subparsers.add_parser(
+        "pipeline", help="offline analysis and the live pipeline's capacity on one recording", description=__doc__
+    )
     p.add_argument("recording", type=Path, help="REC.cine or REC.avi, e.g. from `meniscope simulate --windows 200`")
     add_scene_option(p)
     p.add_argument("--repeat", type=int, default=3, help="runs of each (default 3)")
@@ -26,19 +30,33 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
+def cpu_seconds() -> float:
+    """CPU seconds (user + system) this process and its ended children have used so far."""
+    import resource
+
+    own, children = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+    return own.ru_utime + own.ru_stime + children.ru_utime + children.ru_stime
+
+
 def measure_offline(recording: Path, scene, opened, workers: int | None) -> dict:  # type: ignore[no-untyped-def]
-    """One offline analysis: wall seconds and frames/s (the method already open)."""
+    """One offline analysis: wall seconds, frames/s and CPU us per frame (the method already open)."""
     import time
 
     from service import DEFAULT_MODELS
     from service.analysis.offline import analyse_recording
 
-    t0 = time.perf_counter()
-    analysis = analyse_recording(recording, scene, "network", DEFAULT_MODELS, progress=False, opened=opened,
-                                 workers=workers)
-    seconds = time.perf_counter() - t0
+    t0, cpu0 = time.perf_counter(), cpu_seconds()
+    analysis = analyse_recording(
+        recording, scene, "network", DEFAULT_MODELS, progress=False, opened=opened, workers=workers
+    )
+    seconds, cpu = time.perf_counter() - t0, cpu_seconds() - cpu0  # the fit pool has ended: its CPU is counted
     frames = analysis.report.source.frames
-    return {"seconds": seconds, "frames_per_s": frames / seconds, "windows": len(analysis.report.windows)}
+    return {
+        "seconds": seconds,
+        "frames_per_s": frames / seconds,
+        "cpu_us_per_frame": 1e6 * cpu / frames,
+        "windows": len(analysis.report.windows),
+    }
 
 
 def measure_live(recording: Path, scene, method, workers: int | None) -> dict:  # type: ignore[no-untyped-def]
@@ -47,15 +65,19 @@ def measure_live(recording: Path, scene, method, workers: int | None) -> dict:  
     import os
     import threading
     import time
-    from urllib.parse import quote
 
     from service.pipeline.fitting import FitPool
     from service.pipeline.runtime import Pipeline, PipelineStats
-    from service.settings import ServiceSettings
+    from service.server.settings import ServiceSettings
     from service.sources import open_source
+    from service.sources.replay import replay_uri
 
-    settings = ServiceSettings(source=f"file://{quote(str(recording))}?speed=max", recordings_dir=recording.parent,
-                               fit_workers=workers or os.cpu_count() or 1, queue_batches=1024)
+    settings = ServiceSettings(
+        source=replay_uri(recording, speed="max"),
+        recordings_dir=recording.parent,
+        fit_workers=workers or os.cpu_count() or 1,
+        queue_batches=1024,
+    )
     fitted: list = []
     done = threading.Event()
 
@@ -72,6 +94,7 @@ def measure_live(recording: Path, scene, method, workers: int | None) -> dict:  
             pass
 
     stats, ended = PipelineStats(), False
+    cpu0 = cpu_seconds()
     pool = FitPool(settings.fit_workers, settings.fit, settings.fit_nice)
     try:
         with open_source(settings.source) as source:
@@ -84,22 +107,38 @@ def measure_live(recording: Path, scene, method, workers: int | None) -> dict:  
             seconds = time.perf_counter() - t0
     finally:
         pool.close()
-    return {"seconds": seconds, "frames_per_s": stats.frames_inferred / seconds,
-            "inferred_frames_per_s": stats.frames_inferred / inferred, "frames_dropped": stats.frames_dropped,
-            "windows": len(fitted), "windows_skipped": stats.windows_skipped}
+    pool.join(10.0)
+    cpu = cpu_seconds() - cpu0  # the fit workers have ended (joined): their CPU is counted
+    return {
+        "seconds": seconds,
+        "frames_per_s": stats.frames_inferred / seconds,
+        "cpu_us_per_frame": 1e6 * cpu / max(stats.frames_inferred, 1),
+        "inferred_frames_per_s": stats.frames_inferred / inferred,
+        "frames_dropped": stats.frames_dropped,
+        "windows": len(fitted),
+        "windows_skipped": stats.windows_skipped,
+    }
 
 
 def markdown(results: dict) -> str:
     """The side-by-side table."""
     fps = results["camera_fps"]
-    lines = ["| pipeline | frames/s (median) | x camera | windows | runs (frames/s) |", "|---|---:|---:|---:|---|"]
+    lines = [
+        "| pipeline | frames/s (median) | x camera | CPU us/frame (median) | windows | runs (frames/s) |",
+        "|---|---:|---:|---:|---:|---|",
+    ]
     for name in ("offline", "live"):
         runs = results[name]
         median = results[f"{name}_median_frames_per_s"]
         each = ", ".join(f"{r['frames_per_s']:.0f}" for r in runs)
-        lines.append(f"| {name} | {median:.0f} | {median / fps:.2f} | {runs[-1]['windows']} | {each} |")
-    lines.append(f"\noffline / live: {results['offline_over_live']:.2f} (medians of {len(results['offline'])} "
-                 f"alternating runs on {results['recording']})\n")
+        lines.append(
+            f"| {name} | {median:.0f} | {median / fps:.2f} | {results[f'{name}_median_cpu_us_per_frame']:.0f} "
+            f"| {runs[-1]['windows']} | {each} |"
+        )
+    lines.append(
+        f"\noffline / live: {results['offline_over_live']:.2f} (medians of {len(results['offline'])} "
+        f"alternating runs on {results['recording']})\n"
+    )
     return "\n".join(lines)
 
 
@@ -127,6 +166,7 @@ def run(args: argparse.Namespace) -> int:
     results = {"recording": str(args.recording), "camera_fps": camera_fps, "offline": offline, "live": live}
     for name, runs in (("offline", offline), ("live", live)):
         results[f"{name}_median_frames_per_s"] = float(np.median([r["frames_per_s"] for r in runs]))
+        results[f"{name}_median_cpu_us_per_frame"] = float(np.median([r["cpu_us_per_frame"] for r in runs]))
     results["offline_over_live"] = results["offline_median_frames_per_s"] / results["live_median_frames_per_s"]
     write_results(args.out, results, markdown(results))
     return 0

@@ -4,6 +4,7 @@ the local process pool and on local Dask clusters of 1, 2, ... worker processes,
 How a plant re-analyses an archive: the refinement of each window is an independent task, so windows/s should
 grow with the workers until the cores run out; the REPORTs must be the same whichever ran them.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -13,8 +14,9 @@ from service.verbs import add_scene_option
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    p = subparsers.add_parser("refine", help="windows/s of analyze --refine: local pool against Dask workers",
-                              description=__doc__)
+    p = subparsers.add_parser(
+        "refine", help="windows/s of analyze --refine: local pool against Dask workers", description=__doc__
+    )
     p.add_argument("recording", type=Path, help="REC.cine or REC.avi, e.g. from `meniscope simulate --windows 10`")
     add_scene_option(p)
     p.add_argument("--dask-workers", default="1,2", help="sizes of the local Dask clusters (default 1,2)")
@@ -30,22 +32,39 @@ def measure(recording: Path, scene, opened, scheduler: str | None, workers: int 
     from service.analysis.offline import analyse_recording
 
     t0 = time.perf_counter()
-    analysis = analyse_recording(recording, scene, "network", DEFAULT_MODELS, progress=False, opened=opened,
-                                 refine=True, scheduler=scheduler, workers=workers)
+    analysis = analyse_recording(
+        recording,
+        scene,
+        "network",
+        DEFAULT_MODELS,
+        progress=False,
+        opened=opened,
+        refine=True,
+        scheduler=scheduler,
+        workers=workers,
+    )
     seconds = time.perf_counter() - t0
     windows = analysis.report.windows
-    return {"seconds": seconds, "windows": len(windows), "windows_per_s": len(windows) / seconds,
-            "report": [w.model_dump(mode="json") for w in windows]}
+    return {
+        "seconds": seconds,
+        "windows": len(windows),
+        "windows_per_s": len(windows) / seconds,
+        "report": [w.model_dump(mode="json") for w in windows],
+    }
 
 
 def markdown(results: dict) -> str:
     """One row per way of running."""
-    lines = ["| windows run on | windows | seconds | windows/s | x local pool | same REPORT |",
-             "|---|---:|---:|---:|---:|---|"]
+    lines = [
+        "| windows run on | windows | seconds | windows/s | x local pool | same REPORT |",
+        "|---|---:|---:|---:|---:|---|",
+    ]
     base = results["runs"][0]["windows_per_s"]
     for r in results["runs"]:
-        lines.append(f"| {r['name']} | {r['windows']} | {r['seconds']:.1f} | {r['windows_per_s']:.2f} | "
-                     f"{r['windows_per_s'] / base:.2f} | {'yes' if r['same_report'] else 'NO'} |")
+        lines.append(
+            f"| {r['name']} | {r['windows']} | {r['seconds']:.1f} | {r['windows_per_s']:.2f} | "
+            f"{r['windows_per_s'] / base:.2f} | {'yes' if r['same_report'] else 'NO'} |"
+        )
     return "\n".join(lines) + f"\n\n{results['recording']}, {results['cores']} cores\n"
 
 
@@ -65,8 +84,9 @@ def run(args: argparse.Namespace) -> int:
     try:
         from distributed import LocalCluster
     except ImportError:
-        raise MeniscopeError("bench refine", "needs the Dask distributed package: pip install 'meniscope[scale]'") \
-            from None
+        raise MeniscopeError(
+            "bench refine", "needs the Dask distributed package: pip install 'meniscope[scale]'"
+        ) from None
     scene = Scene.load(args.scene)
     opened = open_method("network", scene, DEFAULT_MODELS)
     cores = os.cpu_count() or 1
@@ -74,10 +94,15 @@ def run(args: argparse.Namespace) -> int:
     runs = [{"name": f"local pool, {cores} processes", **measure(args.recording, scene, opened, None, cores)}]
     for n in sizes:
         print(f"bench refine: Dask, {n} worker(s) ...", flush=True)
-        with LocalCluster(n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None,
-                          silence_logs=40) as cluster:
-            runs.append({"name": f"Dask, {n} worker process(es)",
-                         **measure(args.recording, scene, opened, cluster.scheduler_address, None)})
+        with LocalCluster(
+            n_workers=n, threads_per_worker=1, processes=True, dashboard_address=None, silence_logs=40
+        ) as cluster:
+            runs.append(
+                {
+                    "name": f"Dask, {n} worker process(es)",
+                    **measure(args.recording, scene, opened, cluster.scheduler_address, None),
+                }
+            )
     for r in runs:
         r["same_report"] = r["report"] == runs[0]["report"]
     for r in runs:

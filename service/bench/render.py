@@ -8,24 +8,25 @@ setting: median frames/s, the ratio to Cycles, and the agreement of ``service.re
 ``render.png`` (ours | Cycles | difference for a few frames), both frame stacks (ours at the last setting) and the
 coefficients to ``--out``, and prints the table.
 """
+
 from __future__ import annotations
 
 import argparse
 import os
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 from tqdm import tqdm
 
 from service.bench import parse_pairs
-from service.verbs import add_scene_option
+from service.bench.results import write_results
 from service.errors import MeniscopeError
 from service.physics import CoefficientRanges
 from service.plotting import pyplot
 from service.scene import Scene
-from service.bench.results import write_results
+from service.verbs import add_scene_option
 
 #: (frames, samples) for a full run and for ``--quick``.
 FULL, QUICK = (300, 32), (12, 8)
@@ -40,8 +41,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--samples", type=int, help=f"Cycles samples per pixel (default {FULL[1]}, --quick {QUICK[1]})")
     p.add_argument("--quick", action="store_true", help="a short smoke run")
     p.add_argument("--seed", type=int, default=0, help="seed of the coefficient draws")
-    p.add_argument("--settings", default=SETTINGS,
-                   help=f"our renderer's settings, SUPERSAMPLExSUN_SAMPLES, comma-separated (default {SETTINGS})")
+    p.add_argument(
+        "--settings",
+        default=SETTINGS,
+        help=f"our renderer's settings, SUPERSAMPLExSUN_SAMPLES, comma-separated (default {SETTINGS})",
+    )
     p.add_argument("--repeats", type=int, default=5, help="timed passes over the draws per setting (median reported)")
     p.add_argument("--blender", default="blender", help="Blender executable")
     p.add_argument("--out", type=Path, default=Path("bench-render"), help="folder for the results")
@@ -49,12 +53,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def parse_settings(text: str) -> list[tuple[int, int]]:
-    """"2x4,1x1" -> [(2, 4), (1, 1)]; a one-line error for anything else."""
+    """ "2x4,1x1" -> [(2, 4), (1, 1)]; a one-line error for anything else."""
     return parse_pairs(text, "--settings", "SUPERSAMPLExSUN_SAMPLES like 2x4")
 
 
-def time_ours(render: Callable[[np.ndarray], np.ndarray], coeffs: np.ndarray, repeats: int,
-              label: str) -> tuple[np.ndarray, float, np.ndarray]:
+def time_ours(
+    render: Callable[[np.ndarray], np.ndarray], coeffs: np.ndarray, repeats: int, label: str
+) -> tuple[np.ndarray, float, np.ndarray]:
     """Frames (N, H, W), the warm-up call's seconds, and seconds per frame of each timed pass (repeats,)."""
     start = time.perf_counter()
     render(coeffs[:1])
@@ -97,7 +102,8 @@ def markdown(results: dict) -> str:
             f"{_fmt(o['speed_ratio'], '.0f')} | {_fmt(o['warmup_s'])} | "
             f"{_fmt(a['correlation_median'], '.4f')} / {_fmt(a['correlation_p10'], '.4f')} | "
             f"{_fmt(a['centroid_distance_median_px'])} / {_fmt(a['centroid_distance_p90_px'])} | "
-            f"{a['highlight_both']}/{n} | {_fmt(a['gain_median'])} |")
+            f"{a['highlight_both']}/{n} | {_fmt(a['gain_median'])} |"
+        )
     return "\n".join(lines) + "\n"
 
 
@@ -151,16 +157,22 @@ def run(args: argparse.Namespace) -> int:
     cycles_rate = _rate(cycles_median)
     ours_results, best = [], None
     for ss, sun in settings:
-        ours, warmup, ours_s = time_ours(Renderer(scene, supersample=ss, sun_samples=sun).render, coeffs,
-                                         args.repeats, f"{ss}x{sun}")
+        ours, warmup, ours_s = time_ours(
+            Renderer(scene, supersample=ss, sun_samples=sun).render, coeffs, args.repeats, f"{ss}x{sun}"
+        )
         agreement = compare(ours, cycles)
         rate = _rate(float(np.median(ours_s)))
-        ours_results.append({
-            "supersample": ss, "sun_samples": sun, "warmup_s": warmup,
-            "median_s_per_frame": float(np.median(ours_s)), "frames_per_s": rate,
-            "speed_ratio": rate / cycles_rate if rate and cycles_rate else None,
-            "agreement": agreement.summary(),
-        })
+        ours_results.append(
+            {
+                "supersample": ss,
+                "sun_samples": sun,
+                "warmup_s": warmup,
+                "median_s_per_frame": float(np.median(ours_s)),
+                "frames_per_s": rate,
+                "speed_ratio": rate / cycles_rate if rate and cycles_rate else None,
+                "agreement": agreement.summary(),
+            }
+        )
         best = (ours, agreement, ss, sun)  # the last (most accurate) setting goes into the figure
     results = {
         "schema": "meniscope.bench.render/2",
@@ -168,8 +180,12 @@ def run(args: argparse.Namespace) -> int:
         "seed": args.seed,
         "frames": frames,
         "host": {"cpus": os.cpu_count(), "load_before": load_before, "load_after": os.getloadavg()[0]},
-        "cycles": {"samples": samples, "startup_s": timing.startup_s, "median_s_per_frame": cycles_median,
-                   "frames_per_s": cycles_rate},
+        "cycles": {
+            "samples": samples,
+            "startup_s": timing.startup_s,
+            "median_s_per_frame": cycles_median,
+            "frames_per_s": cycles_rate,
+        },
         "ours": ours_results,
     }
     table = markdown(results)

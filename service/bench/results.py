@@ -1,5 +1,6 @@
 """The one results writer of every benchmark: JSON (plain numbers; NaN and infinities become null) and a Markdown
 table beside it."""
+
 from __future__ import annotations
 
 import json

@@ -18,6 +18,7 @@ reading the replay, inference per configuration, activity + segmentation, and th
 
 Writes ``serve.json`` and ``serve.md`` to ``--out`` and prints the tables.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -27,16 +28,16 @@ import os
 import tempfile
 import time
 from pathlib import Path
-from urllib.parse import quote
 
 import numpy as np
 from pydantic import ValidationError
 
 from service.analysis.results import FitSettings
 from service.bench import parse_pairs
-from service.errors import MeniscopeError
-from service.settings import ServiceSettings, default_data_dir
 from service.bench.results import write_results
+from service.errors import MeniscopeError
+from service.server.settings import ServiceSettings, default_data_dir
+from service.sources.replay import replay_uri
 
 CONFIGS = "512x1,512x2,128x1"
 #: The issue's target: a window's result published within this many ms of its close.
@@ -44,19 +45,29 @@ ON_TIME_MS = 10.0
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    p = subparsers.add_parser("serve", help="the live pipeline end to end: frames/s and publish latency",
-                              description=__doc__)
+    p = subparsers.add_parser(
+        "serve", help="the live pipeline end to end: frames/s and publish latency", description=__doc__
+    )
     p.add_argument("--source", type=Path, help="recording to replay (default: the demo recording)")
     p.add_argument("--seconds", type=float, default=20.0, help="length of each run (default 20)")
-    p.add_argument("--configs", default=CONFIGS,
-                   help=f"BATCHxTHREADS inference settings, comma-separated (default {CONFIGS})")
+    p.add_argument(
+        "--configs", default=CONFIGS, help=f"BATCHxTHREADS inference settings, comma-separated (default {CONFIGS})"
+    )
     p.add_argument("--speeds", default="1", help="replay speeds, x the recorded rate, comma-separated (default 1)")
     p.add_argument("--fit-workers", type=int, default=1, help="fit worker processes (default 1)")
     p.add_argument("--fit-nice", type=int, default=10, help="niceness of the fit workers (default 10, the service's)")
-    p.add_argument("--max-modes", default="2", help="fit model orders to compare, comma-separated: 1 fits half the "
-                   "models of 2 (default 2, the service's default)")
-    p.add_argument("--variants", default="", help="service settings to compare, KEY=VALUE pairs joined by ',', "
-                   "variants by ';' (default: one variant, the defaults)")
+    p.add_argument(
+        "--max-modes",
+        default="2",
+        help="fit model orders to compare, comma-separated: 1 fits half the "
+        "models of 2 (default 2, the service's default)",
+    )
+    p.add_argument(
+        "--variants",
+        default="",
+        help="service settings to compare, KEY=VALUE pairs joined by ',', "
+        "variants by ';' (default: one variant, the defaults)",
+    )
     p.add_argument("--out", type=Path, default=Path("bench-serve"), help="folder for the results")
     p.set_defaults(func=run)
 
@@ -76,8 +87,16 @@ def measure(settings: ServiceSettings, seconds: float) -> dict:
     class Timed(Publishers):
         def _send(self, fitted: FittedWindow) -> tuple[StoredWindow, float]:
             stored, sent = super()._send(fitted)
-            stages.append((fitted.closed_at, fitted.dispatched_at, fitted.fit_started_at, fitted.fit_finished_at,
-                           fitted.fitted_at, sent))
+            stages.append(
+                (
+                    fitted.closed_at,
+                    fitted.dispatched_at,
+                    fitted.fit_started_at,
+                    fitted.fit_finished_at,
+                    fitted.fitted_at,
+                    sent,
+                )
+            )
             return stored, sent
 
     stats = PipelineStats()
@@ -96,11 +115,23 @@ def measure(settings: ServiceSettings, seconds: float) -> dict:
                     raise MeniscopeError("bench serve", f"no frames inferred in 120 s: {supervisor.health().reason}")
                 time.sleep(0.05)
             time.sleep(1.0)  # past the start: fit workers warm, queues in their steady state
-            start = (time.monotonic(), os.getloadavg()[0], stats.frames_acquired, stats.frames_inferred,
-                     stats.frames_dropped, stats.windows_closed, stats.windows_skipped, len(stages))
+
+            def snapshot() -> tuple:
+                """When, the load, the counters and the stage timings taken so far: one end of the measured run."""
+                return (
+                    time.monotonic(),
+                    os.getloadavg()[0],
+                    stats.frames_acquired,
+                    stats.frames_inferred,
+                    stats.frames_dropped,
+                    stats.windows_closed,
+                    stats.windows_skipped,
+                    len(stages),
+                )
+
+            start = snapshot()
             time.sleep(seconds)
-            end = (time.monotonic(), os.getloadavg()[0], stats.frames_acquired, stats.frames_inferred,
-                   stats.frames_dropped, stats.windows_closed, stats.windows_skipped, len(stages))
+            end = snapshot()
         finally:
             supervisor.stop()
             publishers.stop()
@@ -109,20 +140,29 @@ def measure(settings: ServiceSettings, seconds: float) -> dict:
             loop.close()
     elapsed = end[0] - start[0]
     acquired, inferred, dropped, closed, skipped, published = (e - s for e, s in zip(end[2:], start[2:]))
-    times = np.array(stages[start[7]:end[7]]).reshape(-1, 6) * 1e3
+    times = np.array(stages[start[7] : end[7]]).reshape(-1, 6) * 1e3
     closed_at, dispatched_at, started_at, finished_at, fitted_at, published_at = times.T
     window_latency = published_at - closed_at
     # where it goes: the closing frame waiting for inference and segmentation, the hand-off to the fit worker and
     # back (NaN for a fit that raised), the fit in its worker, publishing
-    parts = {"to_fit": dispatched_at - closed_at, "handoff": (started_at - dispatched_at) + (fitted_at - finished_at),
-             "fit": finished_at - started_at, "publish": published_at - fitted_at}
-    pct = lambda v, q: float(np.nanpercentile(v, q)) if np.isfinite(v).any() else None  # noqa: E731
+    parts = {
+        "to_fit": dispatched_at - closed_at,
+        "handoff": (started_at - dispatched_at) + (fitted_at - finished_at),
+        "fit": finished_at - started_at,
+        "publish": published_at - fitted_at,
+    }
+    pct = lambda v, q: float(np.nanpercentile(v, q)) if np.isfinite(v).any() else None
     return {
-        "seconds": elapsed, "load_average": [start[1], end[1]],
-        "frames_per_s_in": acquired / elapsed, "frames_per_s_inferred": inferred / elapsed,
+        "seconds": elapsed,
+        "load_average": [start[1], end[1]],
+        "frames_per_s_in": acquired / elapsed,
+        "frames_per_s_inferred": inferred / elapsed,
         "dropped_fraction": dropped / max(acquired, 1),
-        "windows_closed": closed, "windows_published": published, "windows_skipped": skipped,
-        "publish_latency_ms_p50": pct(window_latency, 50), "publish_latency_ms_p99": pct(window_latency, 99),
+        "windows_closed": closed,
+        "windows_published": published,
+        "windows_skipped": skipped,
+        "publish_latency_ms_p50": pct(window_latency, 50),
+        "publish_latency_ms_p99": pct(window_latency, 99),
         # what the printer sees: of the windows that closed, those whose result it had within the target
         "on_time_fraction": float((window_latency <= ON_TIME_MS).sum()) / max(closed, 1),
         **{f"{stage}_ms_p{q}": pct(part, q) for stage, part in parts.items() for q in (50, 99)},
@@ -147,8 +187,8 @@ def stage_costs(recording: Path, configs: list[tuple[int, int]], frames: int = 3
         own, process = time.thread_time() - t0, time.process_time() - t0_process
         return max(own, process) / count * 1e6, out  # onnxruntime's own threads count through process time
 
-    with open_source(f"file://{quote(str(recording))}?speed=max&loop=1") as source:
-        fps, size = source.fps, (source.width, source.height)
+    with open_source(replay_uri(recording, speed="max", loop=1)) as source:
+        fps, stream = source.fps, source.format
         read_us, reads = cpu_us_per_frame(lambda: [source.read(128) for _ in range(frames // 128)])
     costs: dict = {"read_128": read_us}
     batch = FrameBatch.concatenate(reads)
@@ -156,16 +196,21 @@ def stage_costs(recording: Path, configs: list[tuple[int, int]], frames: int = 3
     stages = None
     for size_, threads in configs:
         method = NetworkMethod(DEFAULT_MODELS, scene, threads=threads, batch=size_)
-        stages = FrameStages(scene, *size, str(recording), method)
+        stages = FrameStages(scene, stream, str(recording), method)
         method.infer(batch.pixels[:size_])
         costs[f"infer_{size_}x{threads}"], _ = cpu_us_per_frame(lambda: method.infer(batch.pixels), len(batch))
     parts = [batch.select(slice(lo, lo + 512)) for lo in range(0, len(batch), 512)]
     costs["measures"], measured = cpu_us_per_frame(lambda: [stages.measure(part) for part in parts], len(batch))
     records = [stages.infer(part.pixels, m) for part, m in zip(parts, measured)]
     segmenter = segmenter_for(ServiceSettings(), fps)
-    costs["segmentation"], closed = cpu_us_per_frame(lambda: [
-        w for part, r in zip(parts, records) for w in segmenter.push(part.indices, r, r["change"],
-                                                                     np.zeros(len(part)))], len(batch))
+    costs["segmentation"], closed = cpu_us_per_frame(
+        lambda: [
+            w
+            for part, r in zip(parts, records)
+            for w in segmenter.push(part.indices, r, r["change"], np.zeros(len(part)))
+        ],
+        len(batch),
+    )
     settings = FitSettings()
     jobs = [job_for(c.window, c.values, scene.nozzle.radius_mm, settings.transient_frames(fps)) for c in closed]
     fit_us, _ = cpu_us_per_frame(lambda: [fit_job(job, fps, settings) for job in jobs], len(jobs))
@@ -176,13 +221,15 @@ def stage_costs(recording: Path, configs: list[tuple[int, int]], frames: int = 3
 
 
 def parse_variants(text: str) -> list[tuple[str, dict[str, str]]]:
-    """"batch_ms=1000,read_frames=128;batch_ms=2" -> [(its text, {key: value}), ...]; "" -> one variant of no
+    """ "batch_ms=1000,read_frames=128;batch_ms=2" -> [(its text, {key: value}), ...]; "" -> one variant of no
     changes. The values stay text: the settings parse them."""
     variants = []
     for group in text.split(";"):
         pairs = [item.strip() for item in group.split(",") if item.strip()]
         if any("=" not in item for item in pairs):
-            raise MeniscopeError("--variants", f"expected KEY=VALUE pairs like batch_ms=2,read_frames=64, got {group!r}")
+            raise MeniscopeError(
+                "--variants", f"expected KEY=VALUE pairs like batch_ms=2,read_frames=64, got {group!r}"
+            )
         variants.append((",".join(pairs), dict(item.split("=", 1) for item in pairs)))
     return variants
 
@@ -208,14 +255,28 @@ def markdown(results: dict) -> str:
             f"{_fmt(r['frames_per_s_inferred'])} | {r['dropped_fraction']:.1%} | {r['windows_closed']} / "
             f"{r['windows_published']} / {r['windows_skipped']} | {_fmt(r['publish_latency_ms_p50'], '.1f')} / "
             f"{_fmt(r['publish_latency_ms_p99'], '.1f')} | {r['on_time_fraction']:.1%} | "
-            + " / ".join(f"{_fmt(r[f'{k}_ms_p50'], '.1f')} ({_fmt(r[f'{k}_ms_p99'], '.1f')})" for k in ("to_fit", "handoff", "fit", "publish"))
-            + f" | {r['load_average'][0]:.1f} -> {r['load_average'][1]:.1f} |")
+            + " / ".join(
+                f"{_fmt(r[f'{k}_ms_p50'], '.1f')} ({_fmt(r[f'{k}_ms_p99'], '.1f')})"
+                for k in ("to_fit", "handoff", "fit", "publish")
+            )
+            + f" | {r['load_average'][0]:.1f} -> {r['load_average'][1]:.1f} |"
+        )
     c = results["stage_costs"]
-    lines += ["", f"CPU per frame, each stage alone on one thread ({c['windows_fitted']} windows fitted):", "",
-              "| stage | CPU us/frame |", "|---|---|"]
-    lines += [f"| {name} | {value:.1f} |" for name, value in c.items() if name not in ("windows_fitted", "fit_ms_per_window")]
-    lines += ["", f"The fit: {c['fit_ms_per_window']:.1f} ms CPU per window (mean); at 19,000 frames/s "
-              f"two cores give {2e6 / 19000:.0f} us per frame in all."]
+    lines += [
+        "",
+        f"CPU per frame, each stage alone on one thread ({c['windows_fitted']} windows fitted):",
+        "",
+        "| stage | CPU us/frame |",
+        "|---|---|",
+    ]
+    lines += [
+        f"| {name} | {value:.1f} |" for name, value in c.items() if name not in ("windows_fitted", "fit_ms_per_window")
+    ]
+    lines += [
+        "",
+        f"The fit: {c['fit_ms_per_window']:.1f} ms CPU per window (mean); at 19,000 frames/s "
+        f"two cores give {2e6 / 19000:.0f} us per frame in all.",
+    ]
     return "\n".join(lines) + "\n"
 
 
@@ -237,23 +298,47 @@ def run(args: argparse.Namespace) -> int:
     if not recording.is_file():
         raise MeniscopeError(recording, "no such recording")
     args.out.mkdir(parents=True, exist_ok=True)
-    results: dict = {"source": str(recording), "seconds": args.seconds, "fit_workers": args.fit_workers,
-                     "fit_nice": args.fit_nice, "runs": []}
+    results: dict = {
+        "source": str(recording),
+        "seconds": args.seconds,
+        "fit_workers": args.fit_workers,
+        "fit_nice": args.fit_nice,
+        "runs": [],
+    }
     for batch, threads in configs:
         for speed, modes, (variant, overrides) in itertools.product(speeds, max_modes, variants):
             name = f"x{speed:g}"
             try:
-                settings = ServiceSettings(**{
-                    "source": f"file://{quote(str(recording))}?speed={speed}&loop=1",
-                    "recordings_dir": recording.parent, "batch": batch, "threads": threads,
-                    "fit": FitSettings(max_modes=modes), "fit_workers": args.fit_workers, "fit_nice": args.fit_nice,
-                    "zmq_publish": None, **overrides})
+                settings = ServiceSettings(
+                    **{
+                        "source": replay_uri(recording, speed=speed, loop=1),
+                        "recordings_dir": recording.parent,
+                        "batch": batch,
+                        "threads": threads,
+                        "fit": FitSettings(max_modes=modes),
+                        "fit_workers": args.fit_workers,
+                        "fit_nice": args.fit_nice,
+                        "zmq_publish": None,
+                        **overrides,
+                    }
+                )
             except ValidationError as exc:
                 raise MeniscopeError("--variants", f"{variant!r}: {exc.errors()[0]['msg']}") from None
-            print(f"bench serve: batch {batch} x {threads} threads, {variant or 'defaults'}, {name}, "
-                  f"up to {modes} modes ...", flush=True)
-            results["runs"].append({"batch": batch, "threads": threads, "variant": variant, "run": name,
-                                    "max_modes": modes, **measure(settings, args.seconds)})
+            print(
+                f"bench serve: batch {batch} x {threads} threads, {variant or 'defaults'}, {name}, "
+                f"up to {modes} modes ...",
+                flush=True,
+            )
+            results["runs"].append(
+                {
+                    "batch": batch,
+                    "threads": threads,
+                    "variant": variant,
+                    "run": name,
+                    "max_modes": modes,
+                    **measure(settings, args.seconds),
+                }
+            )
     results["stage_costs"] = stage_costs(recording, configs)
     write_results(args.out / "serve.json", results, markdown(results))
     return 0

@@ -10,6 +10,7 @@ real-time factor (``bench serve``: frames inferred per second over the recording
 ``tradeoff.json``, ``tradeoff.md`` (each method's row says which target it misses) and
 ``tradeoff.png`` (speed against accuracy, one point per method and noise level).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -20,12 +21,12 @@ from pathlib import Path
 
 from service import DEFAULT_MODELS
 from service.bench import analysis, fit
-from service.verbs import add_scene_option
+from service.bench.results import write_results
 from service.errors import MeniscopeError
 from service.inverse.manifest import load_manifest
 from service.plotting import pyplot
 from service.scene import Scene
-from service.bench.results import write_results
+from service.verbs import add_scene_option
 
 #: (windows per recording, seeds, fit-suite windows per category, render frames flag, serve seconds) of the two modes.
 MODES = {"quick": (2, (201,), 1, ["--quick"], 3.0), "full": (12, (201, 202, 203), 25, [], 20.0)}
@@ -36,17 +37,28 @@ CAMERA_FPS, REGULARISED_S_PER_WINDOW = 19000.0, 1.0
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    p = subparsers.add_parser("tradeoff", help="every inverse method side by side: speed against accuracy",
-                              description=__doc__)
+    p = subparsers.add_parser(
+        "tradeoff", help="every inverse method side by side: speed against accuracy", description=__doc__
+    )
     add_scene_option(p)
     p.add_argument("--mode", choices=list(MODES), default="full", help="quick: a smoke run of minutes (default full)")
     p.add_argument("--models", type=Path, default=DEFAULT_MODELS, help="model folder (default: the shipped one)")
-    p.add_argument("--more-models", type=Path, action="append", default=[],
-                   help="another model folder (another input size, an int8 copy from `meniscope quantize`) whose "
-                   "learned methods are measured as rows of their own; repeat for more")
-    p.add_argument("--database", type=Path, action="append", default=[],
-                   help="render database(s) for the nearest-neighbour methods (`meniscope database`); repeat for "
-                   "20k and 100k; none: those methods are left out, and the table says so")
+    p.add_argument(
+        "--more-models",
+        type=Path,
+        action="append",
+        default=[],
+        help="another model folder (another input size, an int8 copy from `meniscope quantize`) whose "
+        "learned methods are measured as rows of their own; repeat for more",
+    )
+    p.add_argument(
+        "--database",
+        type=Path,
+        action="append",
+        default=[],
+        help="render database(s) for the nearest-neighbour methods (`meniscope database`); repeat for "
+        "20k and 100k; none: those methods are left out, and the table says so",
+    )
     p.add_argument("--out", type=Path, default=Path("bench-tradeoff"), help="folder for recordings and results")
     p.set_defaults(func=run)
 
@@ -68,8 +80,9 @@ def recordings(out: Path, scene: Path, windows: int, seeds: tuple[int, ...]) -> 
         for seed in seeds:
             rec = folder / f"seed{seed}.cine"
             if not rec.exists():
-                _meniscope("simulate", "--scene", scene, "--out", rec, "--windows", windows, "--seed", seed,
-                           "--noise", noise)
+                _meniscope(
+                    "simulate", "--scene", scene, "--out", rec, "--windows", windows, "--seed", seed, "--noise", noise
+                )
         folders[noise] = folder
     return folders
 
@@ -90,8 +103,12 @@ def methods(models: list[Path], databases: list[Path], scene: Scene) -> list[tup
 
 def misses(row: dict) -> list[str]:
     """The targets a method's row misses, in words."""
-    out = [f"{k.split('_')[0]} " + ("not measured (no window with a mode)" if row.get(k) is None else f"{row[k]:.3g} > {v:g}")
-           for k, v in TARGETS.items() if row.get(k) is None or row[k] > v]
+    out = [
+        f"{k.split('_')[0]} "
+        + ("not measured (no window with a mode)" if row.get(k) is None else f"{row[k]:.3g} > {v:g}")
+        for k, v in TARGETS.items()
+        if row.get(k) is None or row[k] > v
+    ]
     if row["method"] in ("network", "direct") and row["frames_per_s"] < CAMERA_FPS:
         out.append(f"{row['frames_per_s']:,.1f} frames/s < camera {CAMERA_FPS:,.0f}")  # 18,999.6 is not 19000
     if row["method"] == "regularised" and row["ms_per_window"] > 1e3 * REGULARISED_S_PER_WINDOW:
@@ -99,8 +116,9 @@ def misses(row: dict) -> list[str]:
     return out
 
 
-def method_rows(label: str, method: str, db: Path | None, folders: dict[str, Path], scene: Scene,
-                models: Path) -> list[dict]:
+def method_rows(
+    label: str, method: str, db: Path | None, folders: dict[str, Path], scene: Scene, models: Path
+) -> list[dict]:
     """One row per noise level for one method, measured in a fresh process (its own peak memory)."""
     rows = []
     for noise, folder in folders.items():
@@ -108,8 +126,15 @@ def method_rows(label: str, method: str, db: Path | None, folders: dict[str, Pat
         figures = analysis.aggregate(measured["rows"])
         windows = sum(r["windows_fitted"] for r in measured["rows"])
         seconds = sum(r["seconds"] for r in measured["rows"])
-        row = {"label": label, "method": method, "noise": noise, **figures, "ms_per_window": 1e3 * seconds / windows,
-               "setup_s": measured["setup_s"], "peak_memory_mb": measured["peak_memory_mb"]}
+        row = {
+            "label": label,
+            "method": method,
+            "noise": noise,
+            **figures,
+            "ms_per_window": 1e3 * seconds / windows,
+            "setup_s": measured["setup_s"],
+            "peak_memory_mb": measured["peak_memory_mb"],
+        }
         rows.append({**row, "misses": misses(row)})
         print(f"bench tradeoff: {label}, {noise} noise: {row['frames_per_s']:.0f} frames/s", flush=True)
     return rows
@@ -121,25 +146,38 @@ def _pct(v: float | None) -> str:
 
 def markdown(results: dict) -> str:
     """The methods table, then the renderer, fit and pipeline figures measured beside them."""
-    lines = ["| method | noise | frames/s | ms/window | freq. err. median / p90 | decay err. median / p90 | "
-             "D(0,t) RMSE (um) | a RMSE (um) | peak MB | misses |", "|---|---|---|---|---|---|---|---|---|---|"]
+    lines = [
+        "| method | noise | frames/s | ms/window | freq. err. median / p90 | decay err. median / p90 | "
+        "D(0,t) RMSE (um) | a RMSE (um) | peak MB | misses |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
     for r in results["methods"]:
-        lines.append(f"| {r['label']} | {r['noise']} | {r['frames_per_s']:.0f} | {r['ms_per_window']:.1f} | "
-                     f"{_pct(r['frequency_median'])} / {_pct(r['frequency_p90'])} | "
-                     f"{_pct(r['decay_median'])} / {_pct(r['decay_p90'])} | {1e3 * r['centre_rmse_mm']:.1f} | "
-                     f"{1e3 * r['a_mm_rmse']:.1f} | {r['peak_memory_mb']:.0f} | {'; '.join(r['misses']) or 'none'} |")
+        lines.append(
+            f"| {r['label']} | {r['noise']} | {r['frames_per_s']:.0f} | {r['ms_per_window']:.1f} | "
+            f"{_pct(r['frequency_median'])} / {_pct(r['frequency_p90'])} | "
+            f"{_pct(r['decay_median'])} / {_pct(r['decay_p90'])} | {1e3 * r['centre_rmse_mm']:.1f} | "
+            f"{1e3 * r['a_mm_rmse']:.1f} | {r['peak_memory_mb']:.0f} | {'; '.join(r['misses']) or 'none'} |"
+        )
     if not results["databases"]:
         lines.append("\nNo render database was given: the nearest-neighbour methods were left out.")
-    lines += ["", "Beside them, in the same run:", "", fit.markdown(results["fit"]),
-              Path(results["render_md"]).read_text(), "",
-              f"Replay pipeline (`bench serve`, batch 512 x 1 thread, camera rate): real-time factor "
-              f"{results['realtime_factor']:.3f} (frames inferred per second / the recording's frames per second)."]
+    lines += [
+        "",
+        "Beside them, in the same run:",
+        "",
+        fit.markdown(results["fit"]),
+        Path(results["render_md"]).read_text(),
+        "",
+        f"Replay pipeline (`bench serve`, batch 512 x 1 thread, camera rate): real-time factor "
+        f"{results['realtime_factor']:.3f} (frames inferred per second / the recording's frames per second).",
+    ]
     return "\n".join(lines) + "\n"
 
 
 #: The accuracy axes of the Pareto plot: (row key, scale to the plotted unit, axis label, target line or None).
-PARETO_AXES = (("frequency_median", 100, "dominant frequency error, median (%)", 100 * TARGETS["frequency_median"]),
-               ("centre_rmse_mm", 1e3, "per-frame D(0, t) RMSE (um)", None))
+PARETO_AXES = (
+    ("frequency_median", 100, "dominant frequency error, median (%)", 100 * TARGETS["frequency_median"]),
+    ("centre_rmse_mm", 1e3, "per-frame D(0, t) RMSE (um)", None),
+)
 
 
 def pareto(rows: list[dict], path: Path) -> None:
@@ -154,8 +192,13 @@ def pareto(rows: list[dict], path: Path) -> None:
                 continue
             marker = "o" if r["noise"] == NOISES[0] else "s"
             ax.scatter(r["frames_per_s"], scale * r[key], marker=marker)
-            ax.annotate(f"{r['label']} ({r['noise']})", (r["frames_per_s"], scale * r[key]), fontsize=6,
-                        xytext=(4, 2), textcoords="offset points")
+            ax.annotate(
+                f"{r['label']} ({r['noise']})",
+                (r["frames_per_s"], scale * r[key]),
+                fontsize=6,
+                xytext=(4, 2),
+                textcoords="offset points",
+            )
         ax.axvline(CAMERA_FPS, ls="--", color="0.5", lw=0.8)
         if target is not None:
             ax.axhline(target, ls="--", color="0.5", lw=0.8)
@@ -173,18 +216,38 @@ def run(args: argparse.Namespace) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     scene = Scene.load(args.scene)
     folders = recordings(args.out, args.scene, windows, seeds)
-    rows = [row for label, method, models, db in methods([args.models, *args.more_models], args.database, scene)
-            for row in method_rows(label, method, db, folders, scene, models)]
+    rows = [
+        row
+        for label, method, models, db in methods([args.models, *args.more_models], args.database, scene)
+        for row in method_rows(label, method, db, folders, scene, models)
+    ]
     _meniscope("bench", "render", "--scene", args.scene, *render_flags, "--out", args.out / "render")
     rec = sorted(folders[NOISES[0]].glob("*.cine"))[0]
-    _meniscope("bench", "serve", "--source", rec, "--seconds", serve_s, "--configs", "512x1", "--speeds", "1",
-               "--out", args.out / "serve")
+    _meniscope(
+        "bench",
+        "serve",
+        "--source",
+        rec,
+        "--seconds",
+        serve_s,
+        "--configs",
+        "512x1",
+        "--speeds",
+        "1",
+        "--out",
+        args.out / "serve",
+    )
     serve = json.loads((args.out / "serve" / "serve.json").read_text())["runs"][0]
-    results = {"mode": args.mode, "databases": [str(d) for d in args.database], "methods": rows,
-               "fit": fit.measure(fit_windows, 0, progress=False),
-               "render": json.loads((args.out / "render" / "render.json").read_text()),
-               "render_md": str(args.out / "render" / "render.md"),
-               "serve": serve, "realtime_factor": serve["frames_per_s_inferred"] / CAMERA_FPS}
+    results = {
+        "mode": args.mode,
+        "databases": [str(d) for d in args.database],
+        "methods": rows,
+        "fit": fit.measure(fit_windows, 0, progress=False),
+        "render": json.loads((args.out / "render" / "render.json").read_text()),
+        "render_md": str(args.out / "render" / "render.md"),
+        "serve": serve,
+        "realtime_factor": serve["frames_per_s_inferred"] / CAMERA_FPS,
+    }
     write_results(args.out / "tradeoff.json", results, markdown(results))
     pareto(rows, args.out / "tradeoff.png")
     return 0

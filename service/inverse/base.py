@@ -1,4 +1,5 @@
 """The seam every inverse method implements (ARCHITECTURE.md, "InverseMethod")."""
+
 from __future__ import annotations
 
 from abc import ABC, abstractmethod

@@ -4,6 +4,7 @@
 :func:`load_manifest`, which refuses a folder made for another scene or whose files changed since.
 Older manifests load as long as their keys are a subset: missing optional keys take the defaults.
 """
+
 from __future__ import annotations
 
 import hashlib

@@ -6,6 +6,7 @@
 - ``regularised``: the 10 nearest renders of each frame, one damped sinusoid through them per window
   (a window-level method: :mod:`service.analysis.offline` runs it once the windows are known).
 """
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -29,13 +30,16 @@ def database_folder(models: Path, database: Path | None) -> Path:
     """The database a nearest-neighbour method searches: ``database`` if given, else MODELS/database."""
     folder = database if database is not None else models / DATABASE_DIR
     if not folder.is_dir():
-        raise MeniscopeError(folder, "no render database there: build one with `meniscope dataset --out "
-                                     f"{folder}` or name one with --database")
+        raise MeniscopeError(
+            folder,
+            f"no render database there: build one with `meniscope dataset --out {folder}` or name one with --database",
+        )
     return folder
 
 
-def open_method(name: str, scene: Scene, models: Path, database: Path | None = None,
-                threads: int = 2, batch: int = 64) -> tuple[InverseMethod, NearestDatabase | None]:
+def open_method(
+    name: str, scene: Scene, models: Path, database: Path | None = None, threads: int = 2, batch: int = 64
+) -> tuple[InverseMethod, NearestDatabase | None]:
     """The per-frame method behind ``name`` and, for the nearest-neighbour ones, its database.
 
     ``regularised`` returns the exact nearest method (its per-frame fallback) with the database
@@ -59,10 +63,16 @@ def open_database(folder: Path, scene: Scene) -> NearestDatabase:
 
     db = NearestDatabase.load(folder)
     if db.shape != (scene.camera.height_px, scene.camera.width_px):
-        raise MeniscopeError(folder, f"renders of {db.shape[1]}x{db.shape[0]} px do not match the scene's ROI "
-                                     f"{scene.camera.width_px}x{scene.camera.height_px}")
+        raise MeniscopeError(
+            folder,
+            f"renders of {db.shape[1]}x{db.shape[0]} px do not match the scene's ROI "
+            f"{scene.camera.width_px}x{scene.camera.height_px}",
+        )
     made_for = NearestDatabase.scene_sha256(folder)
     if made_for != scene.sha256:
-        raise MeniscopeError(folder, f"rendered for scene {made_for[:12]}, not this one ({scene.sha256[:12]}): "
-                                     "build a database for this scene with `meniscope database --scene ...`")
+        raise MeniscopeError(
+            folder,
+            f"rendered for scene {made_for[:12]}, not this one ({scene.sha256[:12]}): "
+            "build a database for this scene with `meniscope database --scene ...`",
+        )
     return db

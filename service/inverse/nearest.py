@@ -14,6 +14,7 @@ A database is a folder: ``frames.npy`` (uint8/uint16, as ``meniscope dataset`` w
 (N, 4) and ``centre.npy`` (N,), with ``manifest.json`` naming the scene's sha256; it is loaded and
 indexed once per process.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -60,11 +61,20 @@ class Neighbours:
 class NearestDatabase:
     """Renders with known coefficients, normalised and indexed for exact and approximate k-NN search."""
 
-    def __init__(self, frames: np.ndarray, coeffs: np.ndarray, centre: np.ndarray,
-                 components: int = COMPONENTS, where: str = "database") -> None:
+    def __init__(
+        self,
+        frames: np.ndarray,
+        coeffs: np.ndarray,
+        centre: np.ndarray,
+        components: int = COMPONENTS,
+        where: str = "database",
+    ) -> None:
         if frames.ndim != 3 or len(frames) != len(coeffs) or len(frames) != len(centre) or len(frames) < 2:
-            raise MeniscopeError(where, f"needs >= 2 frames with one coefficient row and centre each, got "
-                                        f"{frames.shape}, {np.shape(coeffs)}, {np.shape(centre)}")
+            raise MeniscopeError(
+                where,
+                f"needs >= 2 frames with one coefficient row and centre each, got "
+                f"{frames.shape}, {np.shape(coeffs)}, {np.shape(centre)}",
+            )
         h, w = frames.shape[1:]
         self.factor = max(1, h // POOLED_PX)
         if h % self.factor or w % self.factor:
@@ -72,8 +82,9 @@ class NearestDatabase:
         self.shape = (h, w)
         self.coeffs = np.asarray(coeffs, np.float64)
         self.centre = np.asarray(centre, np.float64)
-        self.vectors = np.concatenate([normalise(np.asarray(frames[i:i + CHUNK]), self.factor)
-                                       for i in range(0, len(frames), CHUNK)])  # (N, P) float32
+        self.vectors = np.concatenate(
+            [normalise(np.asarray(frames[i : i + CHUNK]), self.factor) for i in range(0, len(frames), CHUNK)]
+        )  # (N, P) float32
         self.sq_norms = np.einsum("np,np->n", self.vectors, self.vectors)
         sample = self.vectors[:: max(1, len(self.vectors) // 20000)]
         self.mean = sample.mean(axis=0)
@@ -83,7 +94,7 @@ class NearestDatabase:
         self._flann = cv2.flann_Index(projected, {"algorithm": 1, "trees": TREES})  # 1: FLANN_INDEX_KDTREE
 
     @classmethod
-    def load(cls, folder: str | Path, components: int = COMPONENTS) -> "NearestDatabase":
+    def load(cls, folder: str | Path, components: int = COMPONENTS) -> NearestDatabase:
         """A database folder (``meniscope dataset`` output): frames.npy, coeffs.npy, centre.npy."""
         folder = Path(folder)
         arrays = []
@@ -91,7 +102,9 @@ class NearestDatabase:
             try:
                 arrays.append(np.load(folder / name, mmap_mode="r"))
             except FileNotFoundError:
-                raise MeniscopeError(folder / name, "missing: not a render database (make one with `meniscope dataset`)") from None
+                raise MeniscopeError(
+                    folder / name, "missing: not a render database (make one with `meniscope dataset`)"
+                ) from None
             except ValueError as exc:
                 raise MeniscopeError(folder / name, f"not a readable .npy file: {exc}") from None
         return cls(*arrays, components=components, where=str(folder))
@@ -103,8 +116,12 @@ class NearestDatabase:
     def scene_sha256(folder: str | Path) -> str:
         """The sha256 of the scene a database folder's renders were made for, from its manifest."""
         path = Path(folder) / "manifest.json"
-        manifest = read_schema_json(path, DATASET_SCHEMA, "not a render database from `meniscope database` "
-                                    "(or `dataset`), or its rendering did not finish: its scene cannot be checked")
+        manifest = read_schema_json(
+            path,
+            DATASET_SCHEMA,
+            "not a render database from `meniscope database` "
+            "(or `dataset`), or its rendering did not finish: its scene cannot be checked",
+        )
         sha = manifest.get("scene_sha256")
         if not isinstance(sha, str):
             raise MeniscopeError(path, "names no scene_sha256: the scene its renders were made for is unknown")
@@ -114,7 +131,9 @@ class NearestDatabase:
         """The k nearest database entries of each of N frames (N, H, W) as stored."""
         frames = np.asarray(frames)
         if frames.ndim != 3 or frames.shape[1:] != self.shape:
-            raise MeniscopeError("frames", f"shape {frames.shape} is not (N, {self.shape[0]}, {self.shape[1]}), the database's")
+            raise MeniscopeError(
+                "frames", f"shape {frames.shape} is not (N, {self.shape[0]}, {self.shape[1]}), the database's"
+            )
         k = int(min(max(k, 1), len(self)))
         index = np.empty((len(frames), k), np.int64)
         distance = np.empty((len(frames), k), np.float64)

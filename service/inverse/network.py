@@ -4,6 +4,7 @@
 trained end to end on renders; both take the ROI as stored and return Eq. 1's coefficients and
 D(0, t) in one call (normalisation is inside the graph, see ``training.export``).
 """
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -16,11 +17,14 @@ from service.inverse.base import InverseMethod, InverseOutput
 from service.inverse.manifest import INPUT, OUTPUTS, load_manifest
 from service.scene import Scene
 
-
 #: onnxruntime's graph optimisation levels by name (``meniscope bench inference`` compares them).
 _LEVEL = ort.GraphOptimizationLevel
-OPTIMISATION = {"none": _LEVEL.ORT_DISABLE_ALL, "basic": _LEVEL.ORT_ENABLE_BASIC, "extended": _LEVEL.ORT_ENABLE_EXTENDED,
-                "all": _LEVEL.ORT_ENABLE_ALL}
+OPTIMISATION = {
+    "none": _LEVEL.ORT_DISABLE_ALL,
+    "basic": _LEVEL.ORT_ENABLE_BASIC,
+    "extended": _LEVEL.ORT_ENABLE_EXTENDED,
+    "all": _LEVEL.ORT_ENABLE_ALL,
+}
 
 
 def session_options(threads: int, optimisation: str = "all") -> ort.SessionOptions:
@@ -55,8 +59,15 @@ class NetworkMethod(InverseMethod):
     run ``batch`` at a time on ``threads`` CPU threads, with ``optimisation`` (:data:`OPTIMISATION`).
     """
 
-    def __init__(self, model_dir: str | Path, scene: Scene, method: str = "network", threads: int = 2,
-                 batch: int = 64, optimisation: str = "all") -> None:
+    def __init__(
+        self,
+        model_dir: str | Path,
+        scene: Scene,
+        method: str = "network",
+        threads: int = 2,
+        batch: int = 64,
+        optimisation: str = "all",
+    ) -> None:
         if threads < 1 or batch < 1:
             raise MeniscopeError(model_dir, f"threads and batch must be at least 1, got {threads} and {batch}")
         manifest = load_manifest(model_dir, scene)
@@ -64,8 +75,9 @@ class NetworkMethod(InverseMethod):
             raise MeniscopeError(model_dir, f"has no {method!r} model; it has {sorted(manifest.methods)}")
         path = Path(model_dir) / manifest.methods[method].file
         try:
-            self._session = ort.InferenceSession(str(path), session_options(threads, optimisation),
-                                                 providers=["CPUExecutionProvider"])
+            self._session = ort.InferenceSession(
+                str(path), session_options(threads, optimisation), providers=["CPUExecutionProvider"]
+            )
         except Exception as exc:  # onnxruntime raises its own untyped errors for unloadable graphs
             raise MeniscopeError(path, f"onnxruntime cannot load it: {str(exc).splitlines()[0]}") from None
         self.name = method

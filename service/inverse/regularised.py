@@ -11,6 +11,7 @@ makes. The objective is not smooth (the min), so it is searched globally by diff
 (scipy), vectorised over the population; the paper needed hours, this takes well under a second per
 190-frame window. Frequency ``delta / 2 pi``, decay rate ``beta``.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -48,8 +49,9 @@ class RegularisedFit:
 
     def curve(self, t: np.ndarray) -> np.ndarray:
         """f(t) in mm at times t (s) from the window's start."""
-        return damped_sine(t, self.amplitude_mm, self.decay_rate_per_s, 2 * np.pi * self.frequency_hz,
-                           self.phase_rad, self.offset_mm)
+        return damped_sine(
+            t, self.amplitude_mm, self.decay_rate_per_s, 2 * np.pi * self.frequency_hz, self.phase_rad, self.offset_mm
+        )
 
 
 def damped_sine(t: np.ndarray, alpha, beta, delta, eps, zeta) -> np.ndarray:
@@ -67,8 +69,15 @@ def _spectral_start(nearest: np.ndarray, fps: float, bounds: list[tuple[float, f
     freqs = np.fft.rfftfreq(pad, 1.0 / fps)
     usable = (2 * np.pi * freqs >= bounds[2][0]) & (2 * np.pi * freqs <= bounds[2][1])
     peak = np.flatnonzero(usable)[np.abs(spectrum[usable]).argmax()]
-    x0 = np.array([np.sqrt(2) * nearest.std(), 0.0, 2 * np.pi * freqs[peak],
-                   (-np.angle(spectrum[peak]) - np.pi / 2) % (2 * np.pi), zeta])
+    x0 = np.array(
+        [
+            np.sqrt(2) * nearest.std(),
+            0.0,
+            2 * np.pi * freqs[peak],
+            (-np.angle(spectrum[peak]) - np.pi / 2) % (2 * np.pi),
+            zeta,
+        ]
+    )
     lower, upper = np.array(bounds).T
     inset = 1e-6 * (upper - lower)  # strictly inside: DE rescales x0 to [0, 1] and rounding may leave a bound
     return np.clip(x0, lower + inset, upper - inset)
@@ -87,11 +96,13 @@ def choose_candidates(candidates: np.ndarray, fps: float, seed: int = 0) -> Regu
     duration = n / fps
     lo, hi = float(c.min()), float(c.max())
     span = max(hi - lo, 1e-6 * max(abs(lo), abs(hi), 1e-9))  # a width well above float64 rounding
-    bounds = [(0.0, span),  # alpha
-              (0.0, MAX_EFOLDS / duration),  # beta
-              (np.pi / duration, 2 * np.pi * MAX_CYCLES_PER_FRAME * fps),  # delta
-              (0.0, 2 * np.pi),  # eps
-              (lo, lo + span)]  # zeta (never a zero-width range: DE scales by it)
+    bounds = [
+        (0.0, span),  # alpha
+        (0.0, MAX_EFOLDS / duration),  # beta
+        (np.pi / duration, 2 * np.pi * MAX_CYCLES_PER_FRAME * fps),  # delta
+        (0.0, 2 * np.pi),  # eps
+        (lo, lo + span),
+    ]  # zeta (never a zero-width range: DE scales by it)
 
     def objective(x: np.ndarray) -> np.ndarray:
         x = x.reshape(5, -1)  # (5, S) candidates of the population
@@ -99,11 +110,37 @@ def choose_candidates(candidates: np.ndarray, fps: float, seed: int = 0) -> Regu
         gap = np.abs(c[None, :, :] - f[:, :, None]).min(axis=2)  # (S, n)
         return np.sqrt((gap * gap).sum(axis=1))  # (S,)
 
-    result = differential_evolution(objective, bounds, popsize=POPSIZE, maxiter=MAXITER, tol=TOL, seed=seed,
-                                    vectorized=True, updating="deferred", polish=False, init="sobol",
-                                    x0=_spectral_start(c[:, 0], fps, bounds))
+    result = differential_evolution(
+        objective,
+        bounds,
+        popsize=POPSIZE,
+        maxiter=MAXITER,
+        tol=TOL,
+        seed=seed,
+        vectorized=True,
+        updating="deferred",
+        polish=False,
+        init="sobol",
+        x0=_spectral_start(c[:, 0], fps, bounds),
+    )
     alpha, beta, delta, eps, zeta = result.x
     chosen = np.abs(c - damped_sine(t, *result.x)[:, None]).argmin(axis=1)
-    return RegularisedFit(frequency_hz=delta / (2 * np.pi), decay_rate_per_s=beta, amplitude_mm=alpha,
-                          phase_rad=eps % (2 * np.pi), offset_mm=zeta, centre=c[np.arange(n), chosen], chosen=chosen,
-                          rms_mm=float(result.fun) / np.sqrt(n))
+    return RegularisedFit(
+        frequency_hz=delta / (2 * np.pi),
+        decay_rate_per_s=beta,
+        amplitude_mm=alpha,
+        phase_rad=eps % (2 * np.pi),
+        offset_mm=zeta,
+        centre=c[np.arange(n), chosen],
+        chosen=chosen,
+        rms_mm=float(result.fun) / np.sqrt(n),
+    )
+
+
+def chosen_rows(
+    candidates: np.ndarray, centre: np.ndarray, fps: float, seed: int = 0
+) -> tuple[np.ndarray, RegularisedFit]:
+    """One window's frames regularised: ``candidates`` (N, k) database rows per frame and ``centre`` the
+    database's D(0, t) per row; per frame the row the window's damped sinusoid chose, and that fit."""
+    fit = choose_candidates(centre[candidates], fps, seed=seed)
+    return candidates[np.arange(len(candidates)), fit.chosen], fit

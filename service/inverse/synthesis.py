@@ -18,6 +18,7 @@ the exact d(coefficient)/d(parameter) of Eq. 1.
 This is the accurate end of the speed/accuracy trade: seconds per window, where the fast path
 needs milliseconds.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
@@ -85,8 +86,16 @@ def start_motion(coefficients: np.ndarray, t: np.ndarray, fps: float) -> WindowT
     for column in (2, 3):
         result = fit_window(coefficients[:, column], fps, FitSettings(max_modes=1))
         m = result.modes[0] if result.status == "ok" else None
-        found.append(None if m is None else (m.amplitude_mm * np.exp(m.decay_rate_per_s * t0), m.decay_rate_per_s,
-                                             m.frequency_hz, m.phase_rad - 2 * np.pi * m.frequency_hz * t0))
+        found.append(
+            None
+            if m is None
+            else (
+                m.amplitude_mm * np.exp(m.decay_rate_per_s * t0),
+                m.decay_rate_per_s,
+                m.frequency_hz,
+                m.phase_rad - 2 * np.pi * m.frequency_hz * t0,
+            )
+        )
     one, two = found
     if one is None and two is None:
         one = _TYPICAL_MODE_1
@@ -115,8 +124,10 @@ def frames_start(start: WindowTruth, frames: np.ndarray, t: np.ndarray) -> Windo
     f2 = _peak(freqs, power, _MODE_2_RATIO[0] * f1, min(_MODE_2_RATIO[1] * f1, freqs[-1])) or f1 * _BESSEL_RATIO
     ranges = CoefficientRanges()
     modes = []
-    for amplitude, decay, frequency, phase, most in ((start.A1, start.g1, f1, start.phi1, ranges.a[1]),
-                                                     (start.A2, start.g2, f2, start.phi2, ranges.b[1])):
+    for amplitude, decay, frequency, phase, most in (
+        (start.A1, start.g1, f1, start.phi1, ranges.a[1]),
+        (start.A2, start.g2, f2, start.phi2, ranges.b[1]),
+    ):
         new_decay, new_phase = _decay_and_phase(y, t, frequency, phase)
         rms = np.sqrt(np.mean(np.exp(-2 * decay * t)) / np.mean(np.exp(-2 * new_decay * t)))
         modes += [np.clip(amplitude * rms, 0.1 * most, most), new_decay, frequency, new_phase]
@@ -137,8 +148,7 @@ def _decay_and_phase(y: np.ndarray, t: np.ndarray, frequency: float, near: float
     the ratio of that sum's magnitudes over the window's two halves is exp(2 g half-length)."""
     rotated = y * np.exp(-2j * np.pi * frequency * t)[:, None]
     half = len(t) // 2
-    first, second = (np.abs(np.sum(rotated[part].sum(axis=0) ** 2))
-                     for part in (slice(0, half), slice(half, 2 * half)))
+    first, second = (np.abs(np.sum(rotated[part].sum(axis=0) ** 2)) for part in (slice(0, half), slice(half, 2 * half)))
     decay = max(0.0, float(np.log(first / second) / (2 * (t[half] - t[0])))) if second > 0 else 0.0
     phase = float(np.angle(np.sum(rotated.sum(axis=0) ** 2)) / 2)
     if np.cos(phase - near) < 0:
@@ -239,8 +249,12 @@ def _variants(start: WindowTruth) -> list[WindowTruth]:
     (phase + pi), p moved by each of :data:`_SHIFT_P`: per-frame estimates of a and b shrink towards 0 (a
     regressor given an ambiguous image returns the mean of its possible shapes), a bulge and a dip of the
     same size can look alike from below, and the sag p trades against mode 1 near the centre (both curve it)."""
-    return [replace(start, p=start.p + sag, A1=start.A1 * k, A2=start.A2 * k, phi1=start.phi1 + turn)
-            for k in _AMPLIFY for turn in (0.0, np.pi) for sag in _SHIFT_P]
+    return [
+        replace(start, p=start.p + sag, A1=start.A1 * k, A2=start.A2 * k, phi1=start.phi1 + turn)
+        for k in _AMPLIFY
+        for turn in (0.0, np.pi)
+        for sag in _SHIFT_P
+    ]
 
 
 def plausible(motion: WindowTruth, t: np.ndarray) -> bool:
@@ -253,8 +267,10 @@ def plausible(motion: WindowTruth, t: np.ndarray) -> bool:
     low, high = np.array([ranges.d, ranges.p, ranges.a, ranges.b]).T
     coefficients = motion.coefficients(t).to_array()
     dt = float(np.median(np.diff(t)))
-    return bool(2.0 / (len(t) * dt) <= motion.f1 < motion.f2 < 0.5 / dt
-                and np.all((coefficients >= low) & (coefficients <= high)))
+    return bool(
+        2.0 / (len(t) * dt) <= motion.f1 < motion.f2 < 0.5 / dt
+        and np.all((coefficients >= low) & (coefficients <= high))
+    )
 
 
 def _point(motion: WindowTruth, blur: float) -> np.ndarray:
@@ -280,8 +296,15 @@ def _search(problem: _Problem, motion: WindowTruth, blur: float) -> tuple[Window
 
 def _levenberg_marquardt(problem: _Problem, motion: WindowTruth, blur: float) -> tuple[WindowTruth, float, float]:
     """LM from ``motion`` and ``blur``: the motion, blur and mean squared residual it ends at."""
-    found = least_squares(problem.residuals, _point(motion, blur), jac=problem.jacobian, method="lm", xtol=1e-6,
-                          ftol=1e-8, max_nfev=_EVALUATIONS)
+    found = least_squares(
+        problem.residuals,
+        _point(motion, blur),
+        jac=problem.jacobian,
+        method="lm",
+        xtol=1e-6,
+        ftol=1e-8,
+        max_nfev=_EVALUATIONS,
+    )
     params = found.x * _SCALE
     return _canonical(params), abs(float(params[10])), float(np.mean(found.fun**2))
 
@@ -294,15 +317,17 @@ def refine_window(renderer: Renderer, frames: np.ndarray, t: np.ndarray, start: 
     that fits best."""
     t = np.asarray(t, np.float64)
     problem = _Problem(renderer, frames, t)
-    starts = sorted((problem.best(_variants(base)) for base in (start, frames_start(start, frames, t))),
-                    key=lambda pair: pair[0])
+    starts = sorted(
+        (problem.best(_variants(base)) for base in (start, frames_start(start, frames, t))), key=lambda pair: pair[0]
+    )
     ends = []
     for cost, motion in starts:
         ends.append((*_search(problem, motion, _START_BLUR), cost))
         if plausible(ends[-1][0], t):
             break
-    motion, blur, cost, start_cost = next((end for end in reversed(ends) if plausible(end[0], t)),
-                                          min(ends, key=lambda end: end[2]))
+    motion, blur, cost, start_cost = next(
+        (end for end in reversed(ends) if plausible(end[0], t)), min(ends, key=lambda end: end[2])
+    )
     return Refined(motion, blur, float(np.sqrt(start_cost)), float(np.sqrt(cost)), problem.renders)
 
 

@@ -6,6 +6,7 @@ ejection's onset a frame late in about one window in ten, which offline detectio
 would inherit), scored against the median and MAD of the last ``history`` frames rather than the whole
 recording, so that a live stream's score needs no look-ahead; none before ``warmup`` changes were seen.
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -30,9 +31,9 @@ class ActivityTracker:
         steps = frame_steps(x, self._previous if follows else None)  # NaN at frame 0 unless it follows
         steps[1:][np.diff(indices) != 1] = np.nan  # no step across frames lost in between
         self._previous, self._last_index = x[-1].copy(), int(indices[-1])  # the batch buffer may be reused
-        scored = robust_z(np.concatenate([self._steps, steps]))[-len(steps):]
+        scored = robust_z(np.concatenate([self._steps, steps]))[-len(steps) :]
         known = self._steps.size + np.cumsum(np.isfinite(steps))  # changes seen up to each frame
-        self._steps = np.concatenate([self._steps, steps[np.isfinite(steps)]])[-self.history:]
+        self._steps = np.concatenate([self._steps, steps[np.isfinite(steps)]])[-self.history :]
         # a score against fewer than ``warmup`` changes is noise (a stream's first frames scored each other as
         # ejections: a 2-frame window at every start): 0 until then
         return steps, np.where(np.isfinite(steps) & (known >= self.warmup), scored, 0.0)

@@ -5,15 +5,16 @@ The package ships it small (``service/demo/demo.avi``: 4 windows, 760 frames, 8-
 AVI at a few thousand frames/s, well under the camera's 19,000, so the first start copies it once
 into an 8-bit .cine in the data folder, which replays memory-mapped at any rate.
 """
+
 from __future__ import annotations
 
 import os
 import shutil
 from importlib.resources import files
 from pathlib import Path
-from urllib.parse import quote
 
 from service.recordings import open_recording, open_writer
+from service.sources.replay import replay_uri
 
 #: The shipped recording and its ground truth (scene.md, "Recordings and ground truth").
 DEMO_AVI = Path(str(files("service") / "demo" / "demo.avi"))
@@ -37,4 +38,4 @@ def demo_recording(data_dir: Path) -> Path:
 
 def demo_uri(data_dir: Path) -> str:
     """The demo source: the recording replayed at the camera's rate, looping."""
-    return f"file://{quote(str(demo_recording(data_dir)))}?speed=1&loop=1"
+    return replay_uri(demo_recording(data_dir), speed=1, loop=1)

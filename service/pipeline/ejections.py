@@ -15,6 +15,7 @@ or lightly damped one and 4 kHz modes look the same to it. Live runs it with ``l
 and two frames (a decision waits that long); offline with more, so that the strongest start within
 ``lookahead`` frames wins: the same code either way.
 """
+
 from __future__ import annotations
 
 from collections import deque
@@ -38,8 +39,14 @@ ONSET_FRACTION = 0.3
 class EjectionDetector:
     """Ejection frames from consecutive batches of per-frame change; :meth:`push` returns those now decided."""
 
-    def __init__(self, fps: float, lookahead: int | None = None, ratio: float = 2.0, floor: float = 0.3,
-                 refractory: int | None = None) -> None:
+    def __init__(
+        self,
+        fps: float,
+        lookahead: int | None = None,
+        ratio: float = 2.0,
+        floor: float = 0.3,
+        refractory: int | None = None,
+    ) -> None:
         self.transient = max(2, int(round(TRANSIENT_S * fps)))
         self.history = max(8, int(round(HISTORY_S * fps)))
         self.refractory = refractory if refractory is not None else max(self.transient + 1, int(REFRACTORY_S * fps))
@@ -109,12 +116,12 @@ class EjectionDetector:
         if until <= lo:
             return []
         c = self._changes
-        at = lambda frame: frame - self._first  # noqa: E731  (position in c)
+        at = lambda frame: frame - self._first
         pad = np.full(self.history, np.nan)
         ext = np.concatenate([pad, c, np.full(self.lookahead, np.nan)])  # ext[i + history] = c[i]
         span = np.arange(at(lo), at(until) + self.lookahead)
         with np.errstate(all="ignore"), _quiet():
-            burst = np.nanmax(sliding_window_view(ext[self.history:], self.transient)[span], axis=1)
+            burst = np.nanmax(sliding_window_view(ext[self.history :], self.transient)[span], axis=1)
             past = sliding_window_view(ext, self.history)[span]
             base, top = np.nanmedian(past, axis=1), np.nanpercentile(past, 90, axis=1)
         level = np.nan_to_num(burst - top, nan=-np.inf)
@@ -145,7 +152,9 @@ class EjectionDetector:
     def _onset(self, c: np.ndarray, peak: int, top: float) -> int:
         """Position of the burst's first frame: the earliest of the ``transient`` frames up to ``peak`` whose
         change above ``top`` (the baseline's 90th percentile) reaches ONSET_FRACTION of the burst's highest."""
-        lo = max(peak - self.transient + 1, 0, (self._last - self._first + self.refractory) if self._last is not None else 0)
+        lo = max(
+            peak - self.transient + 1, 0, (self._last - self._first + self.refractory) if self._last is not None else 0
+        )
         lo = min(lo, peak)
         span = np.nan_to_num(c[lo : peak + self.transient] - top, nan=0.0)
         return lo + int(np.argmax(span >= ONSET_FRACTION * span.max()))

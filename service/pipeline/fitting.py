@@ -4,16 +4,18 @@ Processes rather than threads because the fit's Python around its compiled kerne
 per window) holds the interpreter lock, which inference, acquisition and the web server need; the workers run at a lower
 priority (``nice``, 10 by default) so that on a busy machine frames keep flowing and windows wait (``meniscope bench
 serve`` found no latency to gain at nice 0: the fit's p99 no lower, the frames' higher). One window per
-worker is in flight and at most one per worker waits for it (two windows closing close together, as after
-a spell the machine was busy, are both fitted, the second one fit later); a window that finds that backlog
-full is refused (the caller counts it), so a fit slower than the ejection rate costs windows, never memory
-or frames, and what is published is at most one fit behind.
+worker is in flight and up to ``BACKLOG`` more wait (a batch of 512 frames at 19,000 frames/s closes up to
+three windows at once, and a spell the machine was busy closes more: a backlog of one per worker left 1-4 %
+of the windows unfitted on a quiet machine); a window that finds that backlog full is refused (the caller
+counts it), so a fit slower than the ejection rate for longer than the backlog lasts costs windows, never
+memory or frames.
 
 Each worker has a pipe of its own: the caller writes the window straight into it and a thread per worker,
 asleep in the pipe's read until the result comes, hands the result on. (A ``ProcessPoolExecutor`` passes
 each window through two threads of its own on the way in and one on the way out, each waiting for the
 interpreter lock: milliseconds per window on a busy machine.)
 """
+
 from __future__ import annotations
 
 import math
@@ -22,19 +24,22 @@ import os
 import threading
 import time
 from collections import deque
+from collections.abc import Callable
 from multiprocessing.connection import Connection
-from typing import Callable
 
 import numpy as np
 
 from service.analysis.results import FitSettings, WindowResult
 from service.analysis.segment import Window
 from service.errors import MeniscopeError
-from service.pipeline.windows import WindowJob, failed_result, fit_job
+from service.pipeline.windows import WindowJob, fit_job, unfitted_result
 
 #: What the pool calls with each finished fit: the job, its result (a failed one if the fit raised), and when
 #: (monotonic s: one clock for every process on the machine) its worker started and finished it (NaN if it raised).
 OnFitted = Callable[[WindowJob, WindowResult, float, float], None]
+
+#: Windows that may wait for a worker: 160 ms of windows at 100 ejections/s, a few kB each.
+BACKLOG = 16
 
 
 def _serve(conn: Connection, settings: FitSettings, nice: int) -> None:
@@ -53,9 +58,8 @@ def _fit_until_told(conn: Connection, settings: FitSettings) -> None:
         started = time.monotonic()
         job, fps = sent
         try:
-            answer: tuple[WindowResult, float, float] | str = (fit_job(job, fps, settings), started,
-                                                               time.monotonic())
-        except Exception as exc:  # noqa: BLE001 - reported as the window's failed fit
+            answer: tuple[WindowResult, float, float] | str = (fit_job(job, fps, settings), started, time.monotonic())
+        except Exception as exc:
             answer = f"{type(exc).__name__}: {exc}"
         conn.send(answer)
 
@@ -71,8 +75,7 @@ class _Worker:
         # spawn, not fork: forking a process whose other threads hold locks can deadlock the child
         context = multiprocessing.get_context("spawn")
         self.conn, child = context.Pipe()
-        self.process = context.Process(target=_serve, args=(child, settings, nice), name="meniscope-fit",
-                                       daemon=True)
+        self.process = context.Process(target=_serve, args=(child, settings, nice), name="meniscope-fit", daemon=True)
         self.process.start()
         child.close()
         self.job: Job | None = None
@@ -90,7 +93,9 @@ class FitPool:
         self._idle: list[_Worker] = []
         self._waiting: deque[Job] = deque()
         self._all = [_Worker(settings, nice) for _ in range(workers)]
-        warm = np.sin(np.arange(64) / 3.0)  # start the workers, import and load the compiled fit now, not at the first window
+        warm = np.sin(
+            np.arange(64) / 3.0
+        )  # start the workers, import and load the compiled fit now, not at the first window
         for worker in self._all:
             worker.conn.send((WindowJob(Window(0, 0, 64, False, False), warm, warm), 1.0))
         for worker in self._all:
@@ -100,13 +105,13 @@ class FitPool:
 
     def submit(self, closed: WindowJob, fps: float, on_fitted: OnFitted) -> bool:
         """Start fitting ``closed`` (sampled at ``fps``), or queue it behind the fits in flight; False (and
-        nothing done) when every worker is busy and as many windows already wait."""
+        nothing done) when every worker is busy and ``BACKLOG`` windows already wait."""
         if self.broken:
             raise MeniscopeError("fit workers", "a fit worker process died; starting new ones")
         job = (closed, fps, on_fitted)
         with self._lock:
             if not self._idle:
-                if len(self._waiting) >= self.workers:
+                if len(self._waiting) >= BACKLOG:
                     return False
                 self._waiting.append(job)
                 return True
@@ -138,7 +143,7 @@ class FitPool:
                         lost = ([worker.job] if worker.job is not None else []) + list(self._waiting)
                         self._waiting.clear()
                     for closed, _, on_fitted in lost:
-                        on_fitted(closed, failed_result(closed, "the fit worker process died"), math.nan, math.nan)
+                        on_fitted(closed, unfitted_result(closed, "the fit worker process died"), math.nan, math.nan)
                 return
             assert worker.job is not None
             (closed, _, on_fitted), worker.job = worker.job, None
@@ -151,9 +156,11 @@ class FitPool:
                     self._start(worker, following)
                 except MeniscopeError:
                     closed_next, _, on_next = following
-                    on_next(closed_next, failed_result(closed_next, "the fit worker process died"), math.nan, math.nan)
+                    on_next(
+                        closed_next, unfitted_result(closed_next, "the fit worker process died"), math.nan, math.nan
+                    )
             if isinstance(answer, str):
-                on_fitted(closed, failed_result(closed, f"the fit raised {answer}"), math.nan, math.nan)
+                on_fitted(closed, unfitted_result(closed, f"the fit raised {answer}"), math.nan, math.nan)
             else:
                 on_fitted(closed, *answer)
 

@@ -4,15 +4,31 @@ A numpy structured array (one row per frame, one named field per measure) rather
 floats whose column 4 meant different things in different modules; NaN in every field marks a frame
 that never arrived (the segmenter fills such gaps).
 """
+
 from __future__ import annotations
 
 import numpy as np
 
-#: d, p, a, b (Eq. 1: mm, 1, mm, mm), D(0, t) (mm), mean brightness (stored pixel units), change (mean
-#: absolute difference from the frame before, pixel units; NaN without one) and activity (the change as a robust
-#: z-score against the stream's recent frames; 0 without one) of one frame.
-FRAME = np.dtype([("d", "f8"), ("p", "f8"), ("a", "f8"), ("b", "f8"), ("centre", "f8"), ("brightness", "f8"),
-                  ("change", "f8"), ("activity", "f8")])
+#: d, p, a, b (Eq. 1: mm, 1, mm, mm), D(0, t) (mm), mean brightness (stored pixel units), highlight (how far
+#: the brightest pixel stands above the mean, as a fraction of full scale: the meniscus is seen only through its
+#: highlights), change (mean absolute difference from the frame before, pixel units; NaN without one) and
+#: activity (the change as a robust z-score against the stream's recent frames; 0 without one) of one frame.
+FRAME = np.dtype(
+    [
+        ("d", "f8"),
+        ("p", "f8"),
+        ("a", "f8"),
+        ("b", "f8"),
+        ("centre", "f8"),
+        ("brightness", "f8"),
+        ("highlight", "f8"),
+        ("change", "f8"),
+        ("activity", "f8"),
+    ]
+)
+#: A frame whose brightest pixel stands less than this fraction of full scale above its mean shows no highlight
+#: (a dark, capped or unlit camera; a lens cap; the nozzle out of view): nothing of the meniscus is seen.
+NO_HIGHLIGHT = 0.1
 #: The fields of :data:`FRAME` that hold Eq. 1's coefficients, in the order inverse methods return them.
 COEFFICIENTS = ("d", "p", "a", "b")
 

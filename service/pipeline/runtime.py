@@ -12,6 +12,7 @@ would pass the cap is split, its rest taken next), so a window's closing frame w
 short call before its own; then it cuts windows at ejections and hands closed windows to the
 :class:`FitPool` at once. Results, the live trace and timings go to a :class:`PipelineSink`.
 """
+
 from __future__ import annotations
 
 import logging
@@ -27,14 +28,14 @@ import numpy as np
 from service.analysis.results import WindowResult
 from service.errors import MeniscopeError
 from service.inverse.base import InverseMethod
-from service.pipeline.fitting import FitPool
 from service.pipeline.ejections import EjectionDetector
+from service.pipeline.fitting import FitPool
 from service.pipeline.segmenter import ClosedWindow, StreamingSegmenter
-from service.pipeline.trigger import TriggerCheck, TriggerInbox
 from service.pipeline.stages import FrameStages
+from service.pipeline.trigger import TriggerCheck, TriggerCounts, TriggerInbox
 from service.pipeline.windows import WindowJob, job_for
 from service.scene import Scene
-from service.settings import ServiceSettings
+from service.server.settings import ServiceSettings
 from service.sources import FrameBatch, FrameSource
 
 log = logging.getLogger(__name__)
@@ -55,17 +56,19 @@ class Acquired:
     def __len__(self) -> int:
         return len(self.batch)
 
-    def select(self, which: slice) -> "Acquired":
+    def select(self, which: slice) -> Acquired:
         """The frames ``which`` picks, with what was measured of them."""
         return Acquired(self.batch.select(which), self.arrival[which], self.records[which])
 
     @classmethod
-    def concatenate(cls, parts: list["Acquired"]) -> "Acquired":
+    def concatenate(cls, parts: list[Acquired]) -> Acquired:
         """One of several (at least one), in order."""
         if len(parts) == 1:
             return parts[0]
-        return cls(FrameBatch.concatenate([p.batch for p in parts]),
-                   *(np.concatenate([getattr(p, f) for p in parts]) for f in ("arrival", "records")))
+        return cls(
+            FrameBatch.concatenate([p.batch for p in parts]),
+            *(np.concatenate([getattr(p, f) for p in parts]) for f in ("arrival", "records")),
+        )
 
 
 @dataclass(frozen=True)
@@ -131,7 +134,7 @@ class PipelineStats:
     fps_in: float = 0.0
     fps_out: float = 0.0
     last_frame_at: float = 0.0  # monotonic time (s) frames last arrived
-    trigger: TriggerInbox = field(default_factory=TriggerInbox, repr=False)  # the printer's ejection events
+    trigger: TriggerCounts = field(default_factory=TriggerCounts)  # the printer's ejections and the video's check
     latest: LatestFrame | None = field(default=None, repr=False)
 
 
@@ -191,13 +194,22 @@ class Pipeline:
     The ``fits`` pool outlives the run: fits of its last windows may still arrive after it stopped.
     """
 
-    def __init__(self, settings: ServiceSettings, scene: Scene, source: FrameSource, method: InverseMethod,
-                 fits: FitPool, sink: PipelineSink, stats: PipelineStats) -> None:
-        self.stages = FrameStages(scene, source.width, source.height, source.uri, method)
+    def __init__(
+        self,
+        settings: ServiceSettings,
+        scene: Scene,
+        source: FrameSource,
+        method: InverseMethod,
+        fits: FitPool,
+        sink: PipelineSink,
+        stats: PipelineStats,
+        trigger: TriggerInbox | None = None,
+    ) -> None:
+        self.stages = FrameStages(scene, source.format, source.uri, method)
         self.settings, self.source, self.method, self.fits = settings, source, method, fits
         self.sink, self.stats = sink, stats
         fps = source.fps
-        self.segmenter = segmenter_for(settings, fps, stats.trigger)
+        self.segmenter = segmenter_for(settings, fps, trigger)
         self._queue: queue.Queue[Acquired] = queue.Queue(settings.queue_batches)
         self._rest: Acquired | None = None  # a read's frames past the last call's cap
         self.budget = BatchBudget(settings.batch_ms / 1e3, settings.batch, settings.read_frames)
@@ -302,8 +314,15 @@ class Pipeline:
             return
         dropped, skipped = s.frames_dropped - self._reported[1], s.windows_skipped - self._reported[2]
         if dropped or skipped:
-            log.warning("behind the source for the last %.0f s: %d frames dropped (%.0f frames/s in, %.0f inferred), "
-                        "%d windows left unfitted", now - self._reported[0], dropped, s.fps_in, s.fps_out, skipped)
+            log.warning(
+                "behind the source for the last %.0f s: %d frames dropped (%.0f frames/s in, %.0f inferred), "
+                "%d windows left unfitted",
+                now - self._reported[0],
+                dropped,
+                s.fps_in,
+                s.fps_out,
+                skipped,
+            )
         self._reported = (now, s.frames_dropped, s.windows_skipped)
 
     def _process(self, acquired: Acquired) -> None:
@@ -319,9 +338,12 @@ class Pipeline:
         self.stats.frames_inferred += len(batch)
         self._dispatch(self.segmenter.push(batch.indices, records, records["change"], acquired.arrival))
         last = records[-1]
-        self.stats.latest = LatestFrame(int(batch.indices[-1]), pixels[-1].copy(),
-                                        (float(last["d"]), float(last["p"]), float(last["a"]), float(last["b"])),
-                                        float(last["centre"]))
+        self.stats.latest = LatestFrame(
+            int(batch.indices[-1]),
+            pixels[-1].copy(),
+            (float(last["d"]), float(last["p"]), float(last["a"]), float(last["b"])),
+            float(last["centre"]),
+        )
         self._update_trace(batch.indices, records["centre"])
 
     def _dispatch(self, closed: list[ClosedWindow]) -> None:
@@ -333,10 +355,22 @@ class Pipeline:
             if not self.fits.submit(job, self._fps, partial(self._fitted, dispatched_at)):
                 self.stats.windows_skipped += 1
 
-    def _fitted(self, dispatched_at: float, job: WindowJob, result: WindowResult, started_at: float,
-                finished_at: float) -> None:
-        self.sink.on_window(FittedWindow(result, self.settings.source_name, job.series, self._fps,
-                                         job.closed_at, dispatched_at, started_at, finished_at, time.monotonic()))
+    def _fitted(
+        self, dispatched_at: float, job: WindowJob, result: WindowResult, started_at: float, finished_at: float
+    ) -> None:
+        self.sink.on_window(
+            FittedWindow(
+                result,
+                self.settings.source_name,
+                job.series,
+                self._fps,
+                job.closed_at,
+                dispatched_at,
+                started_at,
+                finished_at,
+                time.monotonic(),
+            )
+        )
 
     def _update_trace(self, indices: np.ndarray, centre: np.ndarray) -> None:
         """Keep the last ``trace_frames`` samples; send them ``trace_hz`` times a second."""

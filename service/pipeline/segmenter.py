@@ -10,6 +10,7 @@ detector with a longer look-ahead over the whole recording) and hands the ejecti
 records, which the fit skips; a window that outgrows ``max_frames`` or a gap that long is cut there
 (its end is then not an ejection), so memory stays bounded.
 """
+
 from __future__ import annotations
 
 from collections import deque
@@ -44,8 +45,13 @@ class StreamingSegmenter:
     so it has no t = 0 to fit from (the live service starts and restarts anywhere in a window).
     """
 
-    def __init__(self, max_frames: int, detector: EjectionDetector | None = None, drop_leading: bool = False,
-                 trigger: TriggerCheck | None = None) -> None:
+    def __init__(
+        self,
+        max_frames: int,
+        detector: EjectionDetector | None = None,
+        drop_leading: bool = False,
+        trigger: TriggerCheck | None = None,
+    ) -> None:
         self.max_frames, self.detector, self.drop_leading = max(2, max_frames), detector, drop_leading
         self.trigger = trigger  # with one (and a detector), the printer's ejections cut and the video's check them
         self._waiting: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []  # (indices, values, arrival) undecided
@@ -59,8 +65,14 @@ class StreamingSegmenter:
         self._pieces: list[np.ndarray] = []
         self._length = 0
 
-    def push(self, indices: np.ndarray, values: np.ndarray, change: np.ndarray, arrival: np.ndarray,
-             ejections: np.ndarray | None = None) -> list[ClosedWindow]:
+    def push(
+        self,
+        indices: np.ndarray,
+        values: np.ndarray,
+        change: np.ndarray,
+        arrival: np.ndarray,
+        ejections: np.ndarray | None = None,
+    ) -> list[ClosedWindow]:
         """Add a batch (indices, change, arrival (N,), increasing; values (N, ...)); the windows it closes.
 
         ``ejections``: the ejection frames among ``indices`` when they are known already (offline, which looks
@@ -90,8 +102,9 @@ class StreamingSegmenter:
         self._found[:] = [f for f in self._found if f >= until]
         return self._cut(indices[ready], values[ready], arrival[ready], cuts)
 
-    def _cut(self, indices: np.ndarray, values: np.ndarray, arrival: np.ndarray,
-             ejections: np.ndarray) -> list[ClosedWindow]:
+    def _cut(
+        self, indices: np.ndarray, values: np.ndarray, arrival: np.ndarray, ejections: np.ndarray
+    ) -> list[ClosedWindow]:
         """Cut a decided batch at ``ejections``; the windows it closes."""
         closed: list[ClosedWindow] = []
         if self._next is not None and indices[0] - self._next >= self.max_frames:

@@ -6,6 +6,7 @@ frame is handled lands here once. Each batch becomes per-frame records
 (:data:`service.pipeline.records.FRAME`), which the segmenter (:mod:`service.pipeline.segmenter`)
 cuts into windows for the window-level work (:mod:`service.pipeline.windows`).
 """
+
 from __future__ import annotations
 
 import numpy as np
@@ -15,14 +16,16 @@ from service.inverse.base import InverseMethod
 from service.pipeline.activity import ActivityTracker
 from service.pipeline.records import COEFFICIENTS, FRAME
 from service.scene import Scene
-from service.sources.base import FrameBatch
+from service.sources.base import FrameBatch, StreamFormat
 
 
 class FrameStages:
-    """The per-frame stages of one stream of ``width`` x ``height`` frames (from ``uri``) through ``method``."""
+    """The per-frame stages of a stream of frames in ``stream`` format (from ``uri``) through ``method``."""
 
-    def __init__(self, scene: Scene, width: int, height: int, uri: str, method: InverseMethod) -> None:
+    def __init__(self, scene: Scene, stream: StreamFormat, uri: str, method: InverseMethod) -> None:
+        width, height = stream.width, stream.height
         scene.check_roi(width, height, uri)
+        self._full_scale = float(2**stream.bit_depth - 1)
         (x, y), h, w = scene.camera.roi, scene.camera.height_px, scene.camera.width_px
         self._roi = (slice(None), slice(y, y + h), slice(x, x + w))
         self._roi_is_frame = (height, width) == (h, w)
@@ -42,6 +45,8 @@ class FrameStages:
         records = np.full(len(batch), np.nan, FRAME)
         records["change"], records["activity"] = self.activity.update(batch.pixels, batch.indices)
         records["brightness"] = frame_brightness(batch.pixels)
+        peak = batch.pixels.reshape(len(batch), -1).max(axis=1)
+        records["highlight"] = (peak - records["brightness"]) / self._full_scale
         return records
 
     def infer(self, pixels: np.ndarray, records: np.ndarray) -> np.ndarray:

@@ -9,8 +9,11 @@ any other source that ends its stream is reconnected like one that failed.
 Ready means frames flow and carry a picture: a running source that has delivered nothing for
 :data:`SOURCE_SILENT_S` (a ZeroMQ sender that died) is ``stalled``, and one whose latest frame is flat
 (a dark or capped camera, a saturated sensor: its ROI spans under :data:`FLAT_FRACTION` of full scale)
-is ``no_signal``; both are not ready, and ready again as soon as that changes.
+is ``no_signal``, and one that shows no highlight (its brightest pixel under
+:data:`~service.pipeline.records.NO_HIGHLIGHT` of full scale above its mean: nothing of the meniscus is seen)
+is ``no_highlight``; these are not ready, and ready again as soon as that changes.
 """
+
 from __future__ import annotations
 
 import gc
@@ -25,14 +28,18 @@ from service.errors import MeniscopeError
 from service.inverse.methods import open_method
 from service.pipeline.demo import demo_uri
 from service.pipeline.fitting import FitPool
+from service.pipeline.records import NO_HIGHLIGHT
 from service.pipeline.runtime import Pipeline, PipelineSink, PipelineStats
+from service.pipeline.trigger import TriggerInbox
 from service.scene import Scene
-from service.settings import ServiceSettings, resolve_source
+from service.server.settings import ServiceSettings, resolve_source
 from service.sources import FrameSource, open_source
 
 log = logging.getLogger(__name__)
 
-State = Literal["starting", "running", "stalled", "no_signal", "degraded", "retrying", "ended", "stopped"]
+State = Literal[
+    "starting", "running", "stalled", "no_signal", "no_highlight", "degraded", "retrying", "ended", "stopped"
+]
 #: A running source that has sent nothing for this long (s) is stalled (or 4 frame periods of a slow one).
 SOURCE_SILENT_S = 2.0
 #: A frame whose ROI pixels span less than this fraction of full scale shows nothing (dark, capped, saturated).
@@ -53,18 +60,35 @@ class Health:
     def ready(self) -> bool:
         return self.state == "running"
 
-    def degraded(self, reason: str) -> "Health":
+    def degraded(self, reason: str) -> Health:
         """This health, not ready because of ``reason`` (the history cannot be written)."""
-        return Health("degraded", reason if self.reason is None else f"{self.reason}; {reason}", self.since,
-                      self.attempts, self.source) if self.ready else self
+        return (
+            Health(
+                "degraded",
+                reason if self.reason is None else f"{self.reason}; {reason}",
+                self.since,
+                self.attempts,
+                self.source,
+            )
+            if self.ready
+            else self
+        )
 
 
 class Supervisor:
-    """Runs :class:`Pipeline` for the current settings in a thread of its own until :meth:`stop`."""
+    """Runs :class:`Pipeline` for the current settings in a thread of its own until :meth:`stop`; ``trigger``: the
+    printer's ejection events, which every pipeline it runs reads (with the setting ``trigger = "printer"``)."""
 
-    def __init__(self, settings: ServiceSettings, sink: PipelineSink, stats: PipelineStats | None = None) -> None:
+    def __init__(
+        self,
+        settings: ServiceSettings,
+        sink: PipelineSink,
+        stats: PipelineStats | None = None,
+        trigger: TriggerInbox | None = None,
+    ) -> None:
         self.settings, self.sink = settings, sink
         self.stats = stats or PipelineStats()
+        self.trigger = trigger
         self._health = Health("starting", None, time.time(), 0)
         self._source: FrameSource | None = None
         self._fits: FitPool | None = None
@@ -75,7 +99,7 @@ class Supervisor:
         self._closing = threading.Event()
         self._thread = threading.Thread(target=self._loop, name="meniscope-supervisor", daemon=True)
 
-    def start(self) -> "Supervisor":
+    def start(self) -> Supervisor:
         self._thread.start()
         return self
 
@@ -107,10 +131,18 @@ class Supervisor:
         latest = self.stats.latest
         if latest is not None and latest.pixels.size and source.is_open:
             span = int(latest.pixels.max()) - int(latest.pixels.min())
-            full = 2 ** source.bit_depth - 1
+            full = 2**source.bit_depth - 1
             if span < FLAT_FRACTION * full:
-                return "no_signal", (f"no signal: frame {latest.index} is flat (its pixels span {span} of {full}: a dark "
-                                     "or capped camera, or a saturated one)")
+                return "no_signal", (
+                    f"no signal: frame {latest.index} is flat (its pixels span {span} of {full}: a dark "
+                    "or capped camera, or a saturated one)"
+                )
+            highlight = (float(latest.pixels.max()) - float(latest.pixels.mean())) / full
+            if highlight < NO_HIGHLIGHT:
+                return "no_highlight", (
+                    f"no highlight: frame {latest.index}'s brightest pixel is {100 * highlight:.1f} %"
+                    " of full scale above its mean (unlit, or the nozzle out of view)"
+                )
         return "running", None
 
     def _fit_pool(self, settings: ServiceSettings) -> FitPool:
@@ -135,7 +167,9 @@ class Supervisor:
             try:
                 self._set("starting", "opening the model and the source", settings)
                 ended = self._run_once(settings)
-            except Exception as exc:  # noqa: BLE001 - any failure is reported and retried, never fatal
+            except Exception as exc:
+                if self._closing.is_set():
+                    break  # stopped while opening (the fit workers it waited for end with the process): no error
                 if not isinstance(exc, MeniscopeError):
                     log.exception("pipeline failed")
                 self._attempts += 1
@@ -154,14 +188,23 @@ class Supervisor:
     def _run_once(self, settings: ServiceSettings) -> bool:
         """Open everything, run until stopped or ended; True when the stream ended by itself."""
         scene = Scene.load(settings.scene)
-        method, _ = open_method(settings.method, scene, settings.models, settings.nearest_database,
-                                threads=settings.threads, batch=settings.batch)
+        method, _ = open_method(
+            settings.method,
+            scene,
+            settings.models,
+            settings.nearest_database,
+            threads=settings.threads,
+            batch=settings.batch,
+        )
         fits = self._fit_pool(settings)  # before the source opens: a replay's clock starts when it does
-        uri = demo_uri(settings.data_dir) if settings.source is None else resolve_source(
-            settings.source, settings.recordings_folder)
+        uri = (
+            demo_uri(settings.data_dir)
+            if settings.source is None
+            else resolve_source(settings.source, settings.recordings_folder)
+        )
         scene_of_sim = {"scene": settings.scene} if urlsplit(uri).scheme.lower() == "sim" else {}
         with open_source(uri, **scene_of_sim) as source:  # a simulated camera renders the scene of the models
-            pipeline = Pipeline(settings, scene, source, method, fits, self.sink, self.stats)
+            pipeline = Pipeline(settings, scene, source, method, fits, self.sink, self.stats, self.trigger)
             self._source, self._attempts = source, 0  # it ran: a later failure starts the backoff afresh
             self._running_at, self.stats.latest = time.monotonic(), None
             self._set("running", None, settings)

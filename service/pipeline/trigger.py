@@ -1,12 +1,14 @@
 """The printer's trigger as a live input: its ejection events, and the video detector checking them.
 
-Events arrive from ZeroMQ or HTTP (service/server/) as a frame index or as seconds since the stream's frame 0
+Events arrive from ZeroMQ (subscribed to in the pipeline process, where the segmenter runs) or HTTP (received by
+the web process and sent on to the pipeline process over its pipe) as a frame index or as seconds since the stream's frame 0
 (``time_s``, frame = round(time_s * fps), as in an ejection file), in any order and from any thread, into a
 :class:`TriggerInbox`. With ``trigger = "printer"`` the segmenter cuts windows at them (as ``--ejections FILE``
 does offline) and :class:`TriggerCheck` compares them with the video detector's ejections once both are known:
 a printer ejection with no video ejection within ``tolerance`` frames, or a video ejection with no printer one,
 is a disagreement (counted in :class:`TriggerCounts`, exported as ``meniscope_trigger_disagreements_total``).
 """
+
 from __future__ import annotations
 
 import threading
@@ -28,6 +30,17 @@ class TriggerCounts:
     video_only: int = 0  # the video saw an ejection the printer did not announce
 
 
+def ejection_event(frame: int | None = None, time_s: float | None = None) -> tuple[str, float]:
+    """One ejection event as (unit, value): exactly one of ``frame`` and ``time_s``, non-negative; ValueError
+    otherwise. The web process checks an event with it before sending it on to the pipeline process's inbox."""
+    if (frame is None) == (time_s is None):
+        raise ValueError("an ejection event gives exactly one of frame and time_s")
+    value = float(frame if frame is not None else time_s)  # type: ignore[arg-type]
+    if not (np.isfinite(value) and value >= 0):
+        raise ValueError(f"an ejection's frame or time must be a non-negative number, got {value!r}")
+    return ("frame" if frame is not None else "time_s"), value
+
+
 class TriggerInbox:
     """Printer ejection events as they arrive, thread-safe: each a frame index or seconds since frame 0."""
 
@@ -38,13 +51,9 @@ class TriggerInbox:
 
     def add(self, frame: int | None = None, time_s: float | None = None) -> None:
         """One ejection, at ``frame`` or ``time_s`` (exactly one, non-negative); ValueError otherwise."""
-        if (frame is None) == (time_s is None):
-            raise ValueError("an ejection event gives exactly one of frame and time_s")
-        value = float(frame if frame is not None else time_s)  # type: ignore[arg-type]
-        if not (np.isfinite(value) and value >= 0):
-            raise ValueError(f"an ejection's frame or time must be a non-negative number, got {value!r}")
+        event = ejection_event(frame, time_s)
         with self._lock:
-            self._events.append(("frame" if frame is not None else "time_s", value))
+            self._events.append(event)
             del self._events[:-INBOX_LIMIT]
             self.counts.received += 1
 

@@ -4,57 +4,93 @@ A :class:`WindowJob` is self-contained (picklable, no handle on the stream), so 
 room: the live service's fit workers (:class:`service.pipeline.fitting.FitPool`), a local process pool or a
 Dask cluster for an offline analysis (:func:`run_jobs`).
 """
+
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from concurrent.futures import Future
 from dataclasses import dataclass
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
-from service.analysis.results import FitSettings, WindowResult
+from service.analysis.results import FitSettings, Status, WindowResult
 from service.analysis.segment import Window
 from service.analysis.steady import window_steady_centre
-from service.pipeline.records import coefficients_of
+from service.pipeline.records import NO_HIGHLIGHT, coefficients_of
 
 
 @dataclass(frozen=True)
 class WindowJob:
     """One window's fit to be done: the series it takes (the steady D(0, t), mm per frame, NaN where frames are
-    missing), its frames' mean brightness (where the fit takes its poles from the frames) and when (monotonic s)
+    missing), its frames' mean brightness (where the fit takes its poles from the frames), their median highlight
+    (:data:`~service.pipeline.records.FRAME`'s, fraction of full scale; NaN where unknown) and when (monotonic s)
     the frame that closed it was read (NaN offline)."""
 
     window: Window
     series: np.ndarray
     brightness: np.ndarray | None = None
+    highlight: float = math.nan
     closed_at: float = math.nan
 
 
-def job_for(window: Window, records: np.ndarray, radius_mm: float, transient: int,
-            closed_at: float = math.nan) -> WindowJob:
+def job_for(
+    window: Window, records: np.ndarray, radius_mm: float, transient: int, closed_at: float = math.nan
+) -> WindowJob:
     """The job of ``window`` from its frames' records: its steady D(0, t) (:mod:`service.analysis.steady`) and
     brightness."""
     series = window_steady_centre(coefficients_of(records), radius_mm, transient, window.starts_at_ejection)
-    return WindowJob(window, series, np.ascontiguousarray(records["brightness"]), closed_at)
+    highlight = records["highlight"][np.isfinite(records["highlight"])]
+    return WindowJob(
+        window,
+        series,
+        np.ascontiguousarray(records["brightness"]),
+        float(np.median(highlight)) if len(highlight) else math.nan,
+        closed_at,
+    )
 
 
 def fit_job(job: WindowJob, fps: float, settings: FitSettings) -> WindowResult:
-    """The window fit (:func:`service.analysis.fit.fit_window`) of one job."""
+    """The window fit (:func:`service.analysis.fit.fit_window`) of one job; ``unresolved`` without a fit where its
+    frames show no highlight (a dark or unlit camera would otherwise pass for a settled meniscus)."""
     from service.analysis.fit import fit_window
 
     w = job.window
-    return fit_window(job.series, fps, settings, index=w.index, start_frame=w.start,
-                      starts_at_ejection=w.starts_at_ejection, ends_at_ejection=w.ends_at_ejection,
-                      brightness=job.brightness)
+    if job.highlight < NO_HIGHLIGHT:
+        return unfitted_result(
+            job,
+            f"no highlight in its frames (the brightest pixel {100 * job.highlight:.1f} % of "
+            "full scale above the mean, median): a dark, capped or unlit camera shows nothing of "
+            "the meniscus",
+            "unresolved",
+        )
+    return fit_window(
+        job.series,
+        fps,
+        settings,
+        index=w.index,
+        start_frame=w.start,
+        starts_at_ejection=w.starts_at_ejection,
+        ends_at_ejection=w.ends_at_ejection,
+        brightness=job.brightness,
+    )
 
 
-def failed_result(job: WindowJob, reason: str) -> WindowResult:
-    """The result of a job whose fit could not be done, saying why."""
+def unfitted_result(job: WindowJob, reason: str, status: Status = "failed") -> WindowResult:
+    """The result of a job that was not fitted, saying why: its fit failed, or (``unresolved``) had nothing to fit."""
     w, finite = job.window, np.isfinite(job.series)
-    return WindowResult(index=w.index, start_frame=w.start, end_frame=w.end, status="failed", reason=reason,
-                        samples=int(finite.sum()), missing=int((~finite).sum()),
-                        starts_at_ejection=w.starts_at_ejection, ends_at_ejection=w.ends_at_ejection)
+    return WindowResult(
+        index=w.index,
+        start_frame=w.start,
+        end_frame=w.end,
+        status=status,
+        reason=reason,
+        samples=int(finite.sum()),
+        missing=int((~finite).sum()),
+        starts_at_ejection=w.starts_at_ejection,
+        ends_at_ejection=w.ends_at_ejection,
+    )
 
 
 #: Seconds to wait for a Dask scheduler to answer.
@@ -78,11 +114,12 @@ class JobRunner:
             from concurrent.futures import ProcessPoolExecutor
 
             count = workers or os.cpu_count() or 1
+            _warm()  # here, once: the forked workers inherit the compiled fit instead of each loading it again
             # fork: a worker starts in milliseconds with everything imported (spawned ones took seconds of the two
             # cores the frames need). Safe here although the caller may run inference threads: a worker only fits
             # (numpy, numba) and never takes a lock those threads hold; the runner is made before the analysis
             # starts threads of its own.
-            self._pool = ProcessPoolExecutor(count, multiprocessing.get_context("fork"), initializer=_warm)
+            self._pool = ProcessPoolExecutor(count, multiprocessing.get_context("fork"))
             for _ in range(count):  # the pool starts its processes as work comes: start them all now
                 self._pool.submit(int)
 
@@ -108,7 +145,7 @@ class JobRunner:
         if self._pool is not None:
             self._pool.shutdown()
 
-    def __enter__(self) -> "JobRunner":
+    def __enter__(self) -> JobRunner:
         return self
 
     def __exit__(self, *exc: object) -> None:
@@ -126,12 +163,12 @@ def _fit_or_fail(job: WindowJob, fps: float, settings: FitSettings) -> WindowRes
     """:func:`fit_job`, or the failed result naming what it raised (one window's fit never stops an analysis)."""
     try:
         return fit_job(job, fps, settings)
-    except Exception as exc:  # noqa: BLE001 - reported as the window's failed fit
-        return failed_result(job, f"the fit raised {type(exc).__name__}: {exc}")
+    except Exception as exc:
+        return unfitted_result(job, f"the fit raised {type(exc).__name__}: {exc}")
 
 
 def _warm() -> None:
-    """Load the fit and its compiled kernels in a new worker process (from numba's cache)."""
+    """Load the fit and its compiled kernels (from numba's cache; milliseconds once loaded)."""
     from service.analysis.fit import warm
 
     warm()
@@ -144,7 +181,9 @@ def _dask_client(scheduler: str):  # type: ignore[no-untyped-def]
     try:
         from distributed import Client
     except ImportError:
-        raise MeniscopeError("--scheduler", "needs the Dask distributed package: pip install 'meniscope[scale]'") from None
+        raise MeniscopeError(
+            "--scheduler", "needs the Dask distributed package: pip install 'meniscope[scale]'"
+        ) from None
     try:
         return Client(scheduler, timeout=CONNECT_TIMEOUT_S, set_as_default=False)
     except (OSError, TimeoutError) as exc:

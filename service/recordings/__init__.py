@@ -3,22 +3,21 @@
 ``open_recording`` and ``open_writer`` pick the format by file extension; every problem with a file
 (missing, empty, truncated, corrupt, unsupported) is one :class:`~service.errors.MeniscopeError` line.
 """
+
 from __future__ import annotations
 
+import importlib
 from pathlib import Path
-from typing import TypeVar
 
 from service.errors import MeniscopeError
-from service.recordings.avi import AviRecording, AviWriter
 from service.recordings.base import Recording, RecordingWriter
-from service.recordings.cine import CineRecording
-from service.recordings.cine_writer import CineWriter
 
 __all__ = ["Recording", "RecordingWriter", "open_recording", "open_writer"]
 
-_READERS: dict[str, type[Recording]] = {".cine": CineRecording, ".avi": AviRecording}
-_WRITERS: dict[str, type[RecordingWriter]] = {".cine": CineWriter, ".avi": AviWriter}
-_T = TypeVar("_T")
+#: Reader and writer classes by extension, as (module, class): a format's module (OpenCV for .avi) loads when a file
+#: of it is opened, so that ``meniscope info REC.cine`` starts fast.
+_READERS = {".cine": ("service.recordings.cine", "CineRecording"), ".avi": ("service.recordings.avi", "AviRecording")}
+_WRITERS = {".cine": ("service.recordings.cine_writer", "CineWriter"), ".avi": ("service.recordings.avi", "AviWriter")}
 
 
 def open_recording(path: str | Path) -> Recording:
@@ -34,8 +33,9 @@ def open_recording(path: str | Path) -> Recording:
     return reader(path)
 
 
-def open_writer(path: str | Path, width: int, height: int, fps: float, bit_depth: int = 8,
-                trigger_frame: int = 0) -> RecordingWriter:
+def open_writer(
+    path: str | Path, width: int, height: int, fps: float, bit_depth: int = 8, trigger_frame: int = 0
+) -> RecordingWriter:
     """A new recording of ``width`` x ``height`` px at ``fps`` frames/s, the format chosen by extension.
 
     ``bit_depth`` 8 stores uint8 words, 12 and 16 uint16 words (.cine only); ``trigger_frame`` is the
@@ -45,11 +45,13 @@ def open_writer(path: str | Path, width: int, height: int, fps: float, bit_depth
     return _by_extension(path, _WRITERS)(path, width, height, fps, bit_depth, trigger_frame)
 
 
-def _by_extension(path: Path, table: dict[str, _T]) -> _T:
-    """The entry of ``table`` for the file's extension, or an error listing the supported ones."""
+def _by_extension(path: Path, table: dict[str, tuple[str, str]]) -> type:
+    """The class of ``table`` for the file's extension (its module imported now), or an error listing the supported
+    ones."""
     try:
-        return table[path.suffix.lower()]
+        module, name = table[path.suffix.lower()]
     except KeyError:
         raise MeniscopeError(
             path, f"unsupported recording type {path.suffix or '(no extension)'!r}: use {' or '.join(table)}"
         ) from None
+    return getattr(importlib.import_module(module), name)

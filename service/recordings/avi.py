@@ -17,6 +17,7 @@ Reading asks OpenCV for frames unconverted: grey video comes back as stored, YUV
 them against the stream (:mod:`service.recordings.avi_riff`): a frame count or frame size that the
 stream does not bear out is refused, never read as garbage or as a huge allocation.
 """
+
 from __future__ import annotations
 
 import math
@@ -48,18 +49,25 @@ class AviRecording(Recording):
         path = Path(path)
         layout = scan(path)
         if layout.header_frames != layout.stream_frames:
-            raise MeniscopeError(path, f"corrupt header: the stream header says {layout.header_frames} frames, the "
-                                       f"stream holds {layout.stream_frames}")
+            raise MeniscopeError(
+                path,
+                f"corrupt header: the stream header says {layout.header_frames} frames, the "
+                f"stream holds {layout.stream_frames}",
+            )
         self._capture = capture = _capture(path)
         self._next = 0  # index of the frame the next capture.read() returns
         count = max(int(capture.get(cv2.CAP_PROP_FRAME_COUNT)), 0)
         width, height = int(capture.get(cv2.CAP_PROP_FRAME_WIDTH)), int(capture.get(cv2.CAP_PROP_FRAME_HEIGHT))
-        problem = (f"FFmpeg counts {count} frames, the stream holds {layout.stream_frames}"
-                   if count != layout.stream_frames else
-                   f"the main header says {layout.main_size[0]} x {layout.main_size[1]} px, the stream header "
-                   f"{layout.width} x {layout.height}" if layout.main_size != (layout.width, layout.height) else
-                   f"FFmpeg decodes {width} x {height} px, the stream header says {layout.width} x {layout.height}"
-                   if (width, height) != (layout.width, layout.height) else None)
+        problem = (
+            f"FFmpeg counts {count} frames, the stream holds {layout.stream_frames}"
+            if count != layout.stream_frames
+            else f"the main header says {layout.main_size[0]} x {layout.main_size[1]} px, the stream header "
+            f"{layout.width} x {layout.height}"
+            if layout.main_size != (layout.width, layout.height)
+            else f"FFmpeg decodes {width} x {height} px, the stream header says {layout.width} x {layout.height}"
+            if (width, height) != (layout.width, layout.height)
+            else None
+        )
         try:
             if problem is not None:
                 raise MeniscopeError(path, f"corrupt or unsupported AVI: {problem}")
@@ -98,17 +106,22 @@ class AviRecording(Recording):
             for k in range(count):
                 ok, frame = self._capture.read()
                 if not ok:
-                    raise MeniscopeError(self.path, f"frame {start + k} cannot be decoded: the file is truncated or "
-                                                    "corrupt")
+                    raise MeniscopeError(
+                        self.path, f"frame {start + k} cannot be decoded: the file is truncated or corrupt"
+                    )
                 if frame.shape != (self.height, self.width):
                     raise MeniscopeError(
-                        self.path, f"frame {start + k} decodes to shape {frame.shape}: only 8-bit grey AVI of the "
-                                   f"header's {self.width} x {self.height} px is supported"
+                        self.path,
+                        f"frame {start + k} decodes to shape {frame.shape}: only 8-bit grey AVI of the "
+                        f"header's {self.width} x {self.height} px is supported",
                     )
                 frames.append(frame)
         if errors:
-            raise MeniscopeError(self.path, f"reading frames {start}..{start + count - 1}, FFmpeg reported damage it "
-                                            f"concealed (in one of them or the next): {errors[0]}")
+            raise MeniscopeError(
+                self.path,
+                f"reading frames {start}..{start + count - 1}, FFmpeg reported damage it "
+                f"concealed (in one of them or the next): {errors[0]}",
+            )
         self._next = start + count
         return np.stack(frames)
 
@@ -132,8 +145,9 @@ def _capture(path: Path) -> cv2.VideoCapture:
 class AviWriter(RecordingWriter):
     """Writes 8-bit grey frames as lossless FFV1 in AVI; :meth:`close` stamps the true frame rate."""
 
-    def __init__(self, path: Path, width: int, height: int, fps: float, bit_depth: int = 8,
-                 trigger_frame: int = 0) -> None:
+    def __init__(
+        self, path: Path, width: int, height: int, fps: float, bit_depth: int = 8, trigger_frame: int = 0
+    ) -> None:
         super().__init__(path, width, height, fps, bit_depth, trigger_frame)
         if bit_depth != 8:
             raise MeniscopeError(self.path, f"AVI holds 8-bit grey frames only, not {bit_depth}-bit: write .cine")
@@ -141,10 +155,17 @@ class AviWriter(RecordingWriter):
             raise MeniscopeError(self.path, "AVI has no trigger frame: write .cine to keep one")
         if self.width % 2 or self.height % 2:
             raise MeniscopeError(
-                self.path, f"{self.width} x {self.height} px: OpenCV crops odd sizes in AVI, give an even width and height"
+                self.path,
+                f"{self.width} x {self.height} px: OpenCV crops odd sizes in AVI, give an even width and height",
             )
-        self._writer = cv2.VideoWriter(str(self.path), cv2.CAP_FFMPEG, cv2.VideoWriter_fourcc(*FOURCC), NOMINAL_FPS,
-                                       (self.width, self.height), isColor=False)
+        self._writer = cv2.VideoWriter(
+            str(self.path),
+            cv2.CAP_FFMPEG,
+            cv2.VideoWriter_fourcc(*FOURCC),
+            NOMINAL_FPS,
+            (self.width, self.height),
+            isColor=False,
+        )
         if not self._writer.isOpened():
             raise MeniscopeError(self.path, f"this OpenCV build cannot write {FOURCC} AVI: write .cine")
 

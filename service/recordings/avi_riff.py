@@ -6,6 +6,7 @@ frame count of 10**9 makes the reader allocate gigabytes, a bogus ``biWidth`` de
 included) so that the reader can hold the headers against the stream and refuse a file where they
 disagree. Only chunk headers are read: 8 bytes per frame, no pixels.
 """
+
 from __future__ import annotations
 
 import struct
@@ -75,8 +76,11 @@ class _Walk:
     def _end(self, pos: int, length: int, what: str) -> int:
         end = pos + CHUNK.size + length
         if end > self.size:
-            raise MeniscopeError(self.path, f"truncated or corrupt: the {what} at byte {pos} claims {length} bytes, past the end "
-                                            f"of the file ({self.size} bytes)")
+            raise MeniscopeError(
+                self.path,
+                f"truncated or corrupt: the {what} at byte {pos} claims {length} bytes, past the end "
+                f"of the file ({self.size} bytes)",
+            )
         return end
 
     def _read(self, pos: int, count: int) -> bytes:
@@ -92,8 +96,11 @@ class _Walk:
             kind, length = self._chunk(pos)
             chunk_end = pos + CHUNK.size + length
             if chunk_end > end:
-                raise MeniscopeError(self.path, f"truncated or corrupt: chunk {kind!r} at byte {pos} claims {length} "
-                                                f"bytes, past the end of its list at byte {end}")
+                raise MeniscopeError(
+                    self.path,
+                    f"truncated or corrupt: chunk {kind!r} at byte {pos} claims {length} "
+                    f"bytes, past the end of its list at byte {end}",
+                )
             if kind == b"LIST" and length >= 4:
                 form = self._read(pos + CHUNK.size, 4)
                 if form == b"hdrl" and self.header is None:
@@ -111,7 +118,9 @@ class _Walk:
             kind, length = self._chunk(pos)
             body = pos + CHUNK.size
             if body + length > end:
-                raise MeniscopeError(self.path, f"corrupt header: chunk {kind!r} at byte {pos} runs past the header list")
+                raise MeniscopeError(
+                    self.path, f"corrupt header: chunk {kind!r} at byte {pos} runs past the header list"
+                )
             if kind == b"avih" and length >= AVIH.size:
                 fields = AVIH.unpack(self._read(body, AVIH.size))
                 total, self.main_size = fields[4], (fields[8], fields[9])

@@ -3,6 +3,7 @@
 Readers expose the file's own facts (frame rate, bit depth, per-frame times, trigger frame, header
 fields) and random access to frames; writers append frame batches and finish the file on close.
 """
+
 from __future__ import annotations
 
 import math
@@ -12,18 +13,18 @@ from pathlib import Path
 from types import TracebackType
 from typing import Any, ClassVar
 
-import cv2
 import numpy as np
 
 from service.errors import MeniscopeError, require_folder_of
 
-#: Bayer pattern (display order) -> OpenCV's demosaicing to grey; OpenCV names the patterns by their
-#: sensor layout in its 4.x aliases (the older names counted from the second row and column).
+#: Bayer pattern (display order) -> the name of OpenCV's demosaicing to grey (OpenCV loads when a mosaic is read,
+#: not to open a file); OpenCV names the patterns by their sensor layout in its 4.x aliases (the older names counted
+#: from the second row and column).
 BAYER_TO_GREY = {
-    "rggb": cv2.COLOR_BayerRGGB2GRAY,
-    "grbg": cv2.COLOR_BayerGRBG2GRAY,
-    "gbrg": cv2.COLOR_BayerGBRG2GRAY,
-    "bggr": cv2.COLOR_BayerBGGR2GRAY,
+    "rggb": "COLOR_BayerRGGB2GRAY",
+    "grbg": "COLOR_BayerGRBG2GRAY",
+    "gbrg": "COLOR_BayerGBRG2GRAY",
+    "bggr": "COLOR_BayerBGGR2GRAY",
 }
 
 #: Largest frame side any writer accepts (16-bit fields in the .cine SETUP; FFmpeg's own limit is larger).
@@ -140,7 +141,9 @@ class Recording(ABC):
         frames = self.read(start, count)
         if self.cfa is None:
             return frames
-        code = BAYER_TO_GREY[self.cfa]
+        import cv2
+
+        code = getattr(cv2, BAYER_TO_GREY[self.cfa])
         return np.stack([cv2.cvtColor(frame, code) for frame in frames]) if len(frames) else frames
 
     def __getitem__(self, index: int) -> np.ndarray:
@@ -220,7 +223,9 @@ class RecordingWriter(ABC):
         if not (math.isfinite(fps) and fps > 0):
             raise MeniscopeError(self.path, f"frame rate {fps} is not a positive number")
         if bit_depth not in self.BIT_DEPTHS:
-            raise MeniscopeError(self.path, f"bit depth {bit_depth} is not one of {', '.join(map(str, self.BIT_DEPTHS))}")
+            raise MeniscopeError(
+                self.path, f"bit depth {bit_depth} is not one of {', '.join(map(str, self.BIT_DEPTHS))}"
+            )
         self.width, self.height = int(width), int(height)
         self.fps = float(fps)
         self.bit_depth = int(bit_depth)

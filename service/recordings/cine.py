@@ -40,12 +40,13 @@ corrupt file gives one :class:`MeniscopeError` line, never a large allocation. T
 through a memory map that is dropped once the file is open; images are read with ``pread``, so a file
 that shrinks while it is read (overwritten by ``cp``) is an error naming it, never a SIGBUS.
 """
+
 from __future__ import annotations
 
 import math
 import os
 import struct
-from datetime import datetime, timedelta, timezone
+from datetime import UTC, datetime, timedelta
 from pathlib import Path
 from typing import Any
 
@@ -168,16 +169,32 @@ class CineRecording(Recording):
             data = np.memmap(path, dtype=np.uint8, mode="r") if size else np.empty(0, np.uint8)
         except OSError as exc:
             raise MeniscopeError(path, f"cannot read: {exc.strerror or exc}") from None
-        (magic, _, compression, version, _, total_count, first_no, count,
-         off_bitmap, off_setup, off_offsets, trigger) = _unpack(path, data, 0, FILE_HEADER, "cine file header")
+        (
+            magic,
+            _,
+            compression,
+            version,
+            _,
+            total_count,
+            first_no,
+            count,
+            off_bitmap,
+            off_setup,
+            off_offsets,
+            trigger,
+        ) = _unpack(path, data, 0, FILE_HEADER, "cine file header")
         if magic != MAGIC:
             raise MeniscopeError(path, "not a Phantom cine file (it does not start with 'CI')")
         if version != VERSION:
             raise MeniscopeError(path, f"cine header version {version} is not supported (only version 1)")
         if compression not in (CC_RGB, CC_UNINT):
             kind = _COMPRESSION_NAMES.get(compression, "unknown")
-            raise MeniscopeError(path, f"cine compression {compression} ({kind}) is not supported: grey and raw CFA images only")
-        _, width, height, _, bit_count, bi_compression, *_ = _unpack(path, data, off_bitmap, BITMAP_INFO, "bitmap header")
+            raise MeniscopeError(
+                path, f"cine compression {compression} ({kind}) is not supported: grey and raw CFA images only"
+            )
+        _, width, height, _, bit_count, bi_compression, *_ = _unpack(
+            path, data, off_bitmap, BITMAP_INFO, "bitmap header"
+        )
         if width < 1 or height < 1:
             raise MeniscopeError(path, f"corrupt header: frame size {width} x {height} px")
         storage, stored_bits = _pixel_storage(path, bit_count, bi_compression)
@@ -248,14 +265,18 @@ class CineRecording(Recording):
         return np.stack([self._pread(s, self._frame_bytes) for s in starts.tolist()])
 
     def _pread(self, offset: int, size: int) -> np.ndarray:
-        """``size`` bytes at ``offset``, or an error when the file no longer holds them (it shrank since opening)."""
+        """``size`` bytes at ``offset``, or an error when the file no longer holds them (it shrank since opening).
+
+        Read straight into a new (aligned) array: one copy fewer than a bytes object, and numpy converts aligned
+        words 2.8x faster (reading a 96 x 96 12-bit frame: 5 us instead of 14)."""
+        data = np.empty(size, np.uint8)
         try:
-            data = os.pread(self._fd, size, offset)
+            got = os.preadv(self._fd, [data], offset)
         except OSError as exc:
             raise MeniscopeError(self.path, f"cannot read: {exc.strerror or exc}") from None
-        if len(data) != size:
+        if got != size:
             raise MeniscopeError(self.path, f"the file shrank while open: bytes {offset}..{offset + size - 1} are gone")
-        return np.frombuffer(data, np.uint8)
+        return data
 
     def _release(self) -> None:
         os.close(self._fd)
@@ -265,7 +286,8 @@ def _unpack(path: Path, data: np.ndarray, offset: int, layout: struct.Struct, wh
     """``layout`` unpacked at ``offset``, or a truncation error naming ``what``."""
     if offset + layout.size > len(data):
         raise MeniscopeError(
-            path, f"truncated: the {what} ({layout.size} bytes at byte {offset}) runs past the end of the file ({len(data)} bytes)"
+            path,
+            f"truncated: the {what} ({layout.size} bytes at byte {offset}) runs past the end of the file ({len(data)} bytes)",
         )
     return layout.unpack_from(data, offset)
 
@@ -277,7 +299,9 @@ def _pixel_storage(path: Path, bit_count: int, compression: int) -> tuple[str, i
     if compression == BI_RGB and bit_count in (8, 16):
         return f"{bit_count}-bit", bit_count
     if compression == BI_RGB and bit_count in (24, 48):
-        raise MeniscopeError(path, f"interpolated colour cine ({bit_count} bits per pixel) is not supported: grey or raw CFA images only")
+        raise MeniscopeError(
+            path, f"interpolated colour cine ({bit_count} bits per pixel) is not supported: grey or raw CFA images only"
+        )
     raise MeniscopeError(path, f"unsupported pixel format: biBitCount {bit_count}, biCompression {compression}")
 
 
@@ -293,12 +317,17 @@ def _cfa_pattern(path: Path, setup: dict[str, Any], compression: int) -> str | N
 
 def _white_balance(setup: dict[str, Any]) -> dict[str, float | None]:
     """The white balance recorded with a colour cine: red and blue gains, colour temperature (K), tint."""
+
     def number(name: str) -> float | None:  # 0 (or absent, or not a number): not set
         value = setup.get(name)
         return float(value) if value is not None and math.isfinite(value) and value > 0 else None
 
-    return {"red_gain": number("WBGainR"), "blue_gain": number("WBGainB"),
-            "temperature_k": number("fWBTemp"), "colour_compensation": number("fWBCc")}
+    return {
+        "red_gain": number("WBGainR"),
+        "blue_gain": number("WBGainB"),
+        "temperature_k": number("fWBTemp"),
+        "colour_compensation": number("fWBCc"),
+    }
 
 
 def _setup(path: Path, data: np.ndarray, offset: int) -> tuple[dict[str, Any], int]:
@@ -309,7 +338,9 @@ def _setup(path: Path, data: np.ndarray, offset: int) -> tuple[dict[str, Any], i
     if length < SETUP_MARK_OFFSET + SETUP_MARK_AND_LENGTH.size:
         raise MeniscopeError(path, f"corrupt header: SETUP length {length} is too short")
     if offset + length > len(data):
-        raise MeniscopeError(path, f"truncated: the SETUP block ({length} bytes at byte {offset}) runs past the end of the file")
+        raise MeniscopeError(
+            path, f"truncated: the SETUP block ({length} bytes at byte {offset}) runs past the end of the file"
+        )
     raw = data[offset : offset + length]
     fields: dict[str, Any] = {}
     for name, (at, fmt) in SETUP_FIELDS.items():
@@ -323,21 +354,42 @@ def _image_starts(path: Path, data: np.ndarray, table: int, count: int, frame_by
     """Byte offset of each image's pixels, shape (count,) int64, after checking every image lies in the file."""
     size = len(data)
     if count and frame_bytes > size:
-        raise MeniscopeError(path, f"truncated: one image of {frame_bytes} bytes is larger than the file ({size} bytes)")
+        raise MeniscopeError(
+            path, f"truncated: one image of {frame_bytes} bytes is larger than the file ({size} bytes)"
+        )
     if table + 8 * count > size:
         raise MeniscopeError(
-            path, f"truncated: the offsets of {count} images at byte {table} run past the end of the file ({size} bytes)"
+            path,
+            f"truncated: the offsets of {count} images at byte {table} run past the end of the file ({size} bytes)",
         )
     offsets = data[table : table + 8 * count].view("<i8").astype(np.int64)
-    _require(path, (offsets >= 0) & (offsets <= size - 8), offsets, "corrupt header: image {k} starts at byte {v}, outside the file")
+    _require(
+        path,
+        (offsets >= 0) & (offsets <= size - 8),
+        offsets,
+        "corrupt header: image {k} starts at byte {v}, outside the file",
+    )
     annotation = _u32_at(data, offsets)
-    _require(path, (annotation >= 8) & (annotation <= size - offsets), annotation,
-             "corrupt image {k}: its annotation claims {v} bytes")
+    _require(
+        path,
+        (annotation >= 8) & (annotation <= size - offsets),
+        annotation,
+        "corrupt image {k}: its annotation claims {v} bytes",
+    )
     stored = _u32_at(data, offsets + annotation - 4)
-    _require(path, stored == frame_bytes, stored, f"corrupt image {{k}}: it holds {{v}} bytes of pixels, the header implies {frame_bytes}")
+    _require(
+        path,
+        stored == frame_bytes,
+        stored,
+        f"corrupt image {{k}}: it holds {{v}} bytes of pixels, the header implies {frame_bytes}",
+    )
     starts = offsets + annotation
-    _require(path, starts <= size - frame_bytes, starts,
-             f"truncated: image {{k}} ({frame_bytes} bytes at byte {{v}}) runs past the end of the file ({size} bytes)")
+    _require(
+        path,
+        starts <= size - frame_bytes,
+        starts,
+        f"truncated: image {{k}} ({frame_bytes} bytes at byte {{v}}) runs past the end of the file ({size} bytes)",
+    )
     return starts
 
 
@@ -364,11 +416,15 @@ def _time_stamps(path: Path, data: np.ndarray, start: int, end: int, count: int,
         if block_size < TAGGED_BLOCK.size:
             break
         if pos + block_size > end:
-            raise MeniscopeError(path, f"corrupt header: the tagged block at byte {pos} claims {block_size} bytes, past byte {end}")
+            raise MeniscopeError(
+                path, f"corrupt header: the tagged block at byte {pos} claims {block_size} bytes, past byte {end}"
+            )
         if kind == TAG_TIME_ONLY:
             stamps = (block_size - TAGGED_BLOCK.size) // 8
             if stamps != count:
-                raise MeniscopeError(path, f"corrupt header: the time-stamp block holds {stamps} stamps for {count} images")
+                raise MeniscopeError(
+                    path, f"corrupt header: the time-stamp block holds {stamps} stamps for {count} images"
+                )
             ticks = data[pos + TAGGED_BLOCK.size : pos + TAGGED_BLOCK.size + 8 * count].view("<u8").astype(np.uint64)
             return (ticks - np.uint64(trigger)).view(np.int64) / TIME64_ONE_SECOND
         pos += block_size
@@ -404,5 +460,5 @@ def _exposure_s(setup: dict[str, Any]) -> float | None:
 def _utc(time64: int) -> str:
     """A TIME64 (32.32 fixed-point seconds since 1970) as an ISO 8601 UTC string, to the microsecond."""
     seconds, fraction = divmod(time64, TIME64_ONE_SECOND)
-    stamp = datetime.fromtimestamp(seconds, timezone.utc) + timedelta(seconds=fraction / TIME64_ONE_SECOND)
+    stamp = datetime.fromtimestamp(seconds, UTC) + timedelta(seconds=fraction / TIME64_ONE_SECOND)
     return stamp.isoformat()

@@ -18,6 +18,7 @@ The trigger time is the moment the writer was opened; frame times are stored rel
 A colour camera's raw mosaic (``cfa``) is written as Phantom does: Compression 2 (uninterpolated),
 SETUP.CFA naming the pattern, bEnableColor set and the white balance's red and blue gains in WBGain[0].
 """
+
 from __future__ import annotations
 
 import struct
@@ -89,9 +90,19 @@ class CineWriter(RecordingWriter):
 
     BIT_DEPTHS = (8, 10, 12, 16)  # 10 packed only
 
-    def __init__(self, path: Path, width: int, height: int, fps: float, bit_depth: int = 8,
-                 trigger_frame: int = 0, *, packed: bool = False, cfa: str | None = None,
-                 white_balance: tuple[float, float] = (1.0, 1.0)) -> None:
+    def __init__(
+        self,
+        path: Path,
+        width: int,
+        height: int,
+        fps: float,
+        bit_depth: int = 8,
+        trigger_frame: int = 0,
+        *,
+        packed: bool = False,
+        cfa: str | None = None,
+        white_balance: tuple[float, float] = (1.0, 1.0),
+    ) -> None:
         """``packed``: 10 or 12 bits per pixel in one bit stream (Phantom's packed formats) instead of
         8/16-bit words; ``cfa``: the frames are a colour sensor's raw mosaic with this Bayer pattern
         (display order; see :data:`CFA_CODES`), ``white_balance`` its red and blue gains."""
@@ -99,10 +110,15 @@ class CineWriter(RecordingWriter):
         if not -(2**31) < self.trigger_frame < 2**31:
             raise MeniscopeError(self.path, f"trigger frame {self.trigger_frame} does not fit the header's 32 bits")
         if bit_depth not in (PACKED_COMPRESSION if packed else WORD_BIT_DEPTHS):
-            raise MeniscopeError(self.path, f"bit depth {bit_depth} cannot be stored {'packed' if packed else 'in words'}: "
-                                 "packed takes 10 or 12 bits, words 8, 12 or 16")
+            raise MeniscopeError(
+                self.path,
+                f"bit depth {bit_depth} cannot be stored {'packed' if packed else 'in words'}: "
+                "packed takes 10 or 12 bits, words 8, 12 or 16",
+            )
         if packed and self.width * self.height * bit_depth % 8:
-            raise MeniscopeError(self.path, f"packed {bit_depth}-bit images of {self.width} x {self.height} px do not fill whole bytes")
+            raise MeniscopeError(
+                self.path, f"packed {bit_depth}-bit images of {self.width} x {self.height} px do not fill whole bytes"
+            )
         if cfa is not None and cfa not in CFA_CODES:
             raise MeniscopeError(self.path, f"CFA pattern {cfa!r} is not one of {', '.join(CFA_CODES)}")
         self.packed, self.cfa, self.white_balance = packed, cfa, white_balance
@@ -111,10 +127,19 @@ class CineWriter(RecordingWriter):
         self._trigger = int(time.time() * TIME64_ONE_SECOND)  # TIME64 of the trigger: now
         self._offsets = [np.empty(0, np.int64)]
         self._ticks = [np.empty(0, np.uint64)]
-        bitmap = BITMAP_INFO.pack(BITMAP_INFO.size, self.width, self.height, 1,
-                                  bit_depth if packed else 8 * self._word.itemsize,
-                                  PACKED_COMPRESSION[bit_depth] if packed else BI_RGB,
-                                  self._frame_bytes, 0, 0, 0, 2**bit_depth)
+        bitmap = BITMAP_INFO.pack(
+            BITMAP_INFO.size,
+            self.width,
+            self.height,
+            1,
+            bit_depth if packed else 8 * self._word.itemsize,
+            PACKED_COMPRESSION[bit_depth] if packed else BI_RGB,
+            self._frame_bytes,
+            0,
+            0,
+            0,
+            2**bit_depth,
+        )
         try:
             self._file = open(self.path, "wb")
         except OSError as exc:
@@ -138,7 +163,9 @@ class CineWriter(RecordingWriter):
         if self.packed:  # top row first
             batch[:, ANNOTATION.size :] = pack_msb_first(frames, self.bit_depth)
         else:  # bottom row first
-            batch[:, ANNOTATION.size :] = np.ascontiguousarray(frames[:, ::-1], dtype=self._word).reshape(n, -1).view(np.uint8)
+            batch[:, ANNOTATION.size :] = (
+                np.ascontiguousarray(frames[:, ::-1], dtype=self._word).reshape(n, -1).view(np.uint8)
+            )
         self._put(batch)
         self._offsets.append(self._end + record * np.arange(n, dtype=np.int64))
         self._ticks.append(ticks)
@@ -147,7 +174,9 @@ class CineWriter(RecordingWriter):
     def _time64(self, seconds: np.ndarray) -> np.ndarray:
         """Seconds from the trigger as absolute TIME64 (32.32 fixed point), shape like ``seconds``, uint64."""
         trigger_s = self._trigger / TIME64_ONE_SECOND
-        if not ((seconds >= -trigger_s) & (seconds < TIME64_SECONDS_LIMIT - trigger_s) & (np.abs(seconds) < 2**31)).all():
+        if not (
+            (seconds >= -trigger_s) & (seconds < TIME64_SECONDS_LIMIT - trigger_s) & (np.abs(seconds) < 2**31)
+        ).all():
             raise MeniscopeError(
                 self.path, "timestamps must lie within 68 years of the trigger and between 1970 and 2106"
             )
@@ -182,8 +211,20 @@ class CineWriter(RecordingWriter):
     def _file_header(self, count: int, off_setup: int, off_offsets: int) -> bytes:
         """CINEFILEHEADER for ``count`` images with the trigger at frame ``trigger_frame``."""
         first = -self.trigger_frame
-        return FILE_HEADER.pack(MAGIC, FILE_HEADER.size, CC_RGB if self.cfa is None else CC_UNINT, VERSION, first, count, first, count,
-                                FILE_HEADER.size, off_setup, off_offsets, self._trigger)
+        return FILE_HEADER.pack(
+            MAGIC,
+            FILE_HEADER.size,
+            CC_RGB if self.cfa is None else CC_UNINT,
+            VERSION,
+            first,
+            count,
+            first,
+            count,
+            FILE_HEADER.size,
+            off_setup,
+            off_offsets,
+            self._trigger,
+        )
 
     def _setup(self) -> bytes:
         """The SETUP block: frame rate, size, bit depth, black and white levels, creator."""
@@ -202,8 +243,12 @@ class CineWriter(RecordingWriter):
             "CreatedBy": b"meniscope",
         }
         if self.cfa is not None:
-            values |= {"CFA": CFA_CODES[self.cfa], "bEnableColor": 1,
-                       "WBGainR": self.white_balance[0], "WBGainB": self.white_balance[1]}
+            values |= {
+                "CFA": CFA_CODES[self.cfa],
+                "bEnableColor": 1,
+                "WBGainR": self.white_balance[0],
+                "WBGainB": self.white_balance[1],
+            }
         setup = bytearray(SETUP_LENGTH)
         SETUP_MARK_AND_LENGTH.pack_into(setup, SETUP_MARK_OFFSET, SETUP_MARK, SETUP_LENGTH)
         for name, value in values.items():

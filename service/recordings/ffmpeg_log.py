@@ -7,6 +7,7 @@ are decoded, :func:`decoder_errors` sends descriptor 2 to a temporary file, writ
 the real standard error unchanged afterwards, and hands back the decoders' error lines. One capture at a
 time (a lock): descriptor 2 belongs to the whole process.
 """
+
 from __future__ import annotations
 
 import os
@@ -39,5 +40,8 @@ def decoder_errors() -> Iterator[list[str]]:
             text = caught.read()
             if text:
                 os.write(2, text)
-            found.extend(m.group(0) for line in text.decode(errors="replace").splitlines()
-                         if (m := DECODER_LINE.match(line.strip())))
+            found.extend(
+                m.group(0)
+                for line in text.decode(errors="replace").splitlines()
+                if (m := DECODER_LINE.match(line.strip()))
+            )

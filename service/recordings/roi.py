@@ -1,11 +1,12 @@
 """The scene's region of interest read out of a recording, as stored (a colour camera's mosaic demosaiced
 to grey first: :meth:`Recording.read_grey`): what every inverse method takes; whole (evenly spaced runs,
 for training) or streamed in chunks (any length, for analysis)."""
+
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Iterator
 
 import numpy as np
 from tqdm import tqdm
@@ -16,7 +17,9 @@ from service.recordings.base import Recording
 from service.scene import Scene
 
 
-def read_roi_frames(path: str | Path, scene: Scene, limit: int | None = None, run: int = 512) -> tuple[np.ndarray, dict]:
+def read_roi_frames(
+    path: str | Path, scene: Scene, limit: int | None = None, run: int = 512
+) -> tuple[np.ndarray, dict]:
     """The scene's ROI of a recording, as stored: (N, H, W) uint8 | uint16, and facts about it.
 
     With ``limit`` below the frame count, ``limit`` frames are read as evenly spaced runs of at
@@ -37,10 +40,19 @@ def read_roi_frames(path: str | Path, scene: Scene, limit: int | None = None, ru
         out = np.empty((take, cam.height_px, cam.width_px), rec.dtype)  # (N, H, W)
         done = 0
         for start, count in tqdm(zip(starts, counts), total=runs, desc=f"read {path.name}", unit="run", disable=None):
-            out[done : done + count] = rec.read_grey(int(start), int(count))[:, y : y + cam.height_px, x : x + cam.width_px]
+            out[done : done + count] = rec.read_grey(int(start), int(count))[
+                :, y : y + cam.height_px, x : x + cam.width_px
+            ]
             done += count
-        facts = {"path": str(path), "frames_total": total, "frames_used": take, "fps": rec.fps,
-                 "width": rec.width, "height": rec.height, "bit_depth": rec.bit_depth}
+        facts = {
+            "path": str(path),
+            "frames_total": total,
+            "frames_used": take,
+            "fps": rec.fps,
+            "width": rec.width,
+            "height": rec.height,
+            "bit_depth": rec.bit_depth,
+        }
     return out, facts
 
 

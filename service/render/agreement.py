@@ -13,6 +13,7 @@ render``). Two figures per frame pair:
 
 Nothing here returns NaN: what cannot be measured is left out and counted.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass

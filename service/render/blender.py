@@ -16,7 +16,7 @@ Conventions (the contract's, mapped onto Cycles):
 - fluid: polar mesh of ``rings`` x ``segments`` over the bore at z = -D(r) (Eq. 1) with
   normals set from the analytic slope dD/dr; Glossy BSDF, GGX, colour = reflectance (no
   Fresnel term), Blender roughness = sqrt(alpha) because Cycles squares it; artifact
-  spheres: UV spheres, 48 x 24, smooth, same material;
+  spheres: UV spheres, 48 x 24, smooth, their own Glossy material (the fluid's when the scene gives none);
 - film: ``samples`` per pixel, no adaptive sampling, no denoising, no clamping, no
   glossy filter, caustics on, Cycles default bounce limits (12 total, 4 diffuse,
   4 glossy), box pixel filter 1 px wide, fixed seed; linear radiance read from a
@@ -24,6 +24,7 @@ Conventions (the contract's, mapped onto Cycles):
 
 Output as ours: float32 (N, H, W), pixel = clip(exposure * radiance, 0, 1).
 """
+
 from __future__ import annotations
 
 import collections
@@ -97,7 +98,9 @@ class BlenderRenderer:
         progress: bool = True,
     ) -> None:
         if samples < 1 or rings < 1 or segments < 3:
-            raise MeniscopeError(blender, f"need samples >= 1, rings >= 1, segments >= 3, got {samples}, {rings}, {segments}")
+            raise MeniscopeError(
+                blender, f"need samples >= 1, rings >= 1, segments >= 3, got {samples}, {rings}, {segments}"
+            )
         self.scene, self.samples, self.blender = scene, samples, blender
         self.rings, self.segments, self.seed, self.progress = rings, segments, seed, progress
         self.last_timing: BlenderTiming | None = None
@@ -131,6 +134,10 @@ class BlenderRenderer:
             },
             "fluid": {"roughness": float(np.sqrt(s.fluid.roughness)), "reflectance": s.fluid.reflectance},
             "spheres": s.spheres.tolist(),
+            "sphere_material": {
+                "roughness": float(np.sqrt(s.sphere_material.roughness)),
+                "reflectance": s.sphere_material.reflectance,
+            },
             "mesh": {"rings": self.rings, "segments": self.segments},
             "frames": frames,
             "profiles": str(profiles),
@@ -162,14 +169,26 @@ class BlenderRenderer:
 
     def _run(self, executable: str, job: Path, frames: int) -> BlenderTiming:
         """One Blender process for the batch; progress from its MENISCOPE lines, errors from its tail."""
-        cmd = [executable, "-b", "--factory-startup", "-noaudio", "--python-exit-code", "3",
-               "--python", str(SCRIPT), "--", str(job)]
+        cmd = [
+            executable,
+            "-b",
+            "--factory-startup",
+            "-noaudio",
+            "--python-exit-code",
+            "3",
+            "--python",
+            str(SCRIPT),
+            "--",
+            str(job),
+        ]
         env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "PYTHONHOME")}
         tail: collections.deque[str] = collections.deque(maxlen=30)
         marks: list[float] = []
         start = time.perf_counter()
-        with tqdm(total=frames, desc="blender cycles", unit="frame", disable=not self.progress) as bar, \
-                subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env) as proc:
+        with (
+            tqdm(total=frames, desc="blender cycles", unit="frame", disable=not self.progress) as bar,
+            subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env) as proc,
+        ):
             assert proc.stdout is not None
             for line in proc.stdout:
                 if line.startswith("MENISCOPE "):
@@ -180,6 +199,9 @@ class BlenderRenderer:
             rc = proc.wait()
         if rc != 0 or len(marks) != frames + 1:
             errors = [t for t in tail if "Error" in t or "error" in t] or list(tail)[-3:] or ["no output"]
-            raise MeniscopeError(executable, f"Blender failed (exit {rc}) after {max(len(marks) - 1, 0)} of {frames} frames: {' | '.join(errors[-3:])}")
+            raise MeniscopeError(
+                executable,
+                f"Blender failed (exit {rc}) after {max(len(marks) - 1, 0)} of {frames} frames: {' | '.join(errors[-3:])}",
+            )
         times = np.array([start] + marks)
         return BlenderTiming(startup_s=float(times[1] - times[0]), frame_s=np.diff(times[1:]))

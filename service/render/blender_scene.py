@@ -16,7 +16,7 @@ JOB.json keys (lengths in mm, angles in radians):
   ``strength`` (irradiance on a surface facing it)
 - ``nozzle``: ``radius``, ``outer_radius``, ``bore_depth``, ``albedo``
 - ``fluid``: ``roughness`` (Blender's, sqrt of GGX alpha), ``reflectance``
-- ``spheres``: list of ``[x, y, z, radius]``
+- ``spheres``: list of ``[x, y, z, radius]``; ``sphere_material``: their ``roughness`` (Blender's), ``reflectance``
 - ``mesh``: ``rings`` (radial subdivisions of the bore), ``segments`` (around it)
 - ``frames``, ``profiles``: raw float32 file of shape (frames, 2, rings + 1): the
   surface height z(r_k) (mm) and the radial slope dD/dr at r_k = radius * k / rings
@@ -26,6 +26,7 @@ JOB.json keys (lengths in mm, angles in radians):
 Progress: one ``MENISCOPE ready <s>`` line after the scene is built, then one
 ``MENISCOPE frame <i> <s>`` line per rendered frame (seconds since start, on stdout).
 """
+
 from __future__ import annotations
 
 import json
@@ -123,9 +124,7 @@ def _camera(job: dict) -> None:
     cam.clip_start = distance * 1e-3
     cam.clip_end = distance * 10.0
     obj = bpy.data.objects.new("camera", cam)
-    obj.matrix_world = Matrix(
-        [[right[i], up[i], -forward[i], location[i]] for i in range(3)] + [[0.0, 0.0, 0.0, 1.0]]
-    )
+    obj.matrix_world = Matrix([[right[i], up[i], -forward[i], location[i]] for i in range(3)] + [[0.0, 0.0, 0.0, 1.0]])
     bpy.context.scene.collection.objects.link(obj)
     bpy.context.scene.camera = obj
 
@@ -153,8 +152,12 @@ def _nozzle(job: dict) -> None:
         for j in range(segments)
     ]
     faces = [
-        (k * segments + j, k * segments + (j + 1) % segments,
-         ((k + 1) % 4) * segments + (j + 1) % segments, ((k + 1) % 4) * segments + j)
+        (
+            k * segments + j,
+            k * segments + (j + 1) % segments,
+            ((k + 1) % 4) * segments + (j + 1) % segments,
+            ((k + 1) % 4) * segments + j,
+        )
         for k in range(4)
         for j in range(segments)
     ]
@@ -170,12 +173,15 @@ def _nozzle(job: dict) -> None:
 def _unit_sphere(u: int = 48, v: int = 24) -> bpy.types.Mesh:
     """A smooth-shaded UV sphere of radius 1: ``u`` segments round, ``v`` rings pole to pole."""
     verts = [(0.0, 0.0, 1.0), (0.0, 0.0, -1.0)] + [
-        (math.sin(math.pi * i / v) * math.cos(2 * math.pi * j / u),
-         math.sin(math.pi * i / v) * math.sin(2 * math.pi * j / u), math.cos(math.pi * i / v))
+        (
+            math.sin(math.pi * i / v) * math.cos(2 * math.pi * j / u),
+            math.sin(math.pi * i / v) * math.sin(2 * math.pi * j / u),
+            math.cos(math.pi * i / v),
+        )
         for i in range(1, v)
         for j in range(u)
     ]
-    at = lambda i, j: 2 + (i - 1) * u + j % u  # noqa: E731
+    at = lambda i, j: 2 + (i - 1) * u + j % u
     faces = (
         [(0, at(1, j), at(1, j + 1)) for j in range(u)]
         + [(at(i, j), at(i + 1, j), at(i + 1, j + 1), at(i, j + 1)) for i in range(1, v - 1) for j in range(u)]
@@ -214,7 +220,7 @@ class _Fluid:
             for k in range(1, self.rings + 1)
             for c, s in zip(cos, sin)
         ]
-        ring = lambda k, j: 1 + (k - 1) * self.segments + j % self.segments  # noqa: E731
+        ring = lambda k, j: 1 + (k - 1) * self.segments + j % self.segments
         # winding clockwise seen from below, so geometric normals face down, into the air
         faces = [(0, ring(1, j + 1), ring(1, j)) for j in range(self.segments)] + [
             (ring(k, j), ring(k, j + 1), ring(k + 1, j + 1), ring(k + 1, j))
@@ -266,13 +272,17 @@ def main(job_path: str) -> None:
     _sun(job)
     _nozzle(job)
     glossy = _material("metal", "ShaderNodeBsdfGlossy", job["fluid"]["reflectance"], job["fluid"]["roughness"])
-    _spheres(job, glossy)
+    defect = job["sphere_material"]
+    _spheres(job, _material("defect", "ShaderNodeBsdfGlossy", defect["reflectance"], defect["roughness"]))
     fluid = _Fluid(job, glossy)
     n = job["mesh"]["rings"] + 1
     scene = bpy.context.scene
     _say("ready")
-    with open(job["profiles"], "rb") as profiles, open(job["output"], "wb") as output, \
-            tempfile.TemporaryDirectory() as tmp:
+    with (
+        open(job["profiles"], "rb") as profiles,
+        open(job["output"], "wb") as output,
+        tempfile.TemporaryDirectory() as tmp,
+    ):
         scene.render.filepath = os.path.join(tmp, "frame.exr")
         for i in range(job["frames"]):
             profile = array("f")

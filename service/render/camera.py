@@ -6,6 +6,7 @@ is ``forward x up``; ``fov_deg`` spans ``width_px``; pixels are square; the prin
 the centre of the ROI. Pixel ``[i, j]`` (row i, column j) has its centre at image coordinates
 ``(col, row) = (j, i)``, as :mod:`service.render.agreement` measures them.
 """
+
 from __future__ import annotations
 
 import math

@@ -10,6 +10,7 @@ Why compiled (numba): the root finding is iterative and branchy per ray; evaluat
 array-at-a-time with numpy it needs gathers, compaction and temporaries, and ran some ten
 times slower than this kernel on the same frames (``meniscope bench render`` measures it).
 """
+
 from __future__ import annotations
 
 import math
@@ -117,7 +118,9 @@ def _chord(coeffs, f, radius):  # pragma: no cover - compiled
 
 
 @njit(cache=True, inline="always", error_model="numpy", fastmath=FASTMATH)
-def _first_hit(f, A, B, C, oz, dz, dh, enter, leave, zl, zh, slope_f, centre, k_chord, value, step):  # pragma: no cover - compiled
+def _first_hit(
+    f, A, B, C, oz, dz, dh, enter, leave, zl, zh, slope_f, centre, k_chord, value, step
+):  # pragma: no cover - compiled
     """Distance along a ray (A, B, C, oz, dz, dh of :func:`service.render.meniscus.ray_terms`) to its first
     hit of frame f's surface within [enter, leave]; NaN when it has none. ``zl``, ``zh``: the frame's
     slab; ``slope_f``: its slope bound."""
@@ -160,7 +163,9 @@ def _normal(f, px, py, slope, slope_step, r2):  # pragma: no cover - compiled
 
 
 @njit(cache=True, inline="always", error_model="numpy", fastmath=FASTMATH)
-def _sun(px, py, pz, nx, ny, nz, vx, vy, vz, n_v, g_v, suns, a2, r2, ro2, strength, reflectance):  # pragma: no cover - compiled
+def _sun(
+    px, py, pz, nx, ny, nz, vx, vy, vz, n_v, g_v, suns, a2, r2, ro2, strength, reflectance
+):  # pragma: no cover - compiled
     """GGX radiance towards v of the fluid at p (normal n) lit by the sun's disc (``shading.specular_sun``),
     each part of the disc seen through the outlet when p is inside the bore."""
     n_suns = suns.shape[0]
@@ -184,7 +189,9 @@ def _sun(px, py, pz, nx, ny, nz, vx, vy, vz, n_v, g_v, suns, a2, r2, ro2, streng
 
 
 @njit(cache=True, inline="always", error_model="numpy", fastmath=FASTMATH)
-def _second_hit(f, px, py, pz, rx, ry, rz, zl, zh, slope_f, centre, k_chord, value, step, r2):  # pragma: no cover - compiled
+def _second_hit(
+    f, px, py, pz, rx, ry, rz, zl, zh, slope_f, centre, k_chord, value, step, r2
+):  # pragma: no cover - compiled
     """Distance along the mirror ray from the surface point p to where it meets the fluid again (NaN: never),
     within the bore's cylinder. A ray the slope bound makes monotone meets the surface once, at p itself."""
     A, dh = (rx * rx + ry * ry) / r2, math.sqrt(rx * rx + ry * ry)
@@ -195,25 +202,76 @@ def _second_hit(f, px, py, pz, rx, ry, rz, zl, zh, slope_f, centre, k_chord, val
     g, _ = _gap(SECOND_BOUNCE_START_MM, f, A, B, C, pz, rz, value, step)
     if g >= 0.0 or leave <= SECOND_BOUNCE_START_MM:  # grazing: the ray does not clear the surface
         return math.nan
-    return _first_hit(f, A, B, C, pz, rz, dh, SECOND_BOUNCE_START_MM, leave, zl, zh, slope_f, centre, k_chord,
-                      value, step)
+    return _first_hit(
+        f, A, B, C, pz, rz, dh, SECOND_BOUNCE_START_MM, leave, zl, zh, slope_f, centre, k_chord, value, step
+    )
 
 
 @njit(cache=True, parallel=True, error_model="numpy", fastmath=FASTMATH)
-def first_hits(coeffs, value, step, z_low, z_high, max_slope, terms, enter, leave, radius, out):  # pragma: no cover - compiled
+def first_hits(
+    coeffs, value, step, z_low, z_high, max_slope, terms, enter, leave, radius, out
+):  # pragma: no cover - compiled
     """Distances (F, M) along each candidate ray to its first hit of each frame's surface (NaN: none), into ``out``."""
     for f in prange(out.shape[0]):
         centre, k_chord = _chord(coeffs, f, radius)
         for m in range(out.shape[1]):
-            out[f, m] = _first_hit(f, terms[m, 0], terms[m, 1], terms[m, 2], terms[m, 3], terms[m, 4], terms[m, 5],
-                                   enter[m], leave[m], z_low[f], z_high[f], max_slope[f], centre, k_chord, value, step)
+            out[f, m] = _first_hit(
+                f,
+                terms[m, 0],
+                terms[m, 1],
+                terms[m, 2],
+                terms[m, 3],
+                terms[m, 4],
+                terms[m, 5],
+                enter[m],
+                leave[m],
+                z_low[f],
+                z_high[f],
+                max_slope[f],
+                centre,
+                k_chord,
+                value,
+                step,
+            )
 
 
 @njit(cache=True, parallel=True, error_model="numpy", fastmath=FASTMATH)
-def trace(coeffs, value, step, slope, slope_step, z_low, z_high, max_slope, convex,
-          ray_o, ray_d, terms, enter, leave, static, slot, inv_samples, touched, static_touched, exposure,
-          suns, alpha, reflectance, strength, radius, outer_radius, bore_depth,
-          spheres, intensity, reach, reach_start, reach_scale, min_cos_view, out):  # pragma: no cover - compiled
+def trace(
+    coeffs,
+    value,
+    step,
+    slope,
+    slope_step,
+    z_low,
+    z_high,
+    max_slope,
+    convex,
+    ray_o,
+    ray_d,
+    terms,
+    enter,
+    leave,
+    static,
+    slot,
+    inv_samples,
+    touched,
+    static_touched,
+    exposure,
+    suns,
+    alpha,
+    reflectance,
+    strength,
+    radius,
+    outer_radius,
+    bore_depth,
+    spheres,
+    intensity,
+    reach,
+    reach_start,
+    reach_scale,
+    min_cos_view,
+    out,
+):  # pragma: no cover - compiled
     """Write the pixels the fluid can touch into the frames ``out`` (F, H W) (float32, holding the static
     image already): their static radiance ``static_touched`` (P,) at pixels ``touched`` (P,), plus the
     fluid's radiance less the static radiance it hides, times ``exposure``, clipped to [0, 1].
@@ -239,8 +297,24 @@ def trace(coeffs, value, step, slope, slope_step, z_low, z_high, max_slope, conv
         zl, zh, slope_f = z_low[f], z_high[f], max_slope[f]
         centre, k_chord = _chord(coeffs, f, radius)
         for m in range(n_rays):
-            s = _first_hit(f, terms[m, 0], terms[m, 1], terms[m, 2], terms[m, 3], terms[m, 4], terms[m, 5],
-                           enter[m], leave[m], zl, zh, slope_f, centre, k_chord, value, step)
+            s = _first_hit(
+                f,
+                terms[m, 0],
+                terms[m, 1],
+                terms[m, 2],
+                terms[m, 3],
+                terms[m, 4],
+                terms[m, 5],
+                enter[m],
+                leave[m],
+                zl,
+                zh,
+                slope_f,
+                centre,
+                k_chord,
+                value,
+                step,
+            )
             if math.isnan(s):
                 continue
             # ---- the hit: normal from the smooth dD/du (Eq. 1), view towards the camera ----
@@ -254,18 +328,39 @@ def trace(coeffs, value, step, slope, slope_step, z_low, z_high, max_slope, conv
                 # the mirror direction: where the GGX lobe points; on a concave surface it may meet the fluid
                 # again, which then hides the sun there and shows the sun's reflection at that second point
                 rx, ry, rz = 2.0 * n_v * nx - vx, 2.0 * n_v * ny - vy, 2.0 * n_v * nz - vz
-                q = math.nan if convex[f] else _second_hit(f, px, py, pz, rx, ry, rz, zl, zh, slope_f, centre,
-                                                          k_chord, value, step, r2)
+                q = (
+                    math.nan
+                    if convex[f]
+                    else _second_hit(f, px, py, pz, rx, ry, rz, zl, zh, slope_f, centre, k_chord, value, step, r2)
+                )
                 if math.isnan(q):
-                    radiance = _sun(px, py, pz, nx, ny, nz, vx, vy, vz, n_v, g_v, suns, a2, r2, ro2,
-                                    strength, reflectance)
+                    radiance = _sun(
+                        px, py, pz, nx, ny, nz, vx, vy, vz, n_v, g_v, suns, a2, r2, ro2, strength, reflectance
+                    )
                 else:
                     qx, qy, qz = px + q * rx, py + q * ry, pz + q * rz
                     mx, my, mz = _normal(f, qx, qy, slope, slope_step, r2)
                     m_v = -(mx * rx + my * ry + mz * rz)
                     if m_v > 0.0:
-                        radiance = reflectance * _sun(qx, qy, qz, mx, my, mz, -rx, -ry, -rz, m_v, _smith(m_v, a2),
-                                                      suns, a2, r2, ro2, strength, reflectance)
+                        radiance = reflectance * _sun(
+                            qx,
+                            qy,
+                            qz,
+                            mx,
+                            my,
+                            mz,
+                            -rx,
+                            -ry,
+                            -rz,
+                            m_v,
+                            _smith(m_v, a2),
+                            suns,
+                            a2,
+                            r2,
+                            ro2,
+                            strength,
+                            reflectance,
+                        )
                 # the spheres' reflections of the sun: point lights, culled by the reach table
                 if n_spheres:
                     tilt = math.acos(min(max(-nz, -1.0), 1.0))
@@ -286,7 +381,11 @@ def trace(coeffs, value, step, slope, slope_step, z_low, z_high, max_slope, conv
                         if gn <= 0.0:
                             continue
                         rad = spheres[k, 3]
-                        gx, gy, gz = spheres[k, 0] + rad * gx / gn, spheres[k, 1] + rad * gy / gn, spheres[k, 2] + rad * gz / gn
+                        gx, gy, gz = (
+                            spheres[k, 0] + rad * gx / gn,
+                            spheres[k, 1] + rad * gy / gn,
+                            spheres[k, 2] + rad * gz / gn,
+                        )
                         g2 = gx * gx + gy * gy
                         if 0.0 < gz <= bore_depth and r2 <= g2 <= ro2:
                             continue
@@ -299,8 +398,15 @@ def trace(coeffs, value, step, slope, slope_step, z_low, z_high, max_slope, conv
                         hx, hy, hz = vx + wx, vy + wy, vz + wz
                         n_h = (nx * hx + ny * hy + nz * hz) / max(math.sqrt(hx * hx + hy * hy + hz * hz), 1e-12)
                         spread = max(dist, 2.0 * rad)
-                        radiance += (reflectance * _ggx(n_h, a2) * _smith(n_w, a2) * g_v / (4.0 * n_v)
-                                     * intensity[k] / (spread * spread))
+                        radiance += (
+                            reflectance
+                            * _ggx(n_h, a2)
+                            * _smith(n_w, a2)
+                            * g_v
+                            / (4.0 * n_v)
+                            * intensity[k]
+                            / (spread * spread)
+                        )
             frame[slot[m]] += (radiance - static[m]) * inv_samples
         for q in range(frame.shape[0]):
             out[f, touched[q]] = min(max(exposure * frame[q], 0.0), 1.0)

@@ -25,6 +25,7 @@ Robustness, with no missed or false hits at grazing angles:
   change, then the same safeguarded Newton. A pair of roots closer than
   :data:`MARCH_MIN_STEP_MM` along the ray (a sliver far below a pixel) may be stepped over.
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -83,7 +84,7 @@ class Profiles:
     convex: np.ndarray
 
     @classmethod
-    def build(cls, coeffs: np.ndarray, radius: float, size: int = TABLE_SIZE) -> "Profiles":
+    def build(cls, coeffs: np.ndarray, radius: float, size: int = TABLE_SIZE) -> Profiles:
         """Tables for coefficients (F, 4): d, p, a, b (Eq. 1)."""
         m1, m2, m1_du, m2_du = mode_tables(size)
         u = np.linspace(0.0, 1.0, size)
@@ -96,9 +97,16 @@ class Profiles:
         per_cell = np.abs(step[:, :-1]) * (size - 1) * 2.0 * np.sqrt(u[1:]) / radius
         curvature = slope + 2.0 * u * slope_step * (size - 1)  # R^2 / 2 d2D/dr2
         convex = (slope.max(axis=1) <= 0.0) & (curvature[:, :-1].max(axis=1) <= 0.0)
-        return cls(value=value, step=step, slope=slope, slope_step=slope_step,
-                   z_low=-value.max(axis=1), z_high=-value.min(axis=1), max_slope=per_cell.max(axis=1),
-                   convex=convex)
+        return cls(
+            value=value,
+            step=step,
+            slope=slope,
+            slope_step=slope_step,
+            z_low=-value.max(axis=1),
+            z_high=-value.min(axis=1),
+            max_slope=per_cell.max(axis=1),
+            convex=convex,
+        )
 
 
 def ray_terms(origin: np.ndarray, direction: np.ndarray, radius: float) -> np.ndarray:
@@ -106,9 +114,14 @@ def ray_terms(origin: np.ndarray, direction: np.ndarray, radius: float) -> np.nd
     and dh the horizontal length of the direction."""
     dh2 = direction[:, 0] ** 2 + direction[:, 1] ** 2
     r2 = radius * radius
-    return np.stack([
-        dh2 / r2,
-        2 * (origin[:, 0] * direction[:, 0] + origin[:, 1] * direction[:, 1]) / r2,
-        (origin[:, 0] ** 2 + origin[:, 1] ** 2) / r2,
-        origin[:, 2], direction[:, 2], np.sqrt(dh2),
-    ], axis=1)
+    return np.stack(
+        [
+            dh2 / r2,
+            2 * (origin[:, 0] * direction[:, 0] + origin[:, 1] * direction[:, 1]) / r2,
+            (origin[:, 0] ** 2 + origin[:, 1] ** 2) / r2,
+            origin[:, 2],
+            direction[:, 2],
+            np.sqrt(dh2),
+        ],
+        axis=1,
+    )

@@ -4,10 +4,11 @@ Geometry (scene.md, "World frame", "Materials"): the nozzle body is the solid
 ``R <= r <= outer_radius, 0 <= z <= bore_depth`` (bottom face, bore wall, outer wall, top),
 Lambert with ``albedo``; the bore above the meniscus holds liquid metal, so a ray that
 reaches ``z = bore_depth`` inside the bore stops there, black. Artifact spheres are GGX
-metal like the fluid. The sun's visibility from a static point is traced against the body
+metal of their own (``scene.sphere_material``). The sun's visibility from a static point is traced against the body
 and the spheres; the fluid's shadow on the static scene is not modelled (it would be per
 frame and falls on the dark nozzle, under 2 % of full scale).
 """
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -61,8 +62,9 @@ def cylinder_interval(origin: np.ndarray, direction: np.ndarray, radius: float) 
     return _roots(a, b, c)
 
 
-def _plane(origin: np.ndarray, direction: np.ndarray, z: float, r_lo: float, r_hi: float,
-           t_min: np.ndarray) -> np.ndarray:
+def _plane(
+    origin: np.ndarray, direction: np.ndarray, z: float, r_lo: float, r_hi: float, t_min: np.ndarray
+) -> np.ndarray:
     """Parameter where rays cross the plane ``z`` inside the annulus [r_lo, r_hi] after t_min; inf else."""
     dz = direction[:, 2]
     t = np.where(dz != 0, (z - origin[:, 2]) / np.where(dz != 0, dz, 1.0), np.inf)
@@ -81,8 +83,9 @@ def _wall(origin: np.ndarray, direction: np.ndarray, radius: float, z_hi: float,
     return best
 
 
-def _spheres(origin: np.ndarray, direction: np.ndarray, spheres: np.ndarray,
-             t_min: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _spheres(
+    origin: np.ndarray, direction: np.ndarray, spheres: np.ndarray, t_min: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """Nearest sphere hit after t_min: parameter (P,) (inf if none) and sphere index (P,) (-1 if none)."""
     if spheres.shape[0] == 0:
         return np.full(origin.shape[0], np.inf), np.full(origin.shape[0], -1)
@@ -144,7 +147,7 @@ def shade(scene: Scene, origin: np.ndarray, direction: np.ndarray, hits: StaticH
     """Radiance (P,) of each ray's static hit under the sun (0 where it met nothing or the liquid column)."""
     radiance = np.zeros(origin.shape[0])
     point = origin + np.where(np.isfinite(hits.t), hits.t, 0.0)[:, None] * direction
-    inside_bore = (point[:, 0] ** 2 + point[:, 1] ** 2) < scene.nozzle.radius_mm ** 2
+    inside_bore = (point[:, 0] ** 2 + point[:, 1] ** 2) < scene.nozzle.radius_mm**2
     diffuse = np.isin(hits.kind, (Hit.FACE, Hit.BORE, Hit.OUTER, Hit.TOP)) & ~((hits.kind == Hit.TOP) & inside_bore)
     if diffuse.any():
         vis = sun_visibility(scene, point[diffuse], hits.normal[diffuse], suns)
@@ -152,6 +155,8 @@ def shade(scene: Scene, origin: np.ndarray, direction: np.ndarray, hits: StaticH
     glossy = hits.kind == Hit.SPHERE
     if glossy.any():
         vis = sun_visibility(scene, point[glossy], hits.normal[glossy], suns)
-        radiance[glossy] = specular_sun(hits.normal[glossy], -direction[glossy], suns, vis,
-                                        scene.fluid.roughness, scene.fluid.reflectance, scene.light.strength)
+        metal = scene.sphere_material
+        radiance[glossy] = specular_sun(
+            hits.normal[glossy], -direction[glossy], suns, vis, metal.roughness, metal.reflectance, scene.light.strength
+        )
     return radiance

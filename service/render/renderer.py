@@ -18,6 +18,7 @@ the rest of the image is the static one. Anti-aliasing: ``supersample`` x ``supe
 stratified rays per pixel, box filter. Output: ``clip(exposure * radiance, 0, 1)`` as float32
 (N, H, W), linear (scene.md, "Camera").
 """
+
 from __future__ import annotations
 
 import os
@@ -67,12 +68,25 @@ class Renderer:
 
     ``supersample``: rays per pixel along each axis; ``sun_samples``: directions over the sun's
     disc for the fluid; ``threads``: frames traced at once (default: one per CPU);
-    ``batch_frames``: frames per call of the kernel (bounds the per-frame tables' memory).
+    ``batch_frames``: frames per call of the kernel (bounds the per-frame tables' memory);
+    ``static_sun_samples``: sun directions for the static scene (fewer build faster, as calibration needs).
     """
 
-    def __init__(self, scene: Scene, supersample: int = 2, sun_samples: int = 4, threads: int | None = None,
-                 batch_frames: int = 256) -> None:
-        for name, value in (("supersample", supersample), ("sun_samples", sun_samples), ("batch_frames", batch_frames)):
+    def __init__(
+        self,
+        scene: Scene,
+        supersample: int = 2,
+        sun_samples: int = 4,
+        threads: int | None = None,
+        batch_frames: int = 256,
+        static_sun_samples: int = STATIC_SUN_SAMPLES,
+    ) -> None:
+        for name, value in (
+            ("supersample", supersample),
+            ("sun_samples", sun_samples),
+            ("batch_frames", batch_frames),
+            ("static_sun_samples", static_sun_samples),
+        ):
             if not 1 <= value <= 4096:
                 raise MeniscopeError("renderer", f"{name} must be between 1 and 4096, got {value}")
         self.scene, self.supersample, self.batch_frames = scene, supersample, batch_frames
@@ -81,7 +95,7 @@ class Renderer:
         self.shape = (cam.height_px, cam.width_px)
         rays = pixel_rays(scene, supersample)
         static = nozzle.trace(scene, rays.origin, rays.direction, rays.camera_s)
-        radiance = nozzle.shade(scene, rays.origin, rays.direction, static, sun_directions(scene, STATIC_SUN_SAMPLES))
+        radiance = nozzle.shade(scene, rays.origin, rays.direction, static, sun_directions(scene, static_sun_samples))
         h, w, ss = cam.height_px, cam.width_px, supersample
         static_pixels = radiance.reshape(h, ss, w, ss).mean(axis=(1, 3)).ravel()  # (H W,)
 
@@ -102,7 +116,9 @@ class Renderer:
         self._static_frame = np.clip(scene.camera.exposure * static_pixels, 0, 1).astype(np.float32)
         self._suns = sun_directions(scene, sun_samples)
         self._spheres = scene.spheres
-        self._intensity = mirror_ball_intensity(self._spheres[:, 3], scene.fluid.reflectance, scene.light.strength)
+        self._intensity = mirror_ball_intensity(
+            self._spheres[:, 3], scene.sphere_material.reflectance, scene.light.strength
+        )
         self._reach, self._reach_start, self._reach_scale = self._sphere_reach()
 
     # ---- public -------------------------------------------------------------------------------
@@ -121,8 +137,19 @@ class Renderer:
         prof = Profiles.build(coeffs, self.scene.nozzle.radius_mm)
         s = np.empty((coeffs.shape[0], self._origin.shape[0]))
         with self._launch():
-            kernel.first_hits(coeffs, prof.value, prof.step, prof.z_low, prof.z_high, prof.max_slope, self._terms,
-                              self._enter, self._leave, self.scene.nozzle.radius_mm, s)
+            kernel.first_hits(
+                coeffs,
+                prof.value,
+                prof.step,
+                prof.z_low,
+                prof.z_high,
+                prof.max_slope,
+                self._terms,
+                self._enter,
+                self._leave,
+                self.scene.nozzle.radius_mm,
+                s,
+            )
         return self._origin + s[..., None] * self._direction
 
     @property
@@ -144,14 +171,42 @@ class Renderer:
         prof = Profiles.build(coeffs, self.scene.nozzle.radius_mm)
         nz, fluid = self.scene.nozzle, self.scene.fluid
         with self._launch():
-            kernel.trace(coeffs, prof.value, prof.step, prof.slope, prof.slope_step, prof.z_low, prof.z_high,
-                         prof.max_slope, prof.convex, self._origin, self._direction, self._terms, self._enter, self._leave,
-                         self._static_radiance, self._slot, 1.0 / self.supersample**2,
-                         self._touched, self._static_touched, self.scene.camera.exposure,
-                         self._suns, fluid.roughness, fluid.reflectance, self.scene.light.strength,
-                         nz.radius_mm, nz.outer_radius_mm, nz.bore_depth_mm,
-                         self._spheres, self._intensity, self._reach, self._reach_start, self._reach_scale,
-                         CULL_MIN_COS_VIEW, out.reshape(n_frames, -1))
+            kernel.trace(
+                coeffs,
+                prof.value,
+                prof.step,
+                prof.slope,
+                prof.slope_step,
+                prof.z_low,
+                prof.z_high,
+                prof.max_slope,
+                prof.convex,
+                self._origin,
+                self._direction,
+                self._terms,
+                self._enter,
+                self._leave,
+                self._static_radiance,
+                self._slot,
+                1.0 / self.supersample**2,
+                self._touched,
+                self._static_touched,
+                self.scene.camera.exposure,
+                self._suns,
+                fluid.roughness,
+                fluid.reflectance,
+                self.scene.light.strength,
+                nz.radius_mm,
+                nz.outer_radius_mm,
+                nz.bore_depth_mm,
+                self._spheres,
+                self._intensity,
+                self._reach,
+                self._reach_start,
+                self._reach_scale,
+                CULL_MIN_COS_VIEW,
+                out.reshape(n_frames, -1),
+            )
 
     def _sphere_reach(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Which sphere can light which fluid hit: per ray m, interval i along it and sphere k, the
@@ -192,9 +247,13 @@ class Renderer:
         room = half_len - turn
         change = np.where(room > turn, np.arcsin(np.clip(turn / np.maximum(room, 1e-12), 0.0, 1.0)), np.pi)
         fluid, alpha = self.scene.fluid, self.scene.fluid.roughness
-        brightest = (fluid.reflectance / (np.pi * alpha**2) / (4 * CULL_MIN_COS_VIEW)
-                     * mirror_ball_intensity(radius, fluid.reflectance, self.scene.light.strength)
-                     / np.maximum(nearest, 2 * radius) ** 2)  # (M, I, K)
+        brightest = (
+            fluid.reflectance
+            / (np.pi * alpha**2)
+            / (4 * CULL_MIN_COS_VIEW)
+            * mirror_ball_intensity(radius, self.scene.sphere_material.reflectance, self.scene.light.strength)
+            / np.maximum(nearest, 2 * radius) ** 2
+        )  # (M, I, K)
         ratio = np.minimum(FAINTEST / brightest, 1.0) / 2  # D / D_max below which it is invisible
         lobe = np.arctan(alpha * np.sqrt(np.maximum(ratio**-0.5 - 1.0, 0.0)))
         units = np.floor((beta - change - lobe) / kernel.REACH_UNIT)

@@ -16,6 +16,7 @@ surface facing the sun, as Cycles defines a sun's strength):
   of a mirror ball, ``I = F E rho^2 / 4`` in every direction (exact for a mirror, the mean
   for a rough one), which makes each artifact sphere a point light for the fluid.
 """
+
 from __future__ import annotations
 
 import math
@@ -47,8 +48,9 @@ def sun_directions(scene: Scene, samples: int) -> np.ndarray:
     e1 = np.cross(centre, helper)
     e1 /= np.linalg.norm(e1)
     e2 = np.cross(centre, e1)
-    return (np.cos(theta)[:, None] * centre
-            + np.sin(theta)[:, None] * (np.cos(phi)[:, None] * e1 + np.sin(phi)[:, None] * e2))
+    return np.cos(theta)[:, None] * centre + np.sin(theta)[:, None] * (
+        np.cos(phi)[:, None] * e1 + np.sin(phi)[:, None] * e2
+    )
 
 
 def ggx_ndf(cos_h: np.ndarray, alpha: float) -> np.ndarray:
@@ -66,8 +68,15 @@ def smith_g1(cos: np.ndarray, alpha: float) -> np.ndarray:
     return np.where(cos > 0, 2.0 / (1.0 + np.sqrt(1.0 + alpha * alpha * tan2)), 0.0)
 
 
-def specular_sun(normal: np.ndarray, view: np.ndarray, suns: np.ndarray, visible: np.ndarray | float,
-                 alpha: float, reflectance: float, strength: float) -> np.ndarray:
+def specular_sun(
+    normal: np.ndarray,
+    view: np.ndarray,
+    suns: np.ndarray,
+    visible: np.ndarray | float,
+    alpha: float,
+    reflectance: float,
+    strength: float,
+) -> np.ndarray:
     """Radiance of GGX metal lit by the sun: mean over the disc's directions.
 
     ``normal``, ``view``: shape (..., 3) unit vectors (view points to the viewer);
@@ -84,8 +93,9 @@ def specular_sun(normal: np.ndarray, view: np.ndarray, suns: np.ndarray, visible
     return np.where(n_v > 0, strength * reflectance * g_v * lobe.mean(axis=-1) / (4.0 * np.maximum(n_v, 1e-6)), 0.0)
 
 
-def lambert_sun(normal: np.ndarray, suns: np.ndarray, visible: np.ndarray | float, albedo: float,
-                strength: float) -> np.ndarray:
+def lambert_sun(
+    normal: np.ndarray, suns: np.ndarray, visible: np.ndarray | float, albedo: float, strength: float
+) -> np.ndarray:
     """Radiance of a Lambert surface lit by the sun: albedo E mean_j(max(0, n.l_j) visible_j) / pi."""
     cos = np.maximum(normal @ suns.T, 0.0) * visible  # (..., J)
     return albedo * strength * cos.mean(axis=-1) / np.pi

@@ -6,6 +6,7 @@ Sweep rows: one coefficient of (d, p, a, b) from its low to its high end of
 draws, each its ``z = -D(r)`` (Eq. 1) across the bore beside its render, with the outlet's
 rim projected onto the image.
 """
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -37,8 +38,14 @@ def rim_outline(renderer: Renderer, points: int = 181) -> tuple[np.ndarray, np.n
     return project(renderer.scene, np.column_stack([R * np.cos(theta), R * np.sin(theta), np.zeros(points)]))
 
 
-def write_sheet(renderer: Renderer, path: str | Path, ranges: CoefficientRanges = CoefficientRanges(),
-                columns: int = 7, profiles: int = 3, seed: int = 0) -> np.ndarray:
+def write_sheet(
+    renderer: Renderer,
+    path: str | Path,
+    ranges: CoefficientRanges = CoefficientRanges(),
+    columns: int = 7,
+    profiles: int = 3,
+    seed: int = 0,
+) -> np.ndarray:
     """Write the PNG sheet to ``path``; returns the coefficients drawn, (4 columns + profiles, 4)."""
     plt = pyplot()
 
@@ -72,7 +79,7 @@ def write_sheet(renderer: Renderer, path: str | Path, ranges: CoefficientRanges 
         ax.set_ylabel("z = -D (mm)", fontsize=8)
         ax.tick_params(labelsize=7)
         ax.set_title(f"d={c[0]:+.3f} mm  p={c[1]:+.3f}  a={c[2]:+.4f} mm  b={c[3]:+.4f} mm", fontsize=8)
-        ax = fig.add_subplot(grid[4 + i, half:half + 2])
+        ax = fig.add_subplot(grid[4 + i, half : half + 2])
         ax.imshow(draw_frames[i], cmap="gray", vmin=0, vmax=1)
         ax.plot(rim_col, rim_row, color="tab:orange", lw=0.6, alpha=0.7)
         ax.set_xlim(-0.5, frames.shape[2] - 0.5)
@@ -80,8 +87,9 @@ def write_sheet(renderer: Renderer, path: str | Path, ranges: CoefficientRanges 
         ax.set_xticks([])
         ax.set_yticks([])
         ax.set_title("render (rim in orange)", fontsize=8)
-    fig.suptitle("meniscope forward transform: sweeps across the coefficient ranges; profiles beside their renders",
-                 fontsize=10)
+    fig.suptitle(
+        "meniscope forward transform: sweeps across the coefficient ranges; profiles beside their renders", fontsize=10
+    )
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)

@@ -1,5 +1,4 @@
-"""The web layer of ``meniscope serve``: app factory, REST and WebSocket routes, publishers, history, metrics."""
-from service.server.app import create_app
-from service.server.components import Service
+"""The web layer of ``meniscope serve`` and its settings: app factory (``app``), REST and WebSocket routes,
+the pipeline's process (``engine``, ``pipeline_process``), publishers, history, metrics.
 
-__all__ = ["Service", "create_app"]
+Nothing is imported here, so that ``service.server.settings`` loads without the web framework."""

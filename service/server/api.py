@@ -5,6 +5,7 @@ token is set, and a token must be set before anything can be changed on a servic
 from other machines (bound beyond loopback). Every error answers ``{"detail": ...}`` as documented in
 the OpenAPI schema (422: the list of problems, as for any request that fails validation).
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -15,14 +16,15 @@ from typing import Annotated, Any
 from fastapi import APIRouter, Depends, HTTPException, Path, Query, Request, Response, WebSocket
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
-from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
+from prometheus_client import CONTENT_TYPE_LATEST
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from service.analysis.results import WindowResult
 from service.errors import MeniscopeError
 from service.pipeline.runtime import LatestFrame
+from service.pipeline.trigger import ejection_event
 from service.server.components import Service
-from service.settings import Method, ServiceSettings, resolve_source
+from service.server.settings import Method, ServiceSettings, resolve_source
 from service.sources import probe_source
 
 #: Largest window id (SQLite's integers are signed 64-bit).
@@ -38,9 +40,14 @@ class Problem(BaseModel):
 
 
 def _documented(*codes: int) -> dict[int | str, dict[str, Any]]:
-    descriptions = {400: "Host header not one the service answers to", 401: "missing or wrong bearer token",
-                    403: "changing settings needs a token on this service", 404: "not found",
-                    413: "request body too large", 503: "not available now (see detail)"}
+    descriptions = {
+        400: "Host header not one the service answers to",
+        401: "missing or wrong bearer token",
+        403: "changing settings needs a token on this service",
+        404: "not found",
+        413: "request body too large",
+        503: "not available now (see detail)",
+    }
     return {code: {"model": Problem, "description": descriptions[code]} for code in (400, 413, *codes)}
 
 
@@ -60,8 +67,9 @@ def require_token(request: Request, service: Svc) -> None:
     if token is None:
         if service.settings.loopback:
             return
-        raise HTTPException(403, "changing settings on a service reachable from other machines needs a token: "
-                                 "set MENISCOPE_TOKEN")
+        raise HTTPException(
+            403, "changing settings on a service reachable from other machines needs a token: set MENISCOPE_TOKEN"
+        )
     given = request.headers.get("authorization", "")
     if not secrets.compare_digest(given.encode(), f"Bearer {token.get_secret_value()}".encode()):
         raise HTTPException(401, "missing or wrong bearer token", headers={"WWW-Authenticate": "Bearer"})
@@ -77,8 +85,10 @@ def healthz() -> dict[str, str]:
 def readyz(service: Svc) -> JSONResponse:
     """200 while frames flow through a loaded model; 503 with the reason otherwise."""
     health = service.health()
-    return JSONResponse({"ready": health.ready, "state": health.state, "reason": health.reason},
-                        status_code=200 if health.ready else 503)
+    return JSONResponse(
+        {"ready": health.ready, "state": health.state, "reason": health.reason},
+        status_code=200 if health.ready else 503,
+    )
 
 
 @router.get("/api/v1/status", tags=["status"])
@@ -86,16 +96,28 @@ def status(service: Svc) -> dict[str, Any]:
     """Source, frame rates in and out, frame and window counts, model, uptime."""
     health, s, settings = service.health(), service.stats, service.settings
     return {
-        "ready": health.ready, "state": health.state, "reason": health.reason, "attempts": health.attempts,
+        "ready": health.ready,
+        "state": health.state,
+        "reason": health.reason,
+        "attempts": health.attempts,
         "source": health.source,
-        "fps_in": round(s.fps_in, 1), "fps_out": round(s.fps_out, 1),
-        "frames": {"acquired": s.frames_acquired, "inferred": s.frames_inferred, "dropped": s.frames_dropped,
-                   "gaps": s.frame_gaps, "lost_upstream": s.frames_lost_upstream},
-        "windows": {"closed": s.windows_closed, "skipped": s.windows_skipped,
-                    "unpublished": service.publishers.dropped if service.publishers else 0},
+        "fps_in": round(s.fps_in, 1),
+        "fps_out": round(s.fps_out, 1),
+        "frames": {
+            "acquired": s.frames_acquired,
+            "inferred": s.frames_inferred,
+            "dropped": s.frames_dropped,
+            "gaps": s.frame_gaps,
+            "lost_upstream": s.frames_lost_upstream,
+        },
+        "windows": {"closed": s.windows_closed, "skipped": s.windows_skipped, "unpublished": service.unpublished},
         "history": dataclasses.asdict(service.history_health()),
         "model": {"dir": str(settings.models), "method": settings.method},
-        "zmq_publish": service.zmq.endpoint if service.zmq else None,
+        "zmq_publish": service.zmq_endpoint,
+        "pipeline_process": {
+            "pid": service.pipeline.pid if service.pipeline else None,
+            "restarts": service.pipeline.restarts if service.pipeline else 0,
+        },
         "uptime_s": round(time.time() - service.started, 3),
     }
 
@@ -116,16 +138,20 @@ class WindowsPage(BaseModel):
 
 
 @router.get("/api/v1/windows", tags=["windows"], response_model=WindowsPage, response_class=Response)
-def windows(service: Svc, since: Annotated[int | None, Query(ge=0, le=MAX_ID, description="only ids above this")] = None,
-            limit: Annotated[int, Query(ge=1, le=MAX_PAGE)] = 100) -> Response:
+def windows(
+    service: Svc,
+    since: Annotated[int | None, Query(ge=0, le=MAX_ID, description="only ids above this")] = None,
+    limit: Annotated[int, Query(ge=1, le=MAX_PAGE)] = 100,
+) -> Response:
     """Stored window results: after id ``since`` (oldest first), or else the newest ``limit``. Sent as stored,
     without parsing them again: a large page costs the web side little."""
     page = service.history.page_json(since, limit)
     return Response(page, media_type="application/json")
 
 
-@router.get("/api/v1/windows/{window_id}", tags=["windows"], response_model=StoredWindowBody,
-            responses=_documented(404))
+@router.get(
+    "/api/v1/windows/{window_id}", tags=["windows"], response_model=StoredWindowBody, responses=_documented(404)
+)
 def window(window_id: Annotated[int, Path(ge=0, le=MAX_ID)], service: Svc) -> dict[str, Any]:
     row = service.history.get(window_id)
     if row is None:
@@ -137,8 +163,9 @@ class ConfigChange(BaseModel):
     """What PUT /api/v1/config may change."""
 
     model_config = ConfigDict(extra="forbid")
-    source: str | None = Field(None, min_length=1, max_length=4096,
-                               description="source URI or recording path (docs/service.md)")
+    source: str | None = Field(
+        None, min_length=1, max_length=4096, description="source URI or recording path (docs/service.md)"
+    )
     method: Method | None = None
 
 
@@ -147,8 +174,7 @@ def get_config(service: Svc) -> dict[str, Any]:
     return service.settings.public()
 
 
-@router.put("/api/v1/config", tags=["config"], dependencies=[Depends(require_token)],
-            responses=_documented(401, 403))
+@router.put("/api/v1/config", tags=["config"], dependencies=[Depends(require_token)], responses=_documented(401, 403))
 def put_config(change: ConfigChange, service: Svc) -> dict[str, Any]:
     """Change the source and/or the inverse method; the pipeline restarts with them. A new source is checked
     first (its scheme, options and, for a recording, the file itself): one that cannot open is refused with 422
@@ -161,8 +187,12 @@ def put_config(change: ConfigChange, service: Svc) -> dict[str, Any]:
         if change.source is not None and change.source != current.source:
             probe_source(resolve_source(change.source, settings.recordings_folder))
     except ValidationError as exc:
-        raise RequestValidationError([{**err, "loc": ("body", *err["loc"])} for err in exc.errors(
-            include_url=False, include_context=False, include_input=False)]) from None
+        raise RequestValidationError(
+            [
+                {**err, "loc": ("body", *err["loc"])}
+                for err in exc.errors(include_url=False, include_context=False, include_input=False)
+            ]
+        ) from None
     except MeniscopeError as exc:
         raise RequestValidationError([{"loc": ("body", "source"), "msg": str(exc), "type": "value_error"}]) from None
     service.reconfigure(settings)
@@ -177,28 +207,38 @@ class Ejection(BaseModel):
     time_s: float | None = Field(None, ge=0, allow_inf_nan=False, description="seconds since the stream's frame 0")
 
 
-@router.post("/api/v1/ejections", tags=["trigger"], status_code=202, dependencies=[Depends(require_token)],
-             responses=_documented(401, 403))
+@router.post(
+    "/api/v1/ejections",
+    tags=["trigger"],
+    status_code=202,
+    dependencies=[Depends(require_token)],
+    responses=_documented(401, 403, 503),
+)
 def post_ejection(event: Ejection, service: Svc) -> dict[str, Any]:
-    """The printer's trigger: one ejection (exactly one of ``frame`` and ``time_s``). With the setting ``trigger =
-    "printer"`` the windows are cut at these, and the video's ejections check them
-    (``meniscope_trigger_disagreements_total``)."""
+    """The printer's trigger: one ejection (exactly one of ``frame`` and ``time_s``), sent on to the pipeline
+    process; ``received``: the events this web process has sent on. With the setting ``trigger = "printer"`` the
+    windows are cut at these, and the video's ejections check them (``meniscope_trigger_disagreements_total``);
+    503 while the pipeline process is not running (the event would reach no segmenter)."""
     try:
-        service.stats.trigger.add(event.frame, event.time_s)
+        ejection_event(event.frame, event.time_s)
     except ValueError as exc:
         raise RequestValidationError([{"loc": ("body",), "msg": str(exc), "type": "value_error"}]) from None
-    return {"received": service.stats.trigger.counts.received}
+    if not service.eject(event.frame, event.time_s):
+        raise HTTPException(503, "the pipeline process is not running: the ejection reached no segmenter")
+    return {"received": service.ejections_sent}
 
 
 @router.get("/api/v1/frames/latest.png", tags=["frames"], response_class=Response, responses=_documented(404))
 def latest_frame(service: Svc) -> Response:
     """The last inferred frame's ROI, stretched to its brightest pixel."""
-    return Response(service.frame_views().camera(_latest(service)), media_type="image/png",
-                    headers={"Cache-Control": "no-store"})
+    return Response(
+        service.frame_views().camera(_latest(service)), media_type="image/png", headers={"Cache-Control": "no-store"}
+    )
 
 
-@router.get("/api/v1/frames/latest/render.png", tags=["frames"], response_class=Response,
-            responses=_documented(404, 503))
+@router.get(
+    "/api/v1/frames/latest/render.png", tags=["frames"], response_class=Response, responses=_documented(404, 503)
+)
 def latest_render(service: Svc) -> Response:
     """The scene rendered from the last frame's inferred coefficients, stretched the same way."""
     try:
@@ -218,7 +258,7 @@ def latest_coefficients(service: Svc) -> dict[str, Any]:
 
 
 def _latest(service: Service) -> LatestFrame:
-    frame = service.stats.latest
+    frame = service.latest
     if frame is None:
         raise HTTPException(404, "no frame inferred yet")
     return frame
@@ -227,7 +267,7 @@ def _latest(service: Service) -> LatestFrame:
 @router.get("/metrics", tags=["metrics"], response_class=Response)
 def metrics(service: Svc) -> Response:
     """Prometheus text format."""
-    return Response(generate_latest(service.metrics.registry), media_type=CONTENT_TYPE_LATEST)
+    return Response(service.metrics(), media_type=CONTENT_TYPE_LATEST)
 
 
 @router.websocket("/ws")

@@ -5,27 +5,28 @@ data folder. Starting the app (its lifespan) opens the history, binds ZeroMQ and
 pipeline's supervisor; the HTTP side answers from the first moment, ready or not. The API docs (/docs)
 load Swagger UI from the package (swagger-ui-bundle), not a CDN: a PC beside a printer has no internet.
 """
+
 from __future__ import annotations
 
 import asyncio
+from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
-from typing import AsyncIterator
 
 from fastapi import FastAPI, Request
 from fastapi.exception_handlers import http_exception_handler
 from fastapi.openapi.docs import get_swagger_ui_html
 from fastapi.responses import HTMLResponse, Response
+from fastapi.staticfiles import StaticFiles
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.routing import Match
-from fastapi.staticfiles import StaticFiles
 from swagger_ui_bundle import swagger_ui_path
 
 from service import __doc__ as package_doc
 from service.server import api, dashboard
 from service.server.components import Service
 from service.server.guard import Guard, default_hosts
+from service.server.settings import ServiceSettings
 from service.server.static_files import STATIC
-from service.settings import ServiceSettings
 
 
 def create_app(settings: ServiceSettings) -> FastAPI:
@@ -40,8 +41,14 @@ def create_app(settings: ServiceSettings) -> FastAPI:
         finally:
             service.stop()
 
-    app = FastAPI(title="meniscope", version="1", lifespan=lifespan, docs_url=None, redoc_url=None,
-                  description=(package_doc or "").splitlines()[0] + " Monitoring API (docs/service.md).")
+    app = FastAPI(
+        title="meniscope",
+        version="1",
+        lifespan=lifespan,
+        docs_url=None,
+        redoc_url=None,
+        description=(package_doc or "").splitlines()[0] + " Monitoring API (docs/service.md).",
+    )
     app.state.service = service
     app.include_router(api.router)
     app.include_router(dashboard.router)
@@ -50,14 +57,18 @@ def create_app(settings: ServiceSettings) -> FastAPI:
 
     @app.get("/docs", include_in_schema=False)
     def docs() -> HTMLResponse:
-        return get_swagger_ui_html(openapi_url="/openapi.json", title="meniscope API",
-                                   swagger_js_url="/docs-assets/swagger-ui-bundle.js",
-                                   swagger_css_url="/docs-assets/swagger-ui.css",
-                                   swagger_favicon_url="/docs-assets/favicon-32x32.png")
+        return get_swagger_ui_html(
+            openapi_url="/openapi.json",
+            title="meniscope API",
+            swagger_js_url="/docs-assets/swagger-ui-bundle.js",
+            swagger_css_url="/docs-assets/swagger-ui.css",
+            swagger_favicon_url="/docs-assets/favicon-32x32.png",
+        )
 
     app.add_exception_handler(StarletteHTTPException, _http_error)
-    app.add_middleware(Guard, hosts=settings.allowed_hosts or default_hosts(settings.host),
-                       origins=settings.allowed_origins)
+    app.add_middleware(
+        Guard, hosts=settings.allowed_hosts or default_hosts(settings.host), origins=settings.allowed_origins
+    )
     return app
 
 
@@ -66,7 +77,13 @@ async def _http_error(request: Request, exc: Exception) -> Response:
     those of the first route that matched it: GET of /api/v1/config, not PUT)."""
     assert isinstance(exc, StarletteHTTPException)
     if exc.status_code == 405:
-        methods = sorted({m for route in request.app.routes if route.matches(request.scope)[0] == Match.PARTIAL
-                          for m in getattr(route, "methods", None) or ()})
+        methods = sorted(
+            {
+                m
+                for route in request.app.routes
+                if route.matches(request.scope)[0] == Match.PARTIAL
+                for m in getattr(route, "methods", None) or ()
+            }
+        )
         exc = StarletteHTTPException(405, exc.detail, {"Allow": ", ".join(methods)})
     return await http_exception_handler(request, exc)

@@ -1,4 +1,5 @@
 """The dashboard page: static HTML and JavaScript (no build step, no libraries) fed by /ws and REST."""
+
 from __future__ import annotations
 
 from fastapi import APIRouter

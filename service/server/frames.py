@@ -4,6 +4,7 @@ Both are PNGs of the ROI, each stretched to its own brightest pixel (the meniscu
 highlights, which at the camera's full scale would be nearly black). The renderer is built on first
 use (it shades the static scene once) and draws one frame per request, cheap at one ray per pixel.
 """
+
 from __future__ import annotations
 
 import threading

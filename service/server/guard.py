@@ -7,6 +7,7 @@ rebinding): the Host header then names that site, so only the names the service 
 origin (the Host it was reached by) and ``allowed_origins`` may connect. Non-browser clients send no
 Origin and are let through. A plain ASGI middleware, so that the frame path pays no per-request wrapper.
 """
+
 from __future__ import annotations
 
 import ipaddress
@@ -72,7 +73,9 @@ class Guard:
             problem = (403, f"origin {headers.get('origin')!r} may not open the WebSocket (setting allowed_origins)")
         elif scope["type"] == "http" and _too_long(headers.get("content-length")):
             problem = (413, f"request body over {MAX_BODY} bytes")
-        elif scope["type"] == "http" and "content-length" not in headers and scope["method"] in ("POST", "PUT", "PATCH"):
+        elif (
+            scope["type"] == "http" and "content-length" not in headers and scope["method"] in ("POST", "PUT", "PATCH")
+        ):
             receive = await _bounded_body(receive)  # chunked: read up to the limit before the app sees it
             if receive is None:
                 problem = (413, f"request body over {MAX_BODY} bytes")
@@ -83,8 +86,13 @@ class Guard:
             await send({"type": "websocket.close", "code": 1008, "reason": detail[:120]})
             return
         body = json.dumps({"detail": detail}).encode()
-        await send({"type": "http.response.start", "status": status,
-                    "headers": [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode())]})
+        await send(
+            {
+                "type": "http.response.start",
+                "status": status,
+                "headers": [(b"content-type", b"application/json"), (b"content-length", str(len(body)).encode())],
+            }
+        )
         await send({"type": "http.response.body", "body": body})
 
     def _origin_allowed(self, origin: str | None, host: str) -> bool:
@@ -111,6 +119,7 @@ async def _bounded_body(receive: Receive) -> Receive | None:
 
     async def replay() -> Message:
         return messages.pop(0) if messages else await receive()
+
     return replay
 
 

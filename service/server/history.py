@@ -6,6 +6,7 @@ as JSON. One writer (the publishers, which give each window its id before sendin
 after) and any number of readers (REST requests, each with a short-lived connection of its own),
 which WAL lets run side by side.
 """
+
 from __future__ import annotations
 
 import json
@@ -44,8 +45,13 @@ class StoredWindow:
     result: WindowResult
 
     def to_json(self) -> dict[str, Any]:
-        return {"id": self.id, "stored": self.stored, "source": self.source, "fps": self.fps,
-                "window": self.result.model_dump(mode="json")}
+        return {
+            "id": self.id,
+            "stored": self.stored,
+            "source": self.source,
+            "fps": self.fps,
+            "window": self.result.model_dump(mode="json"),
+        }
 
 
 class History:
@@ -64,7 +70,8 @@ class History:
         self._inserts = 0
         self._last_id = self._writer.execute(  # AUTOINCREMENT's record of the largest id ever given, pruned or not
             "SELECT MAX(COALESCE((SELECT seq FROM sqlite_sequence WHERE name = 'windows'), 0), "
-            "COALESCE((SELECT MAX(id) FROM windows), 0))").fetchone()[0]
+            "COALESCE((SELECT MAX(id) FROM windows), 0))"
+        ).fetchone()[0]
         self.prune()
 
     def _connect(self, check_same_thread: bool = True) -> sqlite3.Connection:
@@ -78,8 +85,9 @@ class History:
         self._last_id += 1
         return self._last_id
 
-    def add(self, result: WindowResult, source: str, fps: float, stored: float | None = None,
-            window_id: int | None = None) -> int:
+    def add(
+        self, result: WindowResult, source: str, fps: float, stored: float | None = None, window_id: int | None = None
+    ) -> int:
         """Store one result under ``window_id`` (from :meth:`new_id`; a new one if None); its id."""
         window_id = self.new_id() if window_id is None else window_id
         self._writer.execute(
@@ -116,7 +124,9 @@ class History:
         rows = self._rows(after, limit)
         items = ",".join(
             f'{{"id":{row["id"]},"stored":{json.dumps(row["stored"])},"source":{json.dumps(row["source"])},'
-            f'"fps":{json.dumps(row["fps"])},"window":{row["result"]}}}' for row in rows)
+            f'"fps":{json.dumps(row["fps"])},"window":{row["result"]}}}'
+            for row in rows
+        )
         last = rows[-1]["id"] if rows else after
         return f'{{"windows":[{items}],"last_id":{json.dumps(last)}}}'.encode()
 
@@ -125,15 +135,16 @@ class History:
         with self._reader() as conn:
             if after is not None:
                 return conn.execute("SELECT * FROM windows WHERE id > ? ORDER BY id LIMIT ?", (after, limit)).fetchall()
-            return conn.execute("SELECT * FROM (SELECT * FROM windows ORDER BY id DESC LIMIT ?) ORDER BY id",
-                                (limit,)).fetchall()
+            return conn.execute(
+                "SELECT * FROM (SELECT * FROM windows ORDER BY id DESC LIMIT ?) ORDER BY id", (limit,)
+            ).fetchall()
 
     def get(self, window_id: int) -> StoredWindow | None:
         with self._reader() as conn:
             row = conn.execute("SELECT * FROM windows WHERE id = ?", (window_id,)).fetchone()
         return None if row is None else _stored(row)
 
-    def _reader(self) -> "closing[sqlite3.Connection]":
+    def _reader(self) -> closing[sqlite3.Connection]:
         """A connection of its own for one read, closed after it."""
         return closing(self._connect())
 
@@ -142,5 +153,6 @@ class History:
 
 
 def _stored(row: sqlite3.Row) -> StoredWindow:
-    return StoredWindow(row["id"], row["stored"], row["source"], row["fps"],
-                        WindowResult.model_validate(json.loads(row["result"])))
+    return StoredWindow(
+        row["id"], row["stored"], row["source"], row["fps"], WindowResult.model_validate(json.loads(row["result"]))
+    )

@@ -4,6 +4,7 @@ The publishing thread hands a message over with :meth:`Hub.broadcast` and return
 whose queue is full loses its oldest message (counted), so a slow or stalled browser never slows the
 pipeline or any other client; it sees the newest data when it catches up.
 """
+
 from __future__ import annotations
 
 import asyncio

@@ -4,6 +4,7 @@ Window messages are what the WebSocket, the ZeroMQ PUB socket and REST share; th
 carry the window's samples, for drawing. Numbers are plain JSON numbers: missing samples are null,
 never NaN (the :class:`WindowResult` itself holds only finite numbers).
 """
+
 from __future__ import annotations
 
 import json
@@ -39,7 +40,15 @@ def window_message(stored: StoredWindow, values: np.ndarray | None = None) -> st
 
 def trace_message(trace: TraceSnippet) -> str:
     """A trace message: the latest frames' centre displacement at full rate and the ejections among them."""
-    return json.dumps({
-        "schema": TRACE_SCHEMA, "type": "trace", "first_index": trace.first_index, "fps": trace.fps,
-        "values": samples(trace.values), "ejections": trace.ejections,
-    }, allow_nan=False, separators=(",", ":"))
+    return json.dumps(
+        {
+            "schema": TRACE_SCHEMA,
+            "type": "trace",
+            "first_index": trace.first_index,
+            "fps": trace.fps,
+            "values": samples(trace.values),
+            "ejections": trace.ejections,
+        },
+        allow_nan=False,
+        separators=(",", ":"),
+    )

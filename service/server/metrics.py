@@ -5,11 +5,13 @@ source of truth, nothing counted twice); window histograms and counters are fed 
 published. Base units in names, ``_total`` counters, histograms (they aggregate across printers),
 no per-window labels. Each app has a registry of its own, so tests need no globals.
 """
+
 from __future__ import annotations
 
 import time
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
-from typing import Callable, Iterator, get_args
+from typing import get_args
 
 from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, disable_created_metrics
 from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily, Metric
@@ -27,16 +29,23 @@ disable_created_metrics()  # no *_created series: nothing here reads them, and t
 class _PipelineCollector(Collector):
     """Counters and gauges of the pipeline's statistics and health, as they are at scrape time."""
 
-    def __init__(self, stats: PipelineStats, health: Callable[[], Health],
-                 websocket: Callable[[], tuple[int, int]], history: Callable[[], HistoryHealth] | None) -> None:
+    def __init__(
+        self,
+        stats: Callable[[], PipelineStats],
+        health: Callable[[], Health],
+        websocket: Callable[[], tuple[int, int]],
+        history: Callable[[], HistoryHealth] | None,
+    ) -> None:
         self.stats, self.health, self.websocket = stats, health, websocket
         self.history = history or (lambda: HistoryHealth())
 
     def collect(self) -> Iterator[Metric]:
-        s, health = self.stats, self.health()
+        s, health = self.stats(), self.health()
         ready = float(health.ready)
-        flowing = float(health.state in ("running", "no_signal", "degraded")
-                        and time.monotonic() - s.last_frame_at < SOURCE_SILENT_S)
+        flowing = float(
+            health.state in ("running", "no_signal", "no_highlight", "degraded")
+            and time.monotonic() - s.last_frame_at < SOURCE_SILENT_S
+        )
         clients, skipped = self.websocket()
         history = self.history()
         for name, value, text in (
@@ -45,18 +54,28 @@ class _PipelineCollector(Collector):
             ("frames_dropped", s.frames_dropped, "Frames read but dropped because inference was behind."),
             ("frame_gaps", s.frame_gaps, "Jumps in the source's frame indices (frames lost before the service)."),
             ("frames_lost_upstream", s.frames_lost_upstream, "Frames missing inside those jumps."),
-            ("windows_skipped", s.windows_skipped, "Windows closed while every fit worker was busy and as many windows waited (not fitted)."),
+            (
+                "windows_skipped",
+                s.windows_skipped,
+                "Windows closed while every fit worker was busy and as many windows waited (not fitted).",
+            ),
             ("websocket_messages_skipped", skipped, "Messages lagging WebSocket clients did not get."),
             ("history_write_failures", history.failures, "Failed attempts to store windows in the history."),
             ("history_windows_lost", history.lost, "Windows sent but never stored (the history backlog overflowed)."),
         ):
             yield CounterMetricFamily(f"meniscope_{name}", text, value=value)
-        trigger = s.trigger.counts
-        yield CounterMetricFamily("meniscope_trigger_ejections", "Ejection events received from the printer's trigger.",
-                                  value=trigger.received)
+        trigger = s.trigger
+        yield CounterMetricFamily(
+            "meniscope_trigger_ejections",
+            "Ejection events received from the printer's trigger.",
+            value=trigger.received,
+        )
         disagreements = CounterMetricFamily(
-            "meniscope_trigger_disagreements", "Printer ejections the video did not show (side=printer_only) and "
-            "video ejections the printer did not announce (side=video_only), within 2 frames.", labels=["side"])
+            "meniscope_trigger_disagreements",
+            "Printer ejections the video did not show (side=printer_only) and "
+            "video ejections the printer did not announce (side=video_only), within 2 frames.",
+            labels=["side"],
+        )
         disagreements.add_metric(["printer_only"], trigger.printer_only)
         disagreements.add_metric(["video_only"], trigger.video_only)
         yield disagreements
@@ -66,8 +85,12 @@ class _PipelineCollector(Collector):
             ("input_frames_per_second", s.fps_in, "Frames per second read from the source (last second)."),
             ("output_frames_per_second", s.fps_out, "Frames per second inferred (last second)."),
             ("websocket_clients", clients, "Connected WebSocket clients."),
-            ("signal", float(flowing and health.state != "no_signal"),
-             "1 while the frames arriving show a picture, 0 while they are flat (dark, capped, saturated) or absent."),
+            (
+                "signal",
+                float(flowing and health.state not in ("no_signal", "no_highlight")),
+                "1 while the frames arriving show the meniscus' highlights, 0 while they are flat (dark, capped, "
+                "saturated), show no highlight, or are absent.",
+            ),
             ("history_up", float(history.error is None), "1 while windows are stored in the history, else 0."),
             ("history_backlog_windows", history.backlog, "Sent windows waiting to be stored in the history."),
         ):
@@ -84,39 +107,76 @@ class HistoryHealth:
     lost: int = 0
 
 
-class Metrics:
-    """The service's registry: pipeline statistics plus what :meth:`window` and :meth:`inference` record."""
+def status_registry(
+    stats: Callable[[], PipelineStats],
+    health: Callable[[], Health],
+    websocket: Callable[[], tuple[int, int]],
+    history: Callable[[], HistoryHealth] | None = None,
+) -> CollectorRegistry:
+    """A registry of the pipeline's statistics and health, read through these callables at scrape time (the web
+    process reads them from the pipeline process's latest report)."""
+    registry = CollectorRegistry()
+    registry.register(_PipelineCollector(stats, health, websocket, history))
+    return registry
 
-    def __init__(self, stats: PipelineStats, health: Callable[[], Health],
-                 websocket: Callable[[], tuple[int, int]],
-                 history: Callable[[], HistoryHealth] | None = None) -> None:
+
+class Metrics:
+    """What :meth:`window` and :meth:`inference` record as results are published, plus the pipeline's
+    statistics and health when ``stats`` and ``health`` are given (in one process; the pipeline process
+    records only what it publishes, and the web process adds the rest: :func:`status_registry`)."""
+
+    def __init__(
+        self,
+        stats: PipelineStats | None = None,
+        health: Callable[[], Health] | None = None,
+        websocket: Callable[[], tuple[int, int]] = lambda: (0, 0),
+        history: Callable[[], HistoryHealth] | None = None,
+    ) -> None:
         self.registry = r = CollectorRegistry()
-        r.register(_PipelineCollector(stats, health, websocket, history))
+        if stats is not None and health is not None:
+            r.register(_PipelineCollector(lambda: stats, health, websocket, history))
         self.windows = Counter("meniscope_windows", "Windows published, by fit status.", ["status"], registry=r)
         for status in STATUSES:
             self.windows.labels(status)
-        self.unsettled = Counter("meniscope_windows_unsettled",
-                                 "Windows that ended at an ejection before the meniscus settled.", registry=r)
-        self.settling = Histogram("meniscope_settling_time_seconds", "Settling time of windows that settled.",
-                                  buckets=(5e-4, 1e-3, 2e-3, 3e-3, 4e-3, 5e-3, 6e-3, 8e-3, 1e-2, 1.5e-2, 2e-2, 5e-2),
-                                  registry=r)
-        self.frequency = Histogram("meniscope_oscillation_frequency_hertz", "Dominant mode frequency per window.",
-                                   buckets=(250, 500, 750, 1000, 1250, 1500, 1750, 2000, 2500, 3000, 4000, 6000),
-                                   registry=r)
-        self.decay = Histogram("meniscope_decay_rate_per_second", "Dominant mode decay rate per window.",
-                               buckets=(50, 100, 200, 300, 500, 750, 1000, 1500, 2000, 3000, 5000, 10000),
-                               registry=r)
-        self.inference = Histogram("meniscope_inference_latency_seconds", "Time of one batched inference call.",
-                                   buckets=(1e-4, 5e-4, 1e-3, 2.5e-3, 5e-3, 1e-2, 2.5e-2, 5e-2, 0.1, 0.25, 1.0),
-                                   registry=r)
-        self.publish = Histogram("meniscope_window_publish_latency_seconds",
-                                 "From the frame that closed a window being read to its result being published.",
-                                 buckets=(1e-3, 2.5e-3, 5e-3, 1e-2, 2.5e-2, 5e-2, 0.1, 0.25, 0.5, 1.0, 2.5, 10.0),
-                                 registry=r)
-        self.last_frequency = Gauge("meniscope_last_frequency_hertz", "Dominant frequency of the last fitted window.",
-                                    registry=r)
-        self.last_settling = Gauge("meniscope_last_settling_time_seconds",
-                                   "Settling time of the last window that settled.", registry=r)
+        self.unsettled = Counter(
+            "meniscope_windows_unsettled", "Windows that ended at an ejection before the meniscus settled.", registry=r
+        )
+        self.settling = Histogram(
+            "meniscope_settling_time_seconds",
+            "Settling time of windows that settled.",
+            buckets=(5e-4, 1e-3, 2e-3, 3e-3, 4e-3, 5e-3, 6e-3, 8e-3, 1e-2, 1.5e-2, 2e-2, 5e-2),
+            registry=r,
+        )
+        self.frequency = Histogram(
+            "meniscope_oscillation_frequency_hertz",
+            "Dominant mode frequency per window.",
+            buckets=(250, 500, 750, 1000, 1250, 1500, 1750, 2000, 2500, 3000, 4000, 6000),
+            registry=r,
+        )
+        self.decay = Histogram(
+            "meniscope_decay_rate_per_second",
+            "Dominant mode decay rate per window.",
+            buckets=(50, 100, 200, 300, 500, 750, 1000, 1500, 2000, 3000, 5000, 10000),
+            registry=r,
+        )
+        self.inference = Histogram(
+            "meniscope_inference_latency_seconds",
+            "Time of one batched inference call.",
+            buckets=(1e-4, 5e-4, 1e-3, 2.5e-3, 5e-3, 1e-2, 2.5e-2, 5e-2, 0.1, 0.25, 1.0),
+            registry=r,
+        )
+        self.publish = Histogram(
+            "meniscope_window_publish_latency_seconds",
+            "From the frame that closed a window being read to its result being published.",
+            buckets=(1e-3, 2.5e-3, 5e-3, 1e-2, 2.5e-2, 5e-2, 0.1, 0.25, 0.5, 1.0, 2.5, 10.0),
+            registry=r,
+        )
+        self.last_frequency = Gauge(
+            "meniscope_last_frequency_hertz", "Dominant frequency of the last fitted window.", registry=r
+        )
+        self.last_settling = Gauge(
+            "meniscope_last_settling_time_seconds", "Settling time of the last window that settled.", registry=r
+        )
 
     def inference_call(self, seconds: float) -> None:
         self.inference.observe(seconds)

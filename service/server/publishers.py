@@ -11,6 +11,7 @@ stored wait in a bounded backlog and are written, oldest first, once the databas
 (tried on every window and every second); the failure is counted, shown in readiness, and logged once
 when it starts and once when it ends, not once per window.
 """
+
 from __future__ import annotations
 
 import logging
@@ -18,10 +19,10 @@ import queue
 import threading
 import time
 from collections import deque
+from typing import Protocol
 
 from service.pipeline.runtime import FittedWindow, TraceSnippet
 from service.server.history import History, StoredWindow
-from service.server.hub import Hub
 from service.server.messages import trace_message, window_message
 from service.server.metrics import Metrics
 from service.server.zmq_publisher import ZmqPublisher
@@ -36,10 +37,19 @@ BACKLOG_WINDOWS = 100_000
 RETRY_S = 1.0
 
 
+class Fanout(Protocol):
+    """Where WebSocket messages go: :class:`service.server.hub.Hub`, or the pipe to the web process."""
+
+    @property
+    def clients(self) -> int: ...
+
+    def broadcast(self, message: str) -> None: ...
+
+
 class Publishers:
     """Publishes what the pipeline makes; each window under the name of the source its frames came from."""
 
-    def __init__(self, history: History, metrics: Metrics, zmq: ZmqPublisher | None, hub: Hub) -> None:
+    def __init__(self, history: History, metrics: Metrics, zmq: ZmqPublisher | None, hub: Fanout) -> None:
         self.history, self.metrics, self.zmq, self.hub = history, metrics, zmq, hub
         self.dropped = 0
         self.history_error: str | None = None  # why the history is not being written, None while it is
@@ -52,7 +62,7 @@ class Publishers:
         self._queue: queue.Queue[tuple[StoredWindow, float] | TraceSnippet | None] = queue.Queue(QUEUE_ITEMS)
         self._thread = threading.Thread(target=self._run, name="meniscope-publish", daemon=True)
 
-    def start(self) -> "Publishers":
+    def start(self) -> Publishers:
         self._thread.start()
         return self
 
@@ -79,7 +89,7 @@ class Publishers:
                     self.dropped += 1
                     return
                 stored, sent = self._send(fitted)
-        except Exception:  # noqa: BLE001 - one bad window must not stop the fit results
+        except Exception:
             log.exception("publishing failed")
             return
         self._offer((stored, sent - fitted.closed_at))
@@ -127,7 +137,7 @@ class Publishers:
                         self._backlog.popleft()
                         self.history_lost += 1
                     self._store()
-            except Exception:  # noqa: BLE001 - one bad item must not stop publishing
+            except Exception:
                 log.exception("publishing failed")
         self._store()
 
@@ -137,11 +147,14 @@ class Publishers:
             stored = self._backlog[0]
             try:
                 self.history.add(stored.result, stored.source, stored.fps, stored.stored, stored.id)
-            except Exception as exc:  # noqa: BLE001 - sqlite3 and OS errors alike: keep the window, try later
+            except Exception as exc:
                 self.history_failures += 1
                 if self.history_error is None:
-                    log.warning("history: cannot store windows (%s); keeping up to %d in memory until it can",
-                                exc, BACKLOG_WINDOWS)
+                    log.warning(
+                        "history: cannot store windows (%s); keeping up to %d in memory until it can",
+                        exc,
+                        BACKLOG_WINDOWS,
+                    )
                 self.history_error = f"cannot store windows in the history: {exc}"
                 return
             self._backlog.popleft()

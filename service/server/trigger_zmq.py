@@ -4,6 +4,7 @@ A message is UTF-8 JSON ``{"frame": N}`` (the camera's frame index) or ``{"time_
 stream's frame 0), as the last (or only) part of a multipart message, so a topic part may come first. A
 message that is neither is logged and skipped: a printer's bad message must not stop the service.
 """
+
 from __future__ import annotations
 
 import json
@@ -40,9 +41,16 @@ class TriggerSubscriber:
                 try:
                     event = json.loads(body)
                     self.inbox.add(**{k: event[k] for k in ("frame", "time_s") if k in event})
-                except (ValueError, TypeError, KeyError) as exc:  # JSONDecodeError and UnicodeDecodeError are ValueErrors
-                    log.warning("trigger %s: skipped a message that is not {\"frame\": N} or {\"time_s\": T} (%s)",
-                                self.endpoint, exc)
+                except (
+                    ValueError,
+                    TypeError,
+                    KeyError,
+                ) as exc:  # JSONDecodeError and UnicodeDecodeError are ValueErrors
+                    log.warning(
+                        'trigger %s: skipped a message that is not {"frame": N} or {"time_s": T} (%s)',
+                        self.endpoint,
+                        exc,
+                    )
         finally:
             self._socket.close()
 

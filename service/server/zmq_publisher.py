@@ -4,6 +4,7 @@ Each message has two parts: the topic ``meniscope.window`` and the window messag
 :mod:`service.server.messages` (UTF-8 JSON). PUB never blocks: a subscriber that does not keep up
 loses messages beyond the high-water mark, and so does one that connects late.
 """
+
 from __future__ import annotations
 
 import zmq

@@ -5,6 +5,7 @@ a broadcast discovery). Monochrome pixel formats only: Mono8 as uint8, Mono10/12
 Frame indices follow the camera's block ids (16-bit GigE Vision ids wrap from 65535 to 1), so frames
 the camera or the network lost show as gaps; timestamps are the camera's, in s since the first frame.
 """
+
 from __future__ import annotations
 
 import time
@@ -61,8 +62,9 @@ class AravisSource(FrameSource):
 
     kind = "aravis"
 
-    def __init__(self, device_id: str | None = None, options: AravisOptions = AravisOptions(),
-                 uri: str | None = None) -> None:
+    def __init__(
+        self, device_id: str | None = None, options: AravisOptions = AravisOptions(), uri: str | None = None
+    ) -> None:
         super().__init__(uri or f"aravis://{device_id or ''}", options.timeout)
         self.device_id, self.options = device_id, options
         self._camera: Any = None
@@ -73,7 +75,7 @@ class AravisSource(FrameSource):
         self._t0_ns = 0
 
     @classmethod
-    def from_uri(cls, uri: str, parts: SplitResult, options: Mapping[str, Any]) -> "AravisSource":
+    def from_uri(cls, uri: str, parts: SplitResult, options: Mapping[str, Any]) -> AravisSource:
         return cls(unquote(parts.netloc + parts.path) or None, parse_options(AravisOptions, uri, options), uri)
 
     def _open(self) -> StreamFormat:
@@ -105,7 +107,9 @@ class AravisSource(FrameSource):
             cam.start_acquisition()
         except GLib.Error as exc:
             self._release()
-            raise MeniscopeError(self.uri, f"the camera refused the settings ({opts.pixel_format}): {exc.message}") from None
+            raise MeniscopeError(
+                self.uri, f"the camera refused the settings ({opts.pixel_format}): {exc.message}"
+            ) from None
         dtype, bits = PIXEL_FORMATS[opts.pixel_format]
         return StreamFormat(width, height, dtype, bits, fps)
 
@@ -156,5 +160,10 @@ class AravisSource(FrameSource):
         if self._camera is None:
             return {"device_id": self.device_id}
         cam = self._camera
-        return {"device_id": cam.get_device_id(), "vendor": cam.get_vendor_name(), "model": cam.get_model_name(),
-                "pixel_format": self.options.pixel_format, "buffers": self.options.buffers}
+        return {
+            "device_id": cam.get_device_id(),
+            "vendor": cam.get_vendor_name(),
+            "model": cam.get_model_name(),
+            "pixel_format": self.options.pixel_format,
+            "buffers": self.options.buffers,
+        }

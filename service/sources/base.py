@@ -4,6 +4,7 @@ Every adapter (replay, V4L2, Aravis, ZeroMQ, simulated) subclasses :class:`Frame
 ``_open``, ``_read`` and ``_close``; the base keeps the open/closed state, the stream's format and the
 gap statistics, so they behave the same everywhere. :func:`open_source` picks the adapter by URI scheme.
 """
+
 from __future__ import annotations
 
 import importlib
@@ -74,19 +75,19 @@ class FrameBatch:
     def __getitem__(self, i: int) -> Frame:
         return Frame(self.pixels[i], int(self.indices[i]), float(self.timestamps[i]))
 
-    def select(self, which: slice | np.ndarray) -> "FrameBatch":
+    def select(self, which: slice | np.ndarray) -> FrameBatch:
         """The frames a slice, boolean mask (N,) or index array picks, as a batch (views where numpy can)."""
         return FrameBatch(self.pixels[which], self.indices[which], self.timestamps[which])
 
     @classmethod
-    def concatenate(cls, batches: Sequence["FrameBatch"]) -> "FrameBatch":
+    def concatenate(cls, batches: Sequence[FrameBatch]) -> FrameBatch:
         """One batch of the frames of several (at least one), in order."""
         if len(batches) == 1:
             return batches[0]
         return cls(*(np.concatenate([getattr(b, f) for b in batches]) for f in ("pixels", "indices", "timestamps")))
 
     @classmethod
-    def from_frames(cls, frames: Sequence[Frame], height: int, width: int, dtype: np.dtype) -> "FrameBatch":
+    def from_frames(cls, frames: Sequence[Frame], height: int, width: int, dtype: np.dtype) -> FrameBatch:
         """Stack single frames (as cameras deliver them) into one batch; an empty list gives an empty batch."""
         pixels = np.empty((len(frames), height, width), dtype)
         for k, frame in enumerate(frames):
@@ -145,8 +146,11 @@ def parse_options(model: type[_O], uri: str, raw: Mapping[str, Any]) -> _O:
         err = exc.errors()[0]
         name = ".".join(str(part) for part in err["loc"]) or "options"
         allowed = ", ".join(model.model_fields)
-        problem = f"unknown option {name!r} (options: {allowed})" if err["type"] == "extra_forbidden" else (
-            f"bad option {name}={err.get('input')!r}: {str(err['msg']).removeprefix('Value error, ')}")
+        problem = (
+            f"unknown option {name!r} (options: {allowed})"
+            if err["type"] == "extra_forbidden"
+            else (f"bad option {name}={err.get('input')!r}: {str(err['msg']).removeprefix('Value error, ')}")
+        )
         raise MeniscopeError(uri, problem) from None
 
 
@@ -169,7 +173,7 @@ class FrameSource(ABC):
 
     @classmethod
     @abstractmethod
-    def from_uri(cls, uri: str, parts: SplitResult, options: Mapping[str, Any]) -> "FrameSource":
+    def from_uri(cls, uri: str, parts: SplitResult, options: Mapping[str, Any]) -> FrameSource:
         """A new, unopened source for ``uri`` (already split into ``parts``) with ``options`` (strings or values)."""
 
     @abstractmethod
@@ -192,7 +196,7 @@ class FrameSource(ABC):
     def is_open(self) -> bool:
         return self._format is not None
 
-    def open(self) -> "FrameSource":
+    def open(self) -> FrameSource:
         """Start a new stream (statistics from zero); opening an open source does nothing."""
         if self._format is None:
             fmt = self._open()
@@ -206,7 +210,7 @@ class FrameSource(ABC):
             self._format = None
             self._close()
 
-    def __enter__(self) -> "FrameSource":
+    def __enter__(self) -> FrameSource:
         return self.open()
 
     def __exit__(
@@ -275,10 +279,17 @@ class FrameSource(ABC):
             "uri": self.uri,
             "kind": self.kind,
             "open": fmt is not None,
-            **({} if fmt is None else {
-                "width": fmt.width, "height": fmt.height, "dtype": fmt.dtype.name, "bit_depth": fmt.bit_depth,
-                "fps": fmt.fps,
-            }),
+            **(
+                {}
+                if fmt is None
+                else {
+                    "width": fmt.width,
+                    "height": fmt.height,
+                    "dtype": fmt.dtype.name,
+                    "bit_depth": fmt.bit_depth,
+                    "fps": fmt.fps,
+                }
+            ),
             "stats": asdict(self._stats),
             **self._details(),
         }
@@ -294,7 +305,8 @@ def _adapter(uri: str) -> tuple[type[FrameSource], SplitResult, dict[str, str]]:
     target = ADAPTERS.get(parts.scheme.lower())
     if target is None:
         raise MeniscopeError(
-            uri, f"unknown source scheme {parts.scheme!r}: use a path or one of {', '.join(s + '://' for s in ADAPTERS)}"
+            uri,
+            f"unknown source scheme {parts.scheme!r}: use a path or one of {', '.join(s + '://' for s in ADAPTERS)}",
         )
     module, name = target.split(":")
     return getattr(importlib.import_module(module), name), parts, query

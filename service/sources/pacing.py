@@ -3,11 +3,13 @@
 Every frame is due at a fixed point of one schedule set when the stream starts, so sleeping to the
 schedule never accumulates drift, however the reads are batched.
 """
+
 from __future__ import annotations
 
 import math
 import time
-from typing import Annotated, Any, Callable
+from collections.abc import Callable
+from typing import Annotated, Any
 
 from pydantic import BeforeValidator, Field
 
@@ -17,8 +19,11 @@ def _max_is_unpaced(value: Any) -> Any:
 
 
 #: The ``speed`` option of paced sources: x the stream's own rate; 0 or "max": unpaced.
-Speed = Annotated[float, BeforeValidator(_max_is_unpaced),
-                  Field(ge=0, allow_inf_nan=False, description="x the stream's rate; 0 or 'max': unpaced")]
+Speed = Annotated[
+    float,
+    BeforeValidator(_max_is_unpaced),
+    Field(ge=0, allow_inf_nan=False, description="x the stream's rate; 0 or 'max': unpaced"),
+]
 
 
 class Pacer:

@@ -4,13 +4,14 @@
 file reads). Frame indices are positions in the file (0..N-1); with ``loop`` they keep increasing across
 passes and the timestamps continue, each pass one recorded duration plus one frame period after the last.
 """
+
 from __future__ import annotations
 
 import os
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
-from urllib.parse import SplitResult, unquote
+from urllib.parse import SplitResult, unquote, urlencode
 
 import numpy as np
 
@@ -18,6 +19,13 @@ from service.errors import MeniscopeError
 from service.recordings import Recording, open_recording
 from service.sources.base import FrameBatch, FrameSource, SourceOptions, StreamFormat, parse_options
 from service.sources.pacing import Pacer, Speed
+
+
+def replay_uri(path: Path | str, **options: Any) -> str:
+    """The source URI replaying the recording at ``path`` (relative paths made absolute, the path quoted) with
+    ``options`` (``speed``, ``loop``, ...) as its query."""
+    uri = Path(path).resolve().as_uri()
+    return f"{uri}?{urlencode(options)}" if options else uri
 
 
 class ReplayOptions(SourceOptions):
@@ -30,8 +38,9 @@ class ReplaySource(FrameSource):
 
     kind = "replay"
 
-    def __init__(self, path: str | Path, *, speed: float = 1.0, loop: bool = False, timeout: float = 0.1,
-                 uri: str | None = None) -> None:
+    def __init__(
+        self, path: str | Path, *, speed: float = 1.0, loop: bool = False, timeout: float = 0.1, uri: str | None = None
+    ) -> None:
         super().__init__(uri or str(path), timeout)
         self.path = Path(path)
         self.speed, self.loop = speed, loop
@@ -43,7 +52,7 @@ class ReplaySource(FrameSource):
         self._identity: tuple[int, int, int, int] | None = None  # the file's (device, inode, size, mtime) when opened
 
     @classmethod
-    def from_uri(cls, uri: str, parts: SplitResult, options: Mapping[str, Any]) -> "ReplaySource":
+    def from_uri(cls, uri: str, parts: SplitResult, options: Mapping[str, Any]) -> ReplaySource:
         if parts.netloc not in ("", "localhost"):
             raise MeniscopeError(uri, "a file URI names a local file: file:///path/to/rec.cine")
         opts = parse_options(ReplayOptions, uri, options)
@@ -73,8 +82,11 @@ class ReplaySource(FrameSource):
 
     def _read(self, max_frames: int) -> FrameBatch | None:
         if self._file_identity() != self._identity:
-            raise MeniscopeError(self.path, "the recording changed on disk while replayed (truncated, overwritten or "
-                                            "replaced): it will be opened afresh")
+            raise MeniscopeError(
+                self.path,
+                "the recording changed on disk while replayed (truncated, overwritten or "
+                "replaced): it will be opened afresh",
+            )
         n = len(self._times)
         start = self._next
         if not self.loop:
@@ -113,5 +125,10 @@ class ReplaySource(FrameSource):
             self._recording = None
 
     def _details(self) -> dict[str, Any]:
-        return {"path": str(self.path), "speed": self.speed, "loop": self.loop,
-                "frames_in_file": len(self._times), "position": self._next}
+        return {
+            "path": str(self.path),
+            "speed": self.speed,
+            "loop": self.loop,
+            "frames_in_file": len(self._times),
+            "position": self._next,
+        }

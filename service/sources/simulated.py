@@ -21,6 +21,7 @@ machine allows, their timestamps still on the camera's clock. A speed above 0 pa
 (:class:`~service.sources.pacing.Pacer`; 0.05 is 950 frames/s); one faster than the renderer delivers
 every frame, later and later. ``threads`` (default 1) leaves the other cores to inference and the fits.
 """
+
 from __future__ import annotations
 
 import functools
@@ -95,10 +96,23 @@ class SimulatedSource(FrameSource):
 
     kind = "simulated"
 
-    def __init__(self, scene: str | Path = DEFAULT_SCENE, *, seed: int = 0, noise: str = "lab", bit_depth: BitDepth = 12,
-                 ejection_hz: float = 100.0, speed: float = 0.0, supersample: int = 1, sun_samples: int = 4,
-                 threads: int = 1, timeout: float = 0.1, uri: str = "sim://",
-                 clock: Callable[[], float] = time.monotonic, sleep: Callable[[float], None] = time.sleep) -> None:
+    def __init__(
+        self,
+        scene: str | Path = DEFAULT_SCENE,
+        *,
+        seed: int = 0,
+        noise: str = "lab",
+        bit_depth: BitDepth = 12,
+        ejection_hz: float = 100.0,
+        speed: float = 0.0,
+        supersample: int = 1,
+        sun_samples: int = 4,
+        threads: int = 1,
+        timeout: float = 0.1,
+        uri: str = "sim://",
+        clock: Callable[[], float] = time.monotonic,
+        sleep: Callable[[float], None] = time.sleep,
+    ) -> None:
         super().__init__(uri, timeout)
         self.scene_path, self.seed, self.noise, self.ejection_hz = Path(scene), seed, noise, ejection_hz
         self.effects = noise_preset(noise, bit_depth)
@@ -116,13 +130,23 @@ class SimulatedSource(FrameSource):
         self._next = 0
 
     @classmethod
-    def from_uri(cls, uri: str, parts: SplitResult, options: Mapping[str, Any]) -> "SimulatedSource":
+    def from_uri(cls, uri: str, parts: SplitResult, options: Mapping[str, Any]) -> SimulatedSource:
         if parts.netloc or parts.path not in ("", "/"):
             raise MeniscopeError(uri, "a simulated source has no host or path: sim://?seed=3&noise=lab&speed=0.05")
         o = parse_options(SimulatedOptions, uri, options)
-        return cls(o.scene, seed=o.seed, noise=o.noise, bit_depth=o.bit_depth,  # type: ignore[arg-type]
-                   ejection_hz=o.ejection_hz, speed=o.speed, supersample=o.supersample, sun_samples=o.sun_samples,
-                   threads=o.threads, timeout=o.timeout, uri=uri)
+        return cls(
+            o.scene,
+            seed=o.seed,
+            noise=o.noise,
+            bit_depth=o.bit_depth,  # type: ignore[arg-type]
+            ejection_hz=o.ejection_hz,
+            speed=o.speed,
+            supersample=o.supersample,
+            sun_samples=o.sun_samples,
+            threads=o.threads,
+            timeout=o.timeout,
+            uri=uri,
+        )
 
     def _open(self) -> StreamFormat:
         scene = Scene.load(self.scene_path)
@@ -188,7 +212,16 @@ class SimulatedSource(FrameSource):
         if self._next > 0 and self._plans and self._scene is not None:
             window = self._plans[0].window_truth(0, self._scene.nozzle.radius_mm)
         supersample, sun_samples, threads = self.quality
-        return {"scene": str(self.scene_path), "seed": self.seed, "noise": self.noise, "speed": self.speed,
-                "ejection_hz": self.ejection_hz, "supersample": supersample, "sun_samples": sun_samples,
-                "threads": threads, "position": self._next,
-                "transient_frames": self._plans[0].transient_frames if self._plans else None, "window": window}
+        return {
+            "scene": str(self.scene_path),
+            "seed": self.seed,
+            "noise": self.noise,
+            "speed": self.speed,
+            "ejection_hz": self.ejection_hz,
+            "supersample": supersample,
+            "sun_samples": sun_samples,
+            "threads": threads,
+            "position": self._next,
+            "transient_frames": self._plans[0].transient_frames if self._plans else None,
+            "window": window,
+        }

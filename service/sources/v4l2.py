@@ -5,6 +5,7 @@ so indices come from the buffer timestamps: each frame advances the index by the
 frame periods since the previous one (at least one), and a frame the driver dropped shows as a gap.
 A read waits for the frame in flight, so it may overrun ``timeout`` by up to one frame period.
 """
+
 from __future__ import annotations
 
 import time
@@ -41,7 +42,7 @@ class V4l2Source(FrameSource):
         self._index = 0
 
     @classmethod
-    def from_uri(cls, uri: str, parts: SplitResult, options: Mapping[str, Any]) -> "V4l2Source":
+    def from_uri(cls, uri: str, parts: SplitResult, options: Mapping[str, Any]) -> V4l2Source:
         opts = parse_options(V4l2Options, uri, options)
         if parts.netloc.isdigit() and not parts.path:
             return cls(int(parts.netloc), opts, uri)
@@ -54,8 +55,11 @@ class V4l2Source(FrameSource):
         try:
             if not cap.isOpened():
                 raise MeniscopeError(self.uri, "cannot open the device (missing, busy, or not a capture device)")
-            for prop, value in ((cv2.CAP_PROP_FRAME_WIDTH, self.options.width),
-                                (cv2.CAP_PROP_FRAME_HEIGHT, self.options.height), (cv2.CAP_PROP_FPS, self.options.fps)):
+            for prop, value in (
+                (cv2.CAP_PROP_FRAME_WIDTH, self.options.width),
+                (cv2.CAP_PROP_FRAME_HEIGHT, self.options.height),
+                (cv2.CAP_PROP_FPS, self.options.fps),
+            ):
                 if value is not None:
                     cap.set(prop, value)
             fps = cap.get(cv2.CAP_PROP_FPS)

@@ -4,6 +4,7 @@ One message carries frames with consecutive indices; a gap between messages is a
 The pixel part is the C-ordered (N, H, W) array in little-endian words, sent and received without
 copies above ZeroMQ's copy threshold. A header alone with ``"end": true`` ends the stream.
 """
+
 from __future__ import annotations
 
 import json
@@ -39,9 +40,14 @@ def encode(batch: FrameBatch, fmt: StreamFormat, sequence: int) -> list[Buffer]:
     if n == 0 or np.any(np.diff(batch.indices) != 1):
         raise ValueError("a message holds one or more frames with consecutive indices")
     header: dict[str, object] = {
-        "format": FORMAT, "version": VERSION, "sequence": sequence,
-        "dtype": batch.pixels.dtype.name, "shape": [n, height, width], "bit_depth": fmt.bit_depth,
-        "fps": fmt.fps, "index": int(batch.indices[0]),
+        "format": FORMAT,
+        "version": VERSION,
+        "sequence": sequence,
+        "dtype": batch.pixels.dtype.name,
+        "shape": [n, height, width],
+        "bit_depth": fmt.bit_depth,
+        "fps": fmt.fps,
+        "index": int(batch.indices[0]),
     }
     t0 = float(batch.timestamps[0])
     regular = t0 + np.arange(n) / fmt.fps

@@ -6,6 +6,7 @@ small high-water mark keeps what it receives fresh; what it missed shows as a ga
 indices. The sender is an XPUB socket (a PUB that also sees subscriptions), so a replay can wait for
 its first subscriber. Wire format: :mod:`service.sources.zmq_format`, docs/zmq-frames.md.
 """
+
 from __future__ import annotations
 
 import time
@@ -39,8 +40,15 @@ class ZmqSource(FrameSource):
 
     kind = "zmq"
 
-    def __init__(self, endpoint: str, *, timeout: float = 0.1, open_timeout: float = 10.0, hwm: int = DEFAULT_HWM,
-                 uri: str | None = None) -> None:
+    def __init__(
+        self,
+        endpoint: str,
+        *,
+        timeout: float = 0.1,
+        open_timeout: float = 10.0,
+        hwm: int = DEFAULT_HWM,
+        uri: str | None = None,
+    ) -> None:
         super().__init__(uri or endpoint, timeout)
         self.endpoint, self.open_timeout, self.hwm = endpoint, open_timeout, hwm
         self._socket: zmq.Socket | None = None
@@ -50,7 +58,7 @@ class ZmqSource(FrameSource):
         self._lost_messages = 0
 
     @classmethod
-    def from_uri(cls, uri: str, parts: SplitResult, options: Mapping[str, Any]) -> "ZmqSource":
+    def from_uri(cls, uri: str, parts: SplitResult, options: Mapping[str, Any]) -> ZmqSource:
         try:
             port = parts.port
         except ValueError:
@@ -59,8 +67,7 @@ class ZmqSource(FrameSource):
             raise MeniscopeError(uri, "a ZeroMQ source is zmq+tcp://host:port, e.g. zmq+tcp://127.0.0.1:5557")
         opts = parse_options(ZmqOptions, uri, options)
         host = f"[{parts.hostname}]" if ":" in parts.hostname else parts.hostname
-        return cls(f"tcp://{host}:{port}", timeout=opts.timeout, open_timeout=opts.open_timeout, hwm=opts.hwm,
-                   uri=uri)
+        return cls(f"tcp://{host}:{port}", timeout=opts.timeout, open_timeout=opts.open_timeout, hwm=opts.hwm, uri=uri)
 
     def _open(self) -> StreamFormat:
         sock = zmq.Context.instance().socket(zmq.SUB)
@@ -70,7 +77,9 @@ class ZmqSource(FrameSource):
         try:
             sock.connect(self.endpoint)
             if not sock.poll(int(self.open_timeout * 1000)):
-                raise MeniscopeError(self.uri, f"no frames within {self.open_timeout:g} s: is a sender publishing there?")
+                raise MeniscopeError(
+                    self.uri, f"no frames within {self.open_timeout:g} s: is a sender publishing there?"
+                )
             first = self._decode(sock.recv_multipart(copy=False))
             if first.batch is None or first.format is None:
                 raise MeniscopeError(self.uri, "the sender ended its stream before sending any frame")
@@ -131,8 +140,7 @@ class ZmqSource(FrameSource):
             self._socket, self._pending = None, None
 
     def _details(self) -> dict[str, Any]:
-        return {"endpoint": self.endpoint, "hwm": self.hwm, "lost_messages": self._lost_messages,
-                "ended": self._ended}
+        return {"endpoint": self.endpoint, "hwm": self.hwm, "lost_messages": self._lost_messages, "ended": self._ended}
 
 
 class FrameSender:
@@ -184,7 +192,7 @@ class FrameSender:
             pass  # a subscriber that stopped reading misses the end; it sees a stream that went quiet
         self._socket.close()
 
-    def __enter__(self) -> "FrameSender":
+    def __enter__(self) -> FrameSender:
         return self
 
     def __exit__(self, *exc_info: object) -> None:

@@ -6,6 +6,7 @@ the exact nearest neighbour, the approximate one (PCA + FLANN) and the regularis
 through the exact search's k nearest candidates. Only the oscillating frames of each window are scored
 (:func:`service.validation.truth.truth_windows`).
 """
+
 from __future__ import annotations
 
 import time
@@ -16,15 +17,16 @@ from typing import Any
 import numpy as np
 from tqdm import tqdm
 
-from service.errors import MeniscopeError
 from service.analysis.offline import CANDIDATES
+from service.errors import MeniscopeError
 from service.inverse.base import InverseMethod
 from service.inverse.manifest import Scores
 from service.inverse.nearest import NearestDatabase, Neighbours, recall_at_k
-from service.inverse.regularised import choose_candidates
+from service.inverse.regularised import chosen_rows
 from service.recordings.roi import read_roi_frames
 from service.scene import Scene
 from service.validation.truth import TruthWindow, read_truth, score, truth_windows
+
 
 @dataclass(frozen=True)
 class MethodResult:
@@ -41,8 +43,11 @@ class MethodResult:
     seconds_per_frame: float
 
     def as_json(self) -> dict[str, Any]:
-        return {**self.scores.model_dump(mode="json"), "oscillation": self.oscillation,
-                "seconds_per_frame": self.seconds_per_frame}
+        return {
+            **self.scores.model_dump(mode="json"),
+            "oscillation": self.oscillation,
+            "seconds_per_frame": self.seconds_per_frame,
+        }
 
 
 @dataclass
@@ -60,9 +65,16 @@ class RecordingResult:
     window_fits: dict[str, dict[str, float]] = field(default_factory=dict)  # regularised method -> fit errors
 
     def as_json(self) -> dict[str, Any]:
-        return {"path": str(self.path), "fps": self.fps, "renderer": self.renderer, "windows": len(self.windows),
-                "frames_scored": len(self.frames), "methods": {k: m.as_json() for k, m in self.methods.items()},
-                "search": self.search, "window_fits": self.window_fits}
+        return {
+            "path": str(self.path),
+            "fps": self.fps,
+            "renderer": self.renderer,
+            "windows": len(self.windows),
+            "frames_scored": len(self.frames),
+            "methods": {k: m.as_json() for k, m in self.methods.items()},
+            "search": self.search,
+            "window_fits": self.window_fits,
+        }
 
 
 def window_detrended(values: np.ndarray, lengths: list[int]) -> np.ndarray:
@@ -89,16 +101,24 @@ class Evaluation:
         """Run and score every method on a simulated recording (with its ``.truth.json``)."""
         truth = read_truth(path)
         if truth.get("scene_sha256") != self.scene.sha256:
-            raise MeniscopeError(path, f"simulated for scene {str(truth.get('scene_sha256'))[:12]}, not this one "
-                                       f"({self.scene.sha256[:12]})")
+            raise MeniscopeError(
+                path,
+                f"simulated for scene {str(truth.get('scene_sha256'))[:12]}, not this one ({self.scene.sha256[:12]})",
+            )
         windows = truth_windows(truth, self.scene)
         bar.set_description(f"validate {path.name}: read")
         frames, facts = read_roi_frames(path, self.scene)
         index = np.concatenate([w.frames for w in windows])  # (M,)
         if index.max(initial=-1) >= len(frames):
             raise MeniscopeError(path, f"holds {len(frames)} frames, its truth file scores up to frame {index.max()}")
-        result = RecordingResult(path=path, fps=float(facts["fps"]), renderer=str(truth.get("renderer", "Renderer")),
-                                 windows=windows, truth=np.concatenate([w.targets for w in windows]), frames=index)
+        result = RecordingResult(
+            path=path,
+            fps=float(facts["fps"]),
+            renderer=str(truth.get("renderer", "Renderer")),
+            windows=windows,
+            truth=np.concatenate([w.targets for w in windows]),
+            frames=index,
+        )
         x = frames[index]  # (M, H, W) as stored
         bar.update()
         for name, method in self.networks.items():
@@ -132,13 +152,17 @@ class Evaluation:
             first = found[exact].index[:, 0]
             pred = np.column_stack([database.coeffs[first], database.centre[first]])
             self._add(result, f"{name}[{label}]", pred, seconds[exact])
-        result.search[label] = {"k": CANDIDATES, "exact_ms_per_frame": 1e3 * seconds[True] / len(x),
-                                "approximate_ms_per_frame": 1e3 * seconds[False] / len(x),
-                                "recall_at_k": recall_at_k(found[False], found[True])}
+        result.search[label] = {
+            "k": CANDIDATES,
+            "exact_ms_per_frame": 1e3 * seconds[True] / len(x),
+            "approximate_ms_per_frame": 1e3 * seconds[False] / len(x),
+            "recall_at_k": recall_at_k(found[False], found[True]),
+        }
         self._regularised(result, label, database, found[True], seconds[True])
 
-    def _regularised(self, result: RecordingResult, label: str, database: NearestDatabase, exact: Neighbours,
-                     search_seconds: float) -> None:
+    def _regularised(
+        self, result: RecordingResult, label: str, database: NearestDatabase, exact: Neighbours, search_seconds: float
+    ) -> None:
         """The regularised fit per window through its frames' exact candidates: per frame the fitted curve's
         D(0, t) and the coefficients of the candidate it chose; per window its frequency and decay errors."""
         pred, fps = np.empty((len(result.frames), 5)), result.fps
@@ -146,9 +170,8 @@ class Evaluation:
         for k, window in enumerate(result.windows):
             rows = slice(start, start + len(window.frames))
             started = time.perf_counter()
-            fit = choose_candidates(database.centre[exact.index[rows]], fps, seed=k)
+            chosen, fit = chosen_rows(exact.index[rows], database.centre, fps, seed=k)
             fit_seconds.append(time.perf_counter() - started)
-            chosen = exact.index[rows][np.arange(len(window.frames)), fit.chosen]
             pred[rows, :4] = database.coeffs[chosen]
             pred[rows, 4] = fit.curve(np.arange(len(window.frames)) / fps)
             fits.append((fit.frequency_hz, fit.decay_rate_per_s, window.motion.f1, window.motion.g1))

@@ -1,6 +1,7 @@
 """The validation figures as PNGs (Price et al. 2022): D(0, t) inferred against truth per method (Figs. 9,
 10, 14), lab frames beside their VAE reconstructions (Fig. 13) and beside renders of the coefficients
 inferred from them (Fig. 15)."""
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -25,8 +26,11 @@ def plot_centre_series(result: RecordingResult, path: Path, windows: int = 3) ->
             ax.plot(t_ms[part], result.truth[part, 4] * 1e3, "k-", lw=1)
         ax.plot(t_ms, method.pred[:shown, 4] * 1e3, ".", ms=2.5, color="C3")
         s = method.scores
-        ax.set_title(f"{name}: RMSE {s.rmse['centre'] * 1e3:.1f} um, r {s.centre_correlation or float('nan'):.3f}",
-                     fontsize=9, loc="left")
+        ax.set_title(
+            f"{name}: RMSE {s.rmse['centre'] * 1e3:.1f} um, r {s.centre_correlation or float('nan'):.3f}",
+            fontsize=9,
+            loc="left",
+        )
         ax.set_ylabel("D(0, t) (um)", fontsize=8)
     axes[-1, 0].set_xlabel(f"time in {result.path.name} (ms); line: truth, dots: inferred per frame")
     fig.tight_layout()

@@ -5,11 +5,12 @@ Runs in the service half (onnxruntime, no torch) so it checks the very artifacts
 VAE reconstructions come from the model folder's ``autoencoder.onnx`` (exported by ``meniscope train``),
 and a folder made before that graph existed gets every figure but that one.
 """
+
 from __future__ import annotations
 
 import json
 import time
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
@@ -39,8 +40,9 @@ def lab_frames(path: Path, scene: Scene, count: int = SHOWN_FRAMES) -> np.ndarra
 
 def reconstructions(model_dir: Path, manifest: Manifest, frames: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The VAE's input and reconstruction (N, h, w) of stored frames, through ``autoencoder.onnx``."""
-    session = ort.InferenceSession(str(model_dir / manifest.autoencoder.file), session_options(1),
-                                   providers=["CPUExecutionProvider"])
+    session = ort.InferenceSession(
+        str(model_dir / manifest.autoencoder.file), session_options(1), providers=["CPUExecutionProvider"]
+    )
     x, recon = session.run(list(AUTOENCODER_OUTPUTS), {INPUT: frames.astype(manifest.input.dtype)})
     return x[:, 0], recon[:, 0]
 
@@ -57,8 +59,15 @@ def record_scores(model_dir: Path, scene: Scene, results: list[RecordingResult])
     load_manifest(model_dir, scene)  # the service must still accept it
 
 
-def validate(scene: Scene, model_dir: Path, databases: list[Path], recordings: list[Path], out: Path,
-             lab_video: Path | None = None, record: bool = False) -> dict[str, Any]:
+def validate(
+    scene: Scene,
+    model_dir: Path,
+    databases: list[Path],
+    recordings: list[Path],
+    out: Path,
+    lab_video: Path | None = None,
+    record: bool = False,
+) -> dict[str, Any]:
     """Measure every method on every recording, draw the figures into ``out`` and write ``figures.json``."""
     if not recordings:
         raise MeniscopeError("--recording", "name at least one simulated recording to score against")
@@ -81,30 +90,47 @@ def validate(scene: Scene, model_dir: Path, databases: list[Path], recordings: l
     with tqdm(total=len(recordings) * evaluation.steps() + 2, unit="step", desc="validate", disable=None) as bar:
         for path in recordings:
             results.append(evaluation.recording(path, bar))
-        figures = {f"centre {r.path.name}": plot_centre_series(r, out / f"centre_{r.path.stem}.png").name
-                   for r in results}
+        figures = {
+            f"centre {r.path.name}": plot_centre_series(r, out / f"centre_{r.path.stem}.png").name for r in results
+        }
         bar.set_description("validate: lab frames")
         lab = lab_video or recordings[0]
         frames = lab_frames(lab, scene)
         if manifest.autoencoder is not None:
             shown, recon = reconstructions(model_dir, manifest, frames)
-            figures["reconstructions"] = plot_rows({"lab frame": shown, "VAE": recon}, out / "reconstructions.png",
-                                                   f"{lab.name}: frames as the VAE sees them, and its reconstructions").name
+            figures["reconstructions"] = plot_rows(
+                {"lab frame": shown, "VAE": recon},
+                out / "reconstructions.png",
+                f"{lab.name}: frames as the VAE sees them, and its reconstructions",
+            ).name
         bar.update()
         renderer = Renderer(scene)
         rows = {"lab frame": frames.astype(np.float64)}
-        rows.update({f"render of\n{name}": renderer.render(method.infer(frames).coefficients)
-                     for name, method in networks.items()})
-        figures["inferred renders"] = plot_rows(rows, out / "inferred_renders.png",
-                                                f"{lab.name}: frames beside renders of the coefficients inferred from them").name
+        rows.update(
+            {
+                f"render of\n{name}": renderer.render(method.infer(frames).coefficients)
+                for name, method in networks.items()
+            }
+        )
+        figures["inferred renders"] = plot_rows(
+            rows,
+            out / "inferred_renders.png",
+            f"{lab.name}: frames beside renders of the coefficients inferred from them",
+        ).name
         bar.update()
     document = {
         "schema": SCHEMA,
-        "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        "created": datetime.now(UTC).isoformat(timespec="seconds"),
         "scene_sha256": scene.sha256,
-        "models": {"path": str(model_dir), "created": manifest.created, "autoencoder": manifest.autoencoder is not None},
-        "databases": {label: {"path": str(folder), "renders": len(loaded[label]), "index_seconds": index_seconds[label]}
-                      for label, folder in zip(labels, databases)},
+        "models": {
+            "path": str(model_dir),
+            "created": manifest.created,
+            "autoencoder": manifest.autoencoder is not None,
+        },
+        "databases": {
+            label: {"path": str(folder), "renders": len(loaded[label]), "index_seconds": index_seconds[label]}
+            for label, folder in zip(labels, databases)
+        },
         "lab_video": str(lab),
         "recordings": {r.path.name: r.as_json() for r in results},
         "figures": figures,

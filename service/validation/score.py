@@ -5,6 +5,7 @@ the offset ``d + p R``; what the segmentation must get right: the ejections (wit
 Relative errors are |estimate - truth| / truth; a window without a dominant mode scores NaN and is
 counted as missed, not dropped.
 """
+
 from __future__ import annotations
 
 from typing import Any
@@ -13,7 +14,7 @@ import numpy as np
 
 from service.analysis.results import Report
 from service.inverse.base import InverseOutput
-from service.validation.truth import truth_coefficients, truth_centre
+from service.validation.truth import truth_centre, truth_coefficients
 
 
 def ejection_matches(found: np.ndarray, true: np.ndarray, tolerance: int = 2) -> tuple[int, int, int]:

@@ -1,4 +1,5 @@
 """Ground truth of simulated recordings (scene.md, "Recordings and ground truth") and per-frame scores against it."""
+
 from __future__ import annotations
 
 from dataclasses import dataclass
@@ -28,7 +29,9 @@ class TruthWindow:
 
 def read_truth(recording: str | Path) -> dict:
     """The ``.truth.json`` beside a recording; a one-line error when it is missing or not a truth file."""
-    return read_schema_json(truth_path(recording), SCHEMA, "not a simulated recording (`meniscope simulate` writes one)")
+    return read_schema_json(
+        truth_path(recording), SCHEMA, "not a simulated recording (`meniscope simulate` writes one)"
+    )
 
 
 def truth_coefficients(truth: dict) -> np.ndarray:

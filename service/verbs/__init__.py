@@ -1,5 +1,6 @@
 """CLI verbs: one module per family, each exposing ``register(subparsers)``; and the options several verbs share,
 so that each is spelled and defaulted once."""
+
 from __future__ import annotations
 
 import argparse

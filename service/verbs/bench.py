@@ -1,5 +1,6 @@
 """``meniscope bench BENCHMARK``: measuring front door; every module of ``service.bench`` with a ``register``
 function adds one benchmark, imported only when it is the one asked for (so that help stays fast)."""
+
 from __future__ import annotations
 
 import argparse
@@ -33,7 +34,7 @@ def _summary(path: Path) -> str | None:
         return None
     if not any(isinstance(node, ast.FunctionDef) and node.name == "register" for node in tree.body):
         return None
-    first = (ast.get_docstring(tree) or "").split("\n")[0]
+    first = " ".join((ast.get_docstring(tree) or "").split("\n\n")[0].split())  # the first paragraph, one line
     return first.split("``: ", 1)[-1]  # without the "``meniscope bench NAME``: " it starts with
 
 

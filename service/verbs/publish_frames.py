@@ -1,4 +1,5 @@
 """``meniscope publish-frames``: replay a recording to a ZeroMQ socket, as a remote camera would stream it."""
+
 from __future__ import annotations
 
 import argparse
@@ -15,10 +16,16 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "zmq+tcp://HOST:PORT` receives it. Subscribers that lag lose frames rather than slow the replay.",
     )
     p.add_argument("recording", type=Path, metavar="REC", help="recording to replay (.cine or .avi)")
-    p.add_argument("--bind", default="tcp://127.0.0.1:5557",
-                   help="ZeroMQ endpoint to publish on (default tcp://127.0.0.1:5557: this machine only)")
-    p.add_argument("--speed", default="1.0",
-                   help="times the recorded frame rate, e.g. 0.1 for slow motion; 0 or max: as fast as possible")
+    p.add_argument(
+        "--bind",
+        default="tcp://127.0.0.1:5557",
+        help="ZeroMQ endpoint to publish on (default tcp://127.0.0.1:5557: this machine only)",
+    )
+    p.add_argument(
+        "--speed",
+        default="1.0",
+        help="times the recorded frame rate, e.g. 0.1 for slow motion; 0 or max: as fast as possible",
+    )
     p.add_argument("--loop", action="store_true", help="start again at the end (frame indices keep increasing)")
     p.set_defaults(func=run)
 
@@ -37,6 +44,7 @@ def run(args: argparse.Namespace) -> int:
         with source:
             while (batch := source.read(256)) is not None:
                 sender.send(batch)
-        print(f"{args.recording}: published {source.stats.frames} frames in {sender.sequence} messages",
-              file=sys.stderr)
+        print(
+            f"{args.recording}: published {source.stats.frames} frames in {sender.sequence} messages", file=sys.stderr
+        )
     return 0

@@ -1,4 +1,5 @@
 """Verbs ``info`` and ``frames``: what a recording's header says, and its frames as stored, to .npy."""
+
 from __future__ import annotations
 
 import argparse
@@ -14,22 +15,25 @@ CHUNK_BYTES = 64 * 2**20
 def register(subparsers: argparse._SubParsersAction) -> None:
     """Add ``info`` and ``frames`` to the ``meniscope`` command."""
     info = subparsers.add_parser(
-        "info", help="print a recording's header as one JSON object",
+        "info",
+        help="print a recording's header as one JSON object",
         description="One JSON object on stdout: frames, fps, width, height, bit depth, and what else the "
-                    "file header says (timestamps, trigger frame, camera).",
+        "file header says (timestamps, trigger frame, camera).",
     )
     info.add_argument("recording", metavar="REC", type=Path, help="a .cine or .avi file")
     info.set_defaults(func=run_info)
 
     frames = subparsers.add_parser(
-        "frames", help="save frames exactly as stored to a .npy file",
+        "frames",
+        help="save frames exactly as stored to a .npy file",
         description="Frames with pixel values exactly as stored (uint8 or uint16, no scaling), rows in "
-                    "display order (top row first), shape (N, height, width).",
+        "display order (top row first), shape (N, height, width).",
     )
     frames.add_argument("recording", metavar="REC", type=Path, help="a .cine or .avi file")
     frames.add_argument("--start", metavar="I", type=int, default=0, help="first frame (default 0)")
-    frames.add_argument("--count", metavar="N", type=int, default=None,
-                        help="number of frames (default: from --start to the end)")
+    frames.add_argument(
+        "--count", metavar="N", type=int, default=None, help="number of frames (default: from --start to the end)"
+    )
     frames.add_argument("--out", metavar="FRAMES.npy", type=Path, required=True, help="the .npy file to write")
     frames.set_defaults(func=run_frames)
 

@@ -1,11 +1,12 @@
 """``meniscope render`` (frames from Eq. 1 coefficients, shared/spec/cli.md) and ``meniscope sheet`` (a PNG of renders)."""
+
 from __future__ import annotations
 
 import argparse
 from pathlib import Path
 
-from service.verbs import add_scene_option
 from service.errors import MeniscopeError, require_folder_of
+from service.verbs import add_scene_option
 
 
 def _quality(p: argparse.ArgumentParser) -> None:
@@ -15,17 +16,23 @@ def _quality(p: argparse.ArgumentParser) -> None:
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    p = subparsers.add_parser("render", help="render frames from Eq. 1 coefficients",
-                              description="Render frames of a scene from a CSV of coefficients d,p,a,b (one row "
-                              "per frame) into FRAMES.npy: float32 (frames, height_px, width_px), linear intensity.")
+    p = subparsers.add_parser(
+        "render",
+        help="render frames from Eq. 1 coefficients",
+        description="Render frames of a scene from a CSV of coefficients d,p,a,b (one row "
+        "per frame) into FRAMES.npy: float32 (frames, height_px, width_px), linear intensity.",
+    )
     _quality(p)
     p.add_argument("--coefficients", type=Path, required=True, help="COEFFS.csv with columns d,p,a,b")
     p.add_argument("--out", type=Path, required=True, help="FRAMES.npy to write")
     p.set_defaults(func=run_render)
 
-    p = subparsers.add_parser("sheet", help="PNG sheet of renders across the coefficient ranges",
-                              description="Write a PNG of renders sweeping each coefficient across its range, and "
-                              "radial profiles beside their renders.")
+    p = subparsers.add_parser(
+        "sheet",
+        help="PNG sheet of renders across the coefficient ranges",
+        description="Write a PNG of renders sweeping each coefficient across its range, and "
+        "radial profiles beside their renders.",
+    )
     _quality(p)
     p.add_argument("--out", type=Path, default=Path("sheet.png"), help="PNG to write (default sheet.png)")
     p.add_argument("--seed", type=int, default=0, help="seed of the profile draws (default 0)")
@@ -33,9 +40,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def _renderer(args: argparse.Namespace):
-    from service.scene import Scene
-
     from service.render import Renderer  # the compiled renderer loads only when a verb needs it
+    from service.scene import Scene
 
     return Renderer(Scene.load(args.scene), supersample=args.supersample, sun_samples=args.sun_samples)
 

@@ -1,4 +1,5 @@
 """``meniscope serve``: the monitoring service (REST, WebSocket, dashboard, Prometheus, ZeroMQ; docs/service.md)."""
+
 from __future__ import annotations
 
 import argparse
@@ -8,7 +9,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:
-    from service.settings import ServiceSettings
+    from service.server.settings import ServiceSettings
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -20,9 +21,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "a recording made by our simulator, in a loop. Settings (docs/service.md): defaults, then --config, then "
         "MENISCOPE_* environment variables, then these options.",
     )
-    p.add_argument("--source", help="source URI or recording path (default: the demo recording; URI schemes in "
-                                    "docs/service.md); a recording named here, as a path or a file:// URI, makes its "
-                                    "folder the recordings folder, unless recordings_dir is set")
+    p.add_argument(
+        "--source",
+        help="source URI or recording path (default: the demo recording; URI schemes in "
+        "docs/service.md); a recording named here, as a path or a file:// URI, makes its "
+        "folder the recordings folder, unless recordings_dir is set",
+    )
     p.add_argument("--config", type=Path, help="settings file, TOML or JSON")
     p.add_argument("--host", help="address to bind (default 127.0.0.1: this machine only)")
     p.add_argument("--port", type=int, help="HTTP port (default 8000)")
@@ -33,11 +37,10 @@ def serve_settings(args: argparse.Namespace) -> ServiceSettings:
     """The settings ``args`` ask for, loaded and validated once with the options on top (an option mends a
     bad value of the config file); a recording named by ``--source`` makes its folder the recordings
     folder unless ``recordings_dir`` is set (the person at the console may name any recording)."""
-    from service.settings import load_settings, recording_folder
+    from service.server.settings import load_settings, recording_folder
 
     folder = None if args.source is None else recording_folder(args.source)
-    return load_settings(args.config, {"recordings_dir": folder}, source=args.source, host=args.host,
-                         port=args.port)
+    return load_settings(args.config, {"recordings_dir": folder}, source=args.source, host=args.host, port=args.port)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -48,9 +51,15 @@ def run(args: argparse.Namespace) -> int:
     logging.basicConfig(level=logging.WARNING, format="meniscope serve: %(levelname)s: %(message)s")
     settings = serve_settings(args)
     if not settings.loopback and settings.token is None:
-        print(f"meniscope serve: bound to {settings.host} without a token: settings cannot be changed over HTTP "
-              "(set MENISCOPE_TOKEN)", file=sys.stderr)
-    print(f"meniscope serve: dashboard on http://{settings.host}:{settings.port}/, window results on ZeroMQ "
-          f"{settings.zmq_publish or '(off)'}; source {settings.source or 'the demo recording'}", file=sys.stderr)
+        print(
+            f"meniscope serve: bound to {settings.host} without a token: settings cannot be changed over HTTP "
+            "(set MENISCOPE_TOKEN)",
+            file=sys.stderr,
+        )
+    print(
+        f"meniscope serve: dashboard on http://{settings.host}:{settings.port}/, window results on ZeroMQ "
+        f"{settings.zmq_publish or '(off)'}; source {settings.source or 'the demo recording'}",
+        file=sys.stderr,
+    )
     uvicorn.run(create_app(settings), host=settings.host, port=settings.port, log_level="warning")
     return 0

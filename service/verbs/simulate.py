@@ -1,13 +1,14 @@
 """``meniscope simulate``: a synthetic recording with ejections and its ground truth (shared/spec/cli.md)."""
+
 from __future__ import annotations
 
 import argparse
 import math
 from pathlib import Path
 
-from service.verbs import add_scene_option
-from service.camera_effects import NOISE_PRESETS, noise_preset
 from service.errors import MeniscopeError
+from service.noise_presets import NOISE_PRESETS
+from service.verbs import add_scene_option
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -22,24 +23,58 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--windows", type=int, default=10, help="windows between ejections (default 10)")
     p.add_argument("--seed", type=int, default=0, help="seed of the motion and the noise (default 0)")
     p.add_argument("--ejection-hz", type=float, default=100.0, help="ejections per second (default 100)")
-    p.add_argument("--bit-depth", type=int,
-                   help="stored bits per pixel: 8, 12 or 16 for .cine (default 12); .avi stores 8 only")
-    p.add_argument("--noise", choices=list(NOISE_PRESETS), default="lab",
-                   help="camera preset: full well, read noise, blur, black level (default lab)")
-    p.add_argument("--renderer", choices=("meniscope", "blender"), default="meniscope",
-                   help="forward renderer: our ray tracer (default) or Blender Cycles, a second renderer that "
-                   "stands for a real camera the models were not trained on (about 4 frames/s)")
-    p.add_argument("--kinds", default=None,
-                   help="window kinds, comma-separated, window k of the k-th modulo their number: nominal, settled, "
-                   "heavy, light, 4khz, faint, drift, skip, spatter (default: the nominal ranges)")
+    p.add_argument(
+        "--bit-depth", type=int, help="stored bits per pixel: 8, 12 or 16 for .cine (default 12); .avi stores 8 only"
+    )
+    p.add_argument(
+        "--noise",
+        choices=[*NOISE_PRESETS, "scene"],
+        help="camera: a preset of full well, read noise, blur, black level, or 'scene' for the scene "
+        "file's calibrated sensor block (default: the scene's sensor if it has one, else lab)",
+    )
+    p.add_argument(
+        "--frame",
+        type=_frame_size,
+        metavar="WxH",
+        help="recorded frame size when larger than the ROI, which sits at camera.roi in it "
+        "(default: a frame that ends with the ROI)",
+    )
+    p.add_argument(
+        "--renderer",
+        choices=("meniscope", "blender"),
+        default="meniscope",
+        help="forward renderer: our ray tracer (default) or Blender Cycles, a second renderer that "
+        "stands for a real camera the models were not trained on (about 4 frames/s)",
+    )
+    p.add_argument(
+        "--kinds",
+        default=None,
+        help="window kinds, comma-separated, window k of the k-th modulo their number: nominal, settled, "
+        "heavy, light, 4khz, faint, drift, skip, spatter (default: the nominal ranges)",
+    )
     p.add_argument("--blender-samples", type=int, default=32, help="Cycles samples per pixel (default 32)")
     p.set_defaults(func=run)
 
 
-def run(args: argparse.Namespace) -> int:
-    from service.scene import Scene
+def _frame_size(text: str) -> tuple[int, int]:
+    """``WxH`` as (width, height), both positive."""
+    try:
+        width, height = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected WxH (e.g. 128x128), got {text!r}") from None
+    if width < 1 or height < 1:
+        raise argparse.ArgumentTypeError(f"frame size must be positive, got {text!r}")
+    return width, height
 
-    from service.simulate import check_output, simulate, truth_path  # the renderer loads only when a verb needs it
+
+def run(args: argparse.Namespace) -> int:
+    from service.camera_effects import noise_preset, sensor_effects
+    from service.scene import Scene
+    from service.simulate import (  # the renderer loads only when a verb needs it
+        check_output,
+        simulate,
+        truth_path,
+    )
 
     if args.windows < 1:
         raise MeniscopeError("--windows", f"must be at least 1, got {args.windows}")
@@ -61,12 +96,33 @@ def run(args: argparse.Namespace) -> int:
     renderer = None
     if args.renderer == "blender":
         from service.render.blender import BlenderRenderer
+        from service.simulate import canvas
 
-        renderer = BlenderRenderer(scene, samples=args.blender_samples, seed=args.seed)
-    truth = simulate(scene, args.out, windows=args.windows, seed=args.seed, ejection_hz=args.ejection_hz,
-                     effects=noise_preset(args.noise, bit_depth), noise=args.noise, renderer=renderer,
-                     kinds=kinds, kind_names=names)
+        shown = canvas(scene, args.frame)[0] if args.frame else scene
+        renderer = BlenderRenderer(shown, samples=args.blender_samples, seed=args.seed)
+    noise = args.noise or ("scene" if scene.sensor else "lab")
+    if noise == "scene":
+        if scene.sensor is None:
+            raise MeniscopeError(args.scene, "--noise scene: the scene has no sensor block (run meniscope calibrate)")
+        effects = sensor_effects(**scene.sensor.model_dump(), bit_depth=bit_depth)
+    else:
+        effects = noise_preset(noise, bit_depth)
+    truth = simulate(
+        scene,
+        args.out,
+        windows=args.windows,
+        seed=args.seed,
+        ejection_hz=args.ejection_hz,
+        effects=effects,
+        noise=noise,
+        renderer=renderer,
+        frame=args.frame,
+        kinds=kinds,
+        kind_names=names,
+    )
     rec = truth["recording"]
-    print(f"{args.out}: {rec['frames']} frames at {rec['fps']:g} fps, {len(truth['windows'])} windows; "
-          f"truth in {truth_path(args.out)}")
+    print(
+        f"{args.out}: {rec['frames']} frames at {rec['fps']:g} fps, {len(truth['windows'])} windows; "
+        f"truth in {truth_path(args.out)}"
+    )
     return 0

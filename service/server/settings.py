@@ -5,6 +5,7 @@ TOML or JSON, the same keys), environment variables ``MENISCOPE_<KEY>`` (``MENIS
 ``MENISCOPE_PORT``, ``MENISCOPE_FIT__MAX_MODES`` for nested keys), then command-line options.
 Every problem is one :class:`MeniscopeError` line naming the setting.
 """
+
 from __future__ import annotations
 
 import ipaddress
@@ -40,51 +41,77 @@ def default_data_dir() -> Path:
 class ServiceSettings(BaseSettings):
     """Every setting of the monitoring service, with defaults that run on a fresh install."""
 
-    model_config = SettingsConfigDict(env_prefix="MENISCOPE_", env_nested_delimiter="__", extra="forbid",
-                                      frozen=True)
+    model_config = SettingsConfigDict(env_prefix="MENISCOPE_", env_nested_delimiter="__", extra="forbid", frozen=True)
 
     # --- acquisition and inference
-    source: str | None = Field(None, max_length=4096,
-                               description="frame source URI or recording path; none: the demo recording")
+    source: str | None = Field(
+        None, max_length=4096, description="frame source URI or recording path; none: the demo recording"
+    )
     recordings_dir: Path | None = Field(None, description="file sources must lie here (default DATA_DIR/recordings)")
     scene: Path = DEFAULT_SCENE
     models: Path = DEFAULT_MODELS
-    method: Method = Field("network", description="network (fast), direct, nearest or nearest-approx (accurate, "
-                                                  "needs nearest_database)")
+    method: Method = Field(
+        "network", description="network (fast), direct, nearest or nearest-approx (accurate, needs nearest_database)"
+    )
     nearest_database: Path | None = Field(None, description="render database of the nearest methods")
     read_frames: Annotated[int, Field(ge=1, le=4096)] = Field(
-        64, description="frames per source read: a frame waits in the source until its read is full, and is inferred "
-                        "after the frames read before it")
+        64,
+        description="frames per source read: a frame waits in the source until its read is full, and is inferred "
+        "after the frames read before it",
+    )
     batch: Annotated[int, Field(ge=1, le=4096)] = Field(512, description="frames per inference call, at most")
     batch_ms: Positive = Field(
-        2.0, description="inference latency budget (ms): a call takes no more frames than it infers in this time at "
-                         "the cost per frame measured so far, so a window's closing frame never waits behind a long call")
+        2.0,
+        description="inference latency budget (ms): a call takes no more frames than it infers in this time at "
+        "the cost per frame measured so far, so a window's closing frame never waits behind a long call",
+    )
     threads: Annotated[int, Field(ge=1, le=64)] = Field(1, description="onnxruntime intra-op threads")
     queue_batches: Annotated[int, Field(ge=1, le=1024)] = Field(
-        64, description="source reads waiting for inference before new ones are dropped")
+        64, description="source reads waiting for inference before new ones are dropped"
+    )
     # --- segmentation and fit
     ejection_hz: Positive | None = Field(100.0, description="expected ejection rate: no two within half a period")
-    ejection_ratio: Positive = Field(2.0, description="an ejection's burst of frame change above the change of the "
-                                                     "frames before it, as a multiple of their median change")
+    ejection_ratio: Positive = Field(
+        2.0,
+        description="an ejection's burst of frame change above the change of the "
+        "frames before it, as a multiple of their median change",
+    )
     max_window_s: Positive = Field(0.05, description="a window is cut (not fitted as one) beyond this")
     trigger: Literal["video", "printer"] = Field(
-        "video", description="what cuts the windows: the ejections the video shows, or the printer's trigger "
-                             "(POST /api/v1/ejections, trigger_zmq), which the video then checks")
-    trigger_zmq: str | None = Field(None, description="ZeroMQ endpoint to subscribe to for the printer's ejection "
-                                                      "events (JSON {\"frame\": N} or {\"time_s\": T}); empty: none")
+        "video",
+        description="what cuts the windows: the ejections the video shows, or the printer's trigger "
+        "(POST /api/v1/ejections, trigger_zmq), which the video then checks",
+    )
+    trigger_zmq: str | None = Field(
+        None,
+        description="ZeroMQ endpoint to subscribe to for the printer's ejection "
+        'events (JSON {"frame": N} or {"time_s": T}); empty: none',
+    )
     trigger_wait_s: Positive = Field(2e-3, description="how long frames wait for a late printer event (trigger)")
     fit: FitSettings = FitSettings()
     fit_workers: Annotated[int, Field(ge=1, le=16)] = Field(1, description="processes fitting windows")
     fit_nice: Annotated[int, Field(ge=0, le=19)] = Field(
-        10, description="niceness of the fit workers: 0 favours fresh windows, higher favours frames")
+        5,
+        description="niceness of the fit workers, between the frames (0) and the web side (web_nice): lower "
+        "favours fresh windows, higher favours frames",
+    )
     # --- publishing
+    web_nice: Annotated[int, Field(ge=0, le=19)] = Field(
+        15,
+        description="niceness of the web side's requests and WebSocket clients: higher favours frames and fits",
+    )
     host: str = "127.0.0.1"
     port: Annotated[int, Field(ge=0, le=65535)] = 8000
-    token: SecretStr | None = Field(None, description="bearer token every changing request needs once set (and "
-                                                      "set it before a service bound beyond loopback can be changed)")
+    token: SecretStr | None = Field(
+        None,
+        description="bearer token every changing request needs once set (and "
+        "set it before a service bound beyond loopback can be changed)",
+    )
     allowed_hosts: list[str] | None = Field(
-        None, description="Host header names accepted (DNS rebinding guard); none: the names of the bound address, "
-                          "every name when bound to all interfaces")
+        None,
+        description="Host header names accepted (DNS rebinding guard); none: the names of the bound address, "
+        "every name when bound to all interfaces",
+    )
     allowed_origins: list[str] = Field([], description="browser origins besides the service's own that may open /ws")
     zmq_publish: str | None = Field("tcp://127.0.0.1:5556", description="ZeroMQ PUB endpoint; empty: none")
     data_dir: Path = Field(default_factory=default_data_dir)
@@ -97,14 +124,17 @@ class ServiceSettings(BaseSettings):
 
     @classmethod
     def settings_customise_sources(
-        cls, settings_cls: type[BaseSettings], init_settings: PydanticBaseSettingsSource,
-        env_settings: PydanticBaseSettingsSource, dotenv_settings: PydanticBaseSettingsSource,
+        cls,
+        settings_cls: type[BaseSettings],
+        init_settings: PydanticBaseSettingsSource,
+        env_settings: PydanticBaseSettingsSource,
+        dotenv_settings: PydanticBaseSettingsSource,
         file_secret_settings: PydanticBaseSettingsSource,
     ) -> tuple[PydanticBaseSettingsSource, ...]:
         return init_settings, env_settings, *(_Table(settings_cls, data) for data in _LAYERS.get())
 
     @model_validator(mode="after")
-    def _checked(self) -> "ServiceSettings":
+    def _checked(self) -> ServiceSettings:
         if self.method.startswith("nearest") and self.nearest_database is None:
             raise ValueError(f"method {self.method!r} needs nearest_database (a `meniscope dataset` folder)")
         if self.source is not None:
@@ -168,16 +198,19 @@ def read_config(path: Path) -> dict[str, Any]:
     return data
 
 
-def load_settings(config: Path | None = None, fallbacks: Mapping[str, Any] | None = None,
-                  **overrides: Any) -> ServiceSettings:
+def load_settings(
+    config: Path | None = None, fallbacks: Mapping[str, Any] | None = None, **overrides: Any
+) -> ServiceSettings:
     """Settings from defaults, ``fallbacks``, ``config``, the environment and ``overrides`` (later ones
     winning; None values ignored), validated once, so that an override mends a bad value beneath it.
 
     ``fallbacks`` hold only where no config file, environment variable or override sets the key
     (``meniscope serve --source REC`` makes REC's folder the recordings folder unless one is set).
     """
-    layers = (read_config(config) if config is not None else {},
-              {k: v for k, v in (fallbacks or {}).items() if v is not None})
+    layers = (
+        read_config(config) if config is not None else {},
+        {k: v for k, v in (fallbacks or {}).items() if v is not None},
+    )
     token = _LAYERS.set(layers)
     try:
         return ServiceSettings(**{k: v for k, v in overrides.items() if v is not None})
@@ -238,7 +271,10 @@ def resolve_source(uri: str, recordings: Path) -> str:
     raw = unquote(parts.path) if parts is not None else uri
     path = (recordings / Path(raw).expanduser()).resolve()
     if not path.is_relative_to(recordings):
-        raise MeniscopeError(uri, f"file sources must lie in the recordings folder {recordings} "
-                                  "(setting recordings_dir, MENISCOPE_RECORDINGS_DIR)")
+        raise MeniscopeError(
+            uri,
+            f"file sources must lie in the recordings folder {recordings} "
+            "(setting recordings_dir, MENISCOPE_RECORDINGS_DIR)",
+        )
     query = parts.query if parts is not None else ""
     return urlunsplit(("file", "", quote(str(path)), query, ""))

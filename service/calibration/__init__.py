@@ -1,0 +1,7 @@
+"""Scene calibration from the lab's own video (``meniscope calibrate``): analysis by synthesis through our renderer.
+
+The unknowns of a scene file (fluid roughness and reflectance, the light, the camera's response and pose,
+where the ROI sits in the recorded frame, the artifact spheres) are fitted jointly with the motion of a
+handful of frames from several phases, on losses that see a highlight off by a few pixels (blurred
+pyramids), coarse to fine, from several starts (:mod:`.fit`).
+"""

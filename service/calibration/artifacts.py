@@ -1,0 +1,136 @@
+"""The artifact spheres from their glints in the lab's static image: found, placed on the nozzle face, sized.
+
+A defect is a small sphere on the bottom face (centre at z = 0). Its glint is where its normal bisects the
+view and the light, ``glint = centre + radius h`` with ``h`` the unit half-vector, so a glint seen at a
+pixel fixes the centre once the radius is known: the ray through the pixel meets the plane
+``z = radius h_z`` at the glint. The radius follows from the glint's flux (a mirror ball's radiant
+intensity grows as radius^2; shading.py), measured against a render of a sphere of known size.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from service.render import Renderer
+from service.render.camera import camera_frame, focal_px, project
+from service.scene import Scene, direction
+
+#: Radius (mm) the first placement assumes; the flux then rescales it.
+START_RADIUS_MM = 0.012
+#: Half-size (px) of the square over which a glint's flux is summed.
+FLUX_HALF_PX = 2
+#: A glint must stand this many noise sigmas above the static model.
+DETECT_SIGMAS = 6.0
+
+
+def pixel_ray(scene: Scene, col: float | np.ndarray, row: float | np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Camera centre (3,) and unit directions (..., 3) of the rays through image points (col, row) of the ROI."""
+    cam = scene.camera
+    location, forward, up = camera_frame(scene)
+    right = np.cross(forward, up)
+    x = np.asarray(col, dtype=np.float64)[..., None] - (cam.width_px - 1) / 2
+    y = np.asarray(row, dtype=np.float64)[..., None] - (cam.height_px - 1) / 2
+    d = focal_px(scene) * forward + x * right - y * up
+    return location, d / np.linalg.norm(d, axis=-1, keepdims=True)
+
+
+def face_pixels(scene: Scene) -> np.ndarray:
+    """Pixels (h, w) bool whose ray meets the plane z = 0 on the nozzle's bottom face (R < r < outer radius):
+    where a defect's glint can be."""
+    cam, nz = scene.camera, scene.nozzle
+    rows, cols = np.mgrid[0 : cam.height_px, 0 : cam.width_px]
+    location, d = pixel_ray(scene, cols.ravel().astype(float), rows.ravel().astype(float))
+    t = -location[2] / d[..., 2]
+    r = np.hypot(*(location[:2, None] + t * d[..., :2].T))
+    return ((r > nz.radius_mm) & (r < nz.outer_radius_mm)).reshape(cam.height_px, cam.width_px)
+
+
+def detect(residual: np.ndarray, allowed: np.ndarray, noise: float) -> np.ndarray:
+    """Glints (G, 3): sub-pixel (col, row) and flux, of ``residual`` (h, w) (lab static image minus the model's
+    without spheres) inside the ``allowed`` mask: local maxima of its white top-hat (small bright specks, not
+    the smooth or edge-like leftovers of an imperfect model) above DETECT_SIGMAS ``noise`` and above
+    DETECT_SIGMAS robust spreads of the top-hat itself."""
+    res = residual.astype(np.float32)
+    speck = cv2.morphologyEx(res, cv2.MORPH_TOPHAT, np.ones((5, 5), np.uint8))
+    spread = 1.4826 * float(np.median(np.abs(speck[allowed] - np.median(speck[allowed])))) if allowed.any() else 0.0
+    peak = (
+        (speck == cv2.dilate(speck, np.ones((3, 3), np.uint8))) & allowed & (speck > DETECT_SIGMAS * max(noise, spread))
+    )
+    out = []
+    h, w = res.shape
+    for row, col in zip(*np.nonzero(peak)):
+        r0, r1 = max(0, row - FLUX_HALF_PX), min(h, row + FLUX_HALF_PX + 1)
+        c0, c1 = max(0, col - FLUX_HALF_PX), min(w, col + FLUX_HALF_PX + 1)
+        patch = np.maximum(speck[r0:r1, c0:c1], 0.0)
+        total = float(patch.sum())
+        rows, cols = np.mgrid[r0:r1, c0:c1]
+        out.append(
+            ((cols * patch).sum() / total, (rows * patch).sum() / total, float(np.maximum(res[r0:r1, c0:c1], 0).sum()))
+        )
+    return np.array(out, dtype=np.float64).reshape(-1, 3)
+
+
+def place(scene: Scene, glints: np.ndarray, radii: np.ndarray) -> np.ndarray:
+    """Sphere centres (G, 3) on the face (z = 0) whose glints of ``radii`` (G,) appear at ``glints`` (col, row)."""
+    light = direction(scene.light.azimuth_deg, scene.light.elevation_deg)
+    centres = []
+    for (col, row), rho in zip(glints[:, :2], radii):
+        origin, d = pixel_ray(scene, col, row)
+        h = light - d
+        h /= np.linalg.norm(h)
+        t = (rho * h[2] - origin[2]) / d[2]
+        centres.append(origin + t * d - rho * h)
+    return np.array(centres).reshape(-1, 3)
+
+
+def with_spheres(scene: Scene, spheres: np.ndarray) -> Scene:
+    """``scene`` with its artifacts listed explicitly as ``spheres`` (K, 4) x, y, z, radius."""
+    data = scene.as_dict()
+    data["artifacts"]["spheres"] = [dict(zip(("x", "y", "z", "radius"), map(float, s))) for s in spheres]
+    data["artifacts"]["material"] = scene.sphere_material.model_dump()
+    return Scene.from_dict(data)
+
+
+def glint_flux(scene: Scene, spheres: np.ndarray, at: np.ndarray, supersample: int = 3) -> np.ndarray:
+    """Flux (G,) over the FLUX_HALF_PX square around each point ``at`` (G, 2) of a render of ``scene`` with
+    ``spheres`` minus one without them (the fluid at rest)."""
+    frames = [
+        Renderer(with_spheres(scene, s), supersample=supersample).render(np.zeros((1, 4)))[0]
+        for s in (spheres, np.zeros((0, 4)))
+    ]
+    diff = frames[0] - frames[1]
+    h, w = diff.shape
+    out = []
+    for col, row in np.rint(at).astype(int):
+        patch = diff[
+            max(0, row - FLUX_HALF_PX) : min(h, row + FLUX_HALF_PX + 1),
+            max(0, col - FLUX_HALF_PX) : min(w, col + FLUX_HALF_PX + 1),
+        ]
+        out.append(max(float(patch.sum()), 1e-9))
+    return np.array(out)
+
+
+def recover(scene: Scene, residual: np.ndarray, allowed: np.ndarray, noise: float) -> np.ndarray:
+    """The artifact spheres (G, 4) whose glints explain ``residual`` (fractions of full scale, the PSF keeps a
+    glint's flux): placed with START_RADIUS_MM, resized from their flux against a render, placed again."""
+    glints = detect(residual, allowed, noise)
+    if not len(glints):
+        return np.zeros((0, 4))
+    radii = np.full(len(glints), START_RADIUS_MM)
+    spheres = np.column_stack([place(scene, glints, radii), radii])
+    model = glint_flux(scene, spheres, glints[:, :2])
+    radii = np.clip(START_RADIUS_MM * np.sqrt(glints[:, 2] / model), 0.002, 0.05)
+    return np.column_stack([place(scene, glints, radii), radii])
+
+
+def glint_positions(scene: Scene, spheres: np.ndarray) -> np.ndarray:
+    """Image points (G, 2) of the glints of ``spheres`` (G, 4) in ``scene``'s camera (for scoring)."""
+    light = direction(scene.light.azimuth_deg, scene.light.elevation_deg)
+    location, _, _ = camera_frame(scene)
+    view = location - spheres[:, :3]
+    view /= np.linalg.norm(view, axis=1, keepdims=True)
+    h = view + light
+    h /= np.linalg.norm(h, axis=1, keepdims=True)
+    col, row = project(scene, spheres[:, :3] + spheres[:, 3:4] * h)
+    return np.column_stack([col, row])

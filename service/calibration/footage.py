@@ -1,0 +1,54 @@
+"""The lab frames a calibration looks at: a handful fitted one by one, and a larger stack for static statistics."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from service.errors import MeniscopeError
+from service.recordings import open_recording
+
+
+@dataclass(frozen=True)
+class Footage:
+    """Frames as fractions of full scale (float32, whole recorded frame).
+
+    ``frames`` (K, H, W): the frames whose motion is fitted, ``indices`` (K,) their frame numbers;
+    ``stack`` (S, H, W): frames spread over the whole recording, for the temporal median (static scene,
+    ROI search) and the temporal variance of static pixels (noise model).
+    """
+
+    path: Path
+    frames: np.ndarray
+    indices: np.ndarray
+    stack: np.ndarray
+    bit_depth: int
+    fps: float
+
+    @property
+    def full_scale(self) -> float:
+        """The largest stored value, 2**bit_depth - 1."""
+        return float(2**self.bit_depth - 1)
+
+
+def spread(count: int, total: int) -> np.ndarray:
+    """Up to ``count`` distinct frame numbers in ``0 .. total - 1``, sorted, on a golden-ratio stride, so that
+    they fall in many phases of any periodic motion (an even stride can alias with the ejection period)."""
+    golden = (np.sqrt(5.0) - 1.0) / 2.0
+    return np.unique(np.floor(((np.arange(min(count, total)) + 0.5) * golden) % 1.0 * total).astype(np.int64))
+
+
+def read_footage(path: str | Path, frames: int, stack: int = 120) -> Footage:
+    """Read ``frames`` frames to fit and a ``stack`` for statistics from a recording (any format we read)."""
+    path = Path(path)
+    with open_recording(path) as rec:
+        total = len(rec)
+        if total < 2:
+            raise MeniscopeError(path, f"calibration needs at least 2 frames, the recording has {total}")
+        top = float(2**rec.bit_depth - 1)
+        read = lambda idx: np.stack([rec[int(i)] for i in idx]).astype(np.float32) / top
+        indices = spread(frames, total)
+        stack_idx = np.unique(np.linspace(0, total - 1, min(stack, total)).round().astype(np.int64))
+        return Footage(path, read(indices), indices, read(stack_idx), rec.bit_depth, rec.fps)

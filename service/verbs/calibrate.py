@@ -1,0 +1,54 @@
+"""``meniscope calibrate``: a scene fitted to the lab's own video by analysis by synthesis, with its report."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from service.errors import MeniscopeError, require_folder_of
+from service.verbs import add_scene_option
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser(
+        "calibrate",
+        help="fit a scene file to a lab recording (analysis by synthesis) and report what the video identifies",
+        description="Estimate the fluid's roughness and reflectance, the light's direction, size and strength, "
+        "the camera's exposure, black level, blur and noise, its elevation, the ROI's place in the frame and the "
+        "artifact spheres from unlabeled lab video, jointly with the motion of the frames used; write the "
+        "calibrated scene and, beside it, SCENE.calibration.json and SCENE.calibration.png.",
+    )
+    p.add_argument("recording", type=Path, help="lab recording (.cine or .avi)")
+    add_scene_option(p)
+    p.add_argument("--out", type=Path, required=True, help="calibrated scene to write (SCENE.json)")
+    p.add_argument("--frames", type=int, default=12, help="frames whose motion is fitted (default 12)")
+    p.add_argument(
+        "--stack",
+        type=int,
+        default=120,
+        help="frames spread over the recording for the median image and the noise (default 120)",
+    )
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from service.calibration.fit import calibrate
+    from service.calibration.footage import read_footage
+    from service.calibration.report import write_report
+
+    if not 2 <= args.frames <= 200:
+        raise MeniscopeError("--frames", f"must be between 2 and 200, got {args.frames}")
+    if not 8 <= args.stack <= 5000:
+        raise MeniscopeError("--stack", f"must be between 8 and 5000, got {args.stack}")
+    require_folder_of(args.out)
+    from service.scene import Scene
+
+    guess = Scene.load(args.scene)
+    footage = read_footage(args.recording, args.frames, args.stack)
+    cal = calibrate(footage, guess)
+    doc, png = write_report(cal, footage, args.out)
+    print(
+        f"{args.out}: calibrated in {cal.seconds:.0f} s, residual {cal.residual_before * footage.full_scale:.1f} "
+        f"-> {cal.residual_after * footage.full_scale:.1f} DN RMS; report {doc}, figure {png}"
+    )
+    return 0
