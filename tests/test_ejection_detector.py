@@ -98,3 +98,44 @@ def test_missing_frames_are_neither_ejections_nor_a_crash() -> None:
     change = bursts([400], 800, np.random.default_rng(2))
     change[100:160] = np.nan
     assert detect_ejections_streamed(change, FPS).tolist() == [400]
+
+
+def ringing_after(at: list[int], n: int, rng: np.random.Generator) -> np.ndarray:
+    """Frame change: noise about 8, at each of ``at`` a burst that is the start of its own ringing, decaying over 2 ms."""
+    change = rng.normal(8.0, 0.5, n)
+    for e in at:
+        k = np.arange(n - e)
+        change[e:] += 200.0 * np.exp(-k / 40.0) * np.abs(np.sin(2 * np.pi * 2000 / FPS * k + 0.8))
+    return change
+
+
+@pytest.mark.parametrize("offline", [False, True])
+def test_a_stream_that_starts_at_an_ejection_whose_ringing_is_as_strong_starts_with_it(offline: bool) -> None:
+    change = ringing_after([0, 190, 380, 570], 760, np.random.default_rng(4))
+    change[0] = np.nan  # the first frame has none before it
+    assert detect_ejections_streamed(change, FPS, offline=offline).tolist() == [0, 190, 380, 570]
+
+
+@pytest.mark.parametrize("offline", [False, True])
+def test_a_stream_that_starts_inside_a_window_does_not_start_with_an_ejection(offline: bool) -> None:
+    change = ringing_after([0, 190, 380, 570], 760, np.random.default_rng(4))[120:]  # ringing faded, then one
+    change[0] = np.nan
+    assert detect_ejections_streamed(change, FPS, offline=offline).tolist() == [70, 260, 450]
+
+
+def ringing_on(at: list[int], n: int, rng: np.random.Generator, loud_from: int) -> np.ndarray:
+    """Frame change: noise about 8; from the ``loud_from``-th ejection on, each window rings undamped at 150 with a
+    phase of its own, and its ejection's burst (3 frames) stands less than twice that ringing's median above it."""
+    change = rng.normal(8.0, 0.5, n)
+    for k, (e, end) in enumerate(zip(at, [*at[1:], n])):
+        ring = 150.0 if k >= loud_from else 20.0 * np.exp(-np.arange(end - e) / 10.0)
+        change[e:end] += ring * np.abs(np.sin(2 * np.pi * 1500 / FPS * np.arange(end - e) + rng.uniform(0, np.pi)))
+        change[e : e + 3] += 260.0
+    return change
+
+
+@pytest.mark.parametrize("offline", [False, True])
+def test_ejections_into_ringing_as_strong_as_their_burst_are_found_where_the_rate_puts_them(offline: bool) -> None:
+    true = [190 * k + int(d) for k, d in enumerate([0, 3, -2, 4, 0, -3, 2, 1, -4, 0])]  # a rate drifting 2 %
+    change = ringing_on(true, 2000, np.random.default_rng(5), loud_from=3)
+    assert score(detect_ejections_streamed(change, FPS, offline=offline), true) == (9, 9, 9)

@@ -8,7 +8,16 @@ or the ringing of the window before), exceeds both ``ratio`` times that baseline
 typical burst of the ejections found so far (the median of the last eight; spatter or a strong ringing
 peak is a fraction of one). The ejection is the burst's first frame: the earliest frame, among the
 transient frames before the strongest start, whose change reaches 0.3 of the burst's highest. None is
-taken within ``refractory`` frames of the last (the transient and the ringing it starts).
+taken within ``refractory`` frames of the last (the transient and the ringing it starts). A stream's first
+frame has no frames before it: it starts at an ejection when its first transient is a burst against the frames
+after it, or, where the ejection's own ringing is as strong as its burst, when that transient reaches half the
+first ejection found after it (frames wait for that decision, at most :data:`START_WAIT_S`).
+
+Where ringing is as strong as an ejection's burst (a lightly damped meniscus, 4 kHz modes) the burst does not
+stand ``ratio`` above it; there the recent ejection period (the median interval between the ejections found)
+helps: in the stretch of +-10 % about a multiple of it after the last ejection, the strongest start counts at a
+quarter of the ratio (frames wait for the stretch's end). The rate is learned from the video, not assumed, and a
+skipped ejection or a rate drifting a few per cent keeps it.
 
 What happens after the ejection is not consulted beyond the transient, so a settled meniscus, a heavily
 or lightly damped one and 4 kHz modes look the same to it. Live runs it with ``lookahead`` = the transient
@@ -31,9 +40,23 @@ HISTORY_S = 2e-3
 REFRACTORY_S = 4e-3
 
 
+#: A stream whose first transient is not plainly a burst against the frames after it (the ejection's ringing can
+#: be as strong) starts at an ejection when its first transient's highest change reaches this share of the first
+#: ejection found after it: decided then, or not at all once the stream has run this long without one (s).
+START_FRACTION = 0.5
+START_WAIT_S = 25e-3
+
 #: A burst starts at its first frame whose change above the baseline reaches this share of its highest: the
 #: bulge's first frame changes less than its fastest (one ejection in 50 at half, with the 4th frame the peak).
 ONSET_FRACTION = 0.3
+
+
+#: Where the recent ejection period puts the next ejection (within this share of the time since the last, up to
+#: this many periods on), the strongest start of that stretch is one at RELAXED times the ratio: an ejection
+#: into a meniscus still ringing as hard as its burst stands out from that ringing less than ``ratio``.
+EXPECTED_SPREAD = 0.1
+EXPECTED_PERIODS = 3
+RELAXED = 0.25
 
 
 class EjectionDetector:
@@ -52,23 +75,31 @@ class EjectionDetector:
         self.refractory = refractory if refractory is not None else max(self.transient + 1, int(REFRACTORY_S * fps))
         self.lookahead = max(self.transient + 2, lookahead if lookahead is not None else 0)
         self.ratio, self.floor = ratio, floor
+        self._start_wait = int(START_WAIT_S * fps)
         self._changes = np.empty(0)  # changes of frames [self._first, ...), NaN where missing
         self._first: int | None = None
         self._decided = 0  # frames before this index are decided
         self._last: int | None = None  # the last ejection
         self._start_checked = False
+        self._origin = 0  # the stream's first frame
+        self._pending: float | None = None  # the first transient's highest change while its ejection is undecided
         self._bursts: deque[float] = deque(maxlen=8)
+        self._intervals: deque[int] = deque(maxlen=8)  # frames between consecutive ejections found
 
     @property
     def latency(self) -> int:
         """Frames that must follow a frame before :attr:`settled` passes it (whether an ejection starts there or
-        in the transient before is known)."""
+        in the transient before is known); more where a strong start in an expected ejection's stretch waits for
+        the stretch's end (a tenth of the period, the ringing of a lightly damped meniscus)."""
         return self.transient + self.lookahead - 2
 
     @property
     def settled(self) -> int:
-        """No ejection found from now on lies before this frame (the stream's first frame before any)."""
-        return self._decided - self.transient + 1 if self._first is not None else np.iinfo(np.int64).min
+        """No ejection found from now on lies before this frame (the stream's first frame before any, and while
+        whether it starts at one is undecided)."""
+        if self._first is None:
+            return np.iinfo(np.int64).min
+        return self._origin if self._pending is not None else self._decided - self.transient + 1
 
     def push(self, indices: np.ndarray, change: np.ndarray) -> list[int]:
         """Add frames ``indices`` (N,), increasing, with their change (N,); the ejections decided by them."""
@@ -76,7 +107,7 @@ class EjectionDetector:
         if indices.size == 0:
             return []
         if self._first is None:
-            self._first = self._decided = int(indices[0])
+            self._first = self._decided = self._origin = int(indices[0])
             self._start_checked = False
         end = self._first + self._changes.size
         grown = np.full(max(int(indices[-1]) + 1 - end, 0), np.nan)
@@ -86,13 +117,18 @@ class EjectionDetector:
         found = self._start(final=False)
         if not self._start_checked:
             return found
-        return found + self._decide(self._first + self._changes.size - self.lookahead + 1)
+        found += self._decide(self._first + self._changes.size - self.lookahead + 1)
+        if self._pending is not None and self._decided - self._origin > self._start_wait:
+            self._pending = None  # no ejection for long: the stream started inside a window
+        return found
 
     def finish(self) -> list[int]:
         """The stream ended: decide the frames still waiting for their look-ahead."""
         if self._first is None:
             return []
-        return self._start(final=True) + self._decide(self._first + self._changes.size - self.transient)
+        found = self._start(final=True) + self._decide(self._first + self._changes.size - self.transient, final=True)
+        self._pending = None
+        return found
 
     def _start(self, final: bool) -> list[int]:
         """Whether the stream starts with an ejection (a recording cut at one), once the ``history`` frames after
@@ -105,13 +141,15 @@ class EjectionDetector:
             return []
         level = np.nanmax(burst) - np.nanpercentile(after, 90)
         if not level > self.ratio * np.nanmedian(after):
+            self._pending = float(np.nanmax(burst))  # decided by the first ejection found after it
             return []
         self._last = self._first
         self._bursts.append(float(level))
         return [self._first]
 
-    def _decide(self, until: int) -> list[int]:
-        """Decide frames [self._decided, until); keep the history the next decisions need."""
+    def _decide(self, until: int, final: bool = False) -> list[int]:
+        """Decide frames [self._decided, until) (or fewer, where an expected ejection's stretch is not all in
+        unless ``final``); keep the history the next decisions need."""
         lo = self._decided
         if until <= lo:
             return []
@@ -119,7 +157,7 @@ class EjectionDetector:
         at = lambda frame: frame - self._first
         pad = np.full(self.history, np.nan)
         ext = np.concatenate([pad, c, np.full(self.lookahead, np.nan)])  # ext[i + history] = c[i]
-        span = np.arange(at(lo), at(until) + self.lookahead)
+        span = np.arange(at(lo), max(at(until) + self.lookahead, c.size))
         with np.errstate(all="ignore"), _quiet():
             burst = np.nanmax(sliding_window_view(ext[self.history :], self.transient)[span], axis=1)
             past = sliding_window_view(ext, self.history)[span]
@@ -131,19 +169,54 @@ class EjectionDetector:
             frame = lo + int(i)
             if self._last is not None and frame - self._last < self.refractory:
                 continue
-            if not (level[i] > self.ratio * base[i] and level[i] > self.floor * self._typical()):
+            typical = self.floor * self._typical()
+            if not level[i] > RELAXED * typical:
                 continue
-            ahead = level[i : i + self.lookahead - self.transient + 1]
-            if ahead.max() > level[i]:  # a stronger start follows within the look-ahead: decide there
+            if level[i] > self.ratio * base[i] and level[i] > typical:
+                ahead = level[i : i + self.lookahead - self.transient + 1]
+                if ahead.max() > level[i]:  # a stronger start follows within the look-ahead: decide there
+                    continue
+            elif (expected := self._expected(frame)) is not None:  # where the rate puts the next ejection
+                a, b = max(expected[0], lo) - lo, expected[1] - lo
+                b = min(b, span.size - 1) if final else b
+                if b + self.transient > span.size:  # the stretch's last burst is not all in: wait for it
+                    until = frame
+                    break
+                if not (i == a + int(np.argmax(level[a : b + 1])) and level[i] > RELAXED * self.ratio * base[i]):
+                    continue
+            else:
                 continue
             onset = self._onset(c, at(frame), top[i])
+            if self._last is not None:
+                self._intervals.append(self._first + onset - self._last)
             self._last = self._first + onset
             self._bursts.append(float(level[i]))
+            if self._pending is not None:  # the stream's start judged against its first ejection
+                starts = self._last - self._origin >= self.refractory and self._pending >= START_FRACTION * burst[i]
+                if starts:
+                    found.append(self._origin)
+                    self._intervals.append(self._last - self._origin)
+                self._pending = None
             found.append(self._last)
         self._decided = until
         drop = max(0, at(until) - self.history - self.transient)
         self._changes, self._first = c[drop:], self._first + drop
         return found
+
+    def _expected(self, frame: int) -> tuple[int, int] | None:
+        """The frames around the multiple of the recent ejection period (the median of the last intervals) after
+        the last ejection that ``frame`` lies in, +-``EXPECTED_SPREAD`` of that time; None where it lies in none
+        (or too few ejections are known)."""
+        if self._last is None or not self._intervals:
+            return None
+        period = float(np.median(self._intervals))
+        k = round((frame - self._last) / period)
+        if not 1 <= k <= EXPECTED_PERIODS:
+            return None
+        centre, spread = self._last + k * period, max(2.0, EXPECTED_SPREAD * k * period)
+        if abs(frame - centre) > spread:
+            return None
+        return int(np.ceil(centre - spread)), int(np.floor(centre + spread))
 
     def _typical(self) -> float:
         """The median burst level of the recent ejections (0 before the first)."""
