@@ -1,5 +1,5 @@
 """``meniscope bench ejections``: precision and recall of ejection detection (within +-2 frames) per kind of
-window, live (the transient's look-ahead) and offline (more), the same detector; the former offline rule beside.
+window, live (the transient's look-ahead) and offline (more), the same detector.
 
 Recordings of each kind alone and all kinds mixed (``meniscope simulate --kinds``), over seeds and noise
 presets, rendered by our renderer into a scratch folder; or the recordings given (with their truth sidecars,
@@ -54,10 +54,10 @@ def score(found, true) -> tuple[int, int, int]:  # type: ignore[no-untyped-def]
 
 
 def measure(recording: Path) -> dict:
-    """Detections of one recording by the live and offline detector and by the former offline rule, scored."""
+    """Detections of one recording by the detector with the live and the offline look-ahead, scored."""
     import json
 
-    from service.analysis.segment import detect_ejections, frame_activity, frame_steps
+    from service.analysis.segment import frame_steps
     from service.pipeline.ejections import detect_ejections_streamed
     from service.recordings import open_recording
     from service.simulate import truth_path
@@ -69,14 +69,13 @@ def measure(recording: Path) -> dict:
     runs = {
         "live": detect_ejections_streamed(change, fps, offline=False),
         "offline": detect_ejections_streamed(change, fps, offline=True),
-        "former offline": detect_ejections(frame_activity(change), fps),
     }
     return {name: score(found, truth["ejections"]) for name, found in runs.items()}
 
 
 def markdown(results: dict) -> str:
     """One row per kind: precision and recall of each detector, summed over seeds and noise levels."""
-    names = ("live", "offline", "former offline")
+    names = ("live", "offline")
     lines = [
         "| kind | ejections | " + " | ".join(f"{n} P | {n} R" for n in names) + " |",
         "|---|---:|" + "---:|---:|" * len(names),
