@@ -7,7 +7,7 @@ its ``transient`` frames, less the median change of the ``history`` frames befor
 or the ringing of the window before), exceeds both ``ratio`` times that baseline and ``floor`` times the
 typical burst of the ejections found so far (the median of the last eight; spatter or a strong ringing
 peak is a fraction of one). The ejection is the burst's first frame: the earliest frame, among the
-transient frames before the strongest start, whose change reaches 0.3 of the burst's highest. None is
+transient frames before the strongest start, whose change reaches 0.2 of the burst's highest. None is
 taken within ``refractory`` frames of the last (the transient and the ringing it starts). A stream's first
 frame has no frames before it: it starts at an ejection when its first transient is a burst against the frames
 after it, or, where the ejection's own ringing is as strong as its burst, when that transient reaches half the
@@ -47,8 +47,9 @@ START_FRACTION = 0.5
 START_WAIT_S = 25e-3
 
 #: A burst starts at its first frame whose change above the baseline reaches this share of its highest: the
-#: bulge's first frame changes less than its fastest (one ejection in 50 at half, with the 4th frame the peak).
-ONSET_FRACTION = 0.3
+#: bulge's first frame changes less than its fastest (one ejection in 50 at half; at 0.3 an ejection into strong
+#: ringing, its first frames 60 above the ringing and its 6th 220, was placed 5 frames late).
+ONSET_FRACTION = 0.2
 
 
 #: Where the recent ejection period puts the next ejection (within this share of the time since the last, up to
