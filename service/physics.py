@@ -100,8 +100,9 @@ class Coefficients:
 
 
 @dataclass(frozen=True)
-class WindowTruth:
-    """The true motion of one window between ejections (scene.md, "Recordings and ground truth")."""
+class WindowMotion:
+    """The motion of one window between ejections (Eq. 1's ten parameters): the truth of a simulated recording
+    (scene.md, "Recordings and ground truth") or an estimate of it (refinement by synthesis)."""
 
     d: float
     p: float

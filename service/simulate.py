@@ -26,7 +26,7 @@ from tqdm import tqdm
 
 from service.camera_effects import CameraEffects
 from service.errors import MeniscopeError, require_folder_of
-from service.physics import WindowTruth
+from service.physics import WindowMotion
 from service.recordings import open_writer
 from service.scene import Scene
 
@@ -74,13 +74,13 @@ class WindowRanges:
             )
         return replace(self, f1=(self.f1[0], min(self.f1[1], f1_max)))
 
-    def sample(self, rng: np.random.Generator) -> WindowTruth:
+    def sample(self, rng: np.random.Generator) -> WindowMotion:
         """One window's true motion."""
         u = lambda lohi: float(rng.uniform(*lohi))
         d, p, A1, A2, f1, g1 = u(self.d), u(self.p), u(self.A1), u(self.A2), u(self.f1), u(self.g1)
         f2, g2 = f1 * u(self.f2_over_f1), g1 * u(self.g2_over_g1)
         phi1, phi2 = u((0.0, 2 * math.pi)), u((0.0, 2 * math.pi))
-        return WindowTruth(d=d, p=p, A1=A1, g1=g1, f1=f1, phi1=phi1, A2=A2, g2=g2, f2=f2, phi2=phi2)
+        return WindowMotion(d=d, p=p, A1=A1, g1=g1, f1=f1, phi1=phi1, A2=A2, g2=g2, f2=f2, phi2=phi2)
 
 
 @dataclass(frozen=True)
@@ -116,7 +116,7 @@ class Plan:
 
     fps: float
     ejections: np.ndarray  # (W + 1,) int64: ejection frames, then the frame after the last window
-    truths: tuple[WindowTruth, ...]  # (W,)
+    truths: tuple[WindowMotion, ...]  # (W,)
     bulges_mm: np.ndarray  # (W,) peak bulge of each ejection, mm
     transient_frames: int
     ranges: WindowRanges
@@ -161,7 +161,7 @@ def plan_recording(
     first_window: int = 0,
     kinds: Sequence[WindowKind] = (),
 ) -> Plan:
-    """Draw the motion of windows ``first_window ..`` of the ejection schedule: one :class:`WindowTruth` and
+    """Draw the motion of windows ``first_window ..`` of the ejection schedule: one :class:`WindowMotion` and
     one bulge per window. With ``kinds`` (:mod:`service.window_kinds`), window k is of kind
     ``kinds[k % len(kinds)]``: its ranges, bulge and length come from there instead of ``ranges`` and
     ``transient.bulge_mm`` and the uniform schedule.

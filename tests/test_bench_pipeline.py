@@ -1,5 +1,5 @@
 """`meniscope bench pipeline` runs offline analysis and the live pipeline on one recording and reports, for each,
-frames/s and the CPU it spent per frame (its fit processes included), as the user runs it."""
+frames/s and the CPU it spent per frame (its fit processes included, and their share), as the user runs it."""
 
 from __future__ import annotations
 
@@ -36,5 +36,9 @@ def test_bench_pipeline_reports_both_pipelines_with_their_cpu_per_frame(demo_cin
         assert run["frames_per_s"] > 0 and run["windows"] > 0
         # the fit processes' CPU is counted: at least the time one frame's inference takes, far below a second
         assert 1 < run["cpu_us_per_frame"] < 1e6
+        assert 0 < run["fit_cpu_us_per_frame"] < run["cpu_us_per_frame"]  # the fits ran in processes of their own
     assert results["offline_over_live"] == results["offline_median_frames_per_s"] / results["live_median_frames_per_s"]
-    assert "CPU us/frame" in out.with_suffix(".md").read_text()
+    table = out.with_suffix(".md").read_text()
+    assert "CPU us/frame" in table and "of it fit processes" in table
+    header, _, *rows = [line for line in table.splitlines() if line.startswith("|")]
+    assert [row.count("|") for row in rows] == [header.count("|")] * 2  # a cell for every column

@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from service.analysis.segment import windows_between
-from service.pipeline.activity import ActivityTracker
 from service.pipeline.demo import DEMO_AVI, DEMO_TRUTH
 from service.pipeline.ejections import EjectionDetector
+from service.pipeline.measures import PixelMeasures
 from service.pipeline.segmenter import StreamingSegmenter
 from service.recordings import open_recording
 
@@ -42,9 +42,9 @@ def test_the_demo_recording_is_cut_at_its_true_ejections_whatever_the_batching(b
         frames = rec.read(0, len(rec))
     frames = np.concatenate([frames, frames])  # as the looping replay delivers them
     indices = np.arange(len(frames))
-    tracker = ActivityTracker()
+    measures = PixelMeasures()
     change = np.concatenate(
-        [tracker.update(frames[i : i + batch], indices[i : i + batch])[0] for i in range(0, len(frames), batch)]
+        [measures.update(frames[i : i + batch], indices[i : i + batch])[0] for i in range(0, len(frames), batch)]
     )
     truth = json.loads(DEMO_TRUTH.read_text())
     seg = StreamingSegmenter(950, EjectionDetector(truth["recording"]["fps"], refractory=95))

@@ -13,7 +13,7 @@ from service.physics import (
     L2,
     CoefficientRanges,
     Coefficients,
-    WindowTruth,
+    WindowMotion,
     centre_displacement,
     damped_mode,
     displacement,
@@ -81,7 +81,7 @@ def test_decay_underflows_to_exactly_zero() -> None:
 
 
 def test_window_truth_produces_per_frame_coefficients() -> None:
-    truth = WindowTruth(d=0.01, p=0.1, A1=0.02, g1=300, f1=1200, phi1=0.1, A2=0.005, g2=900, f2=2800, phi2=-0.4)
+    truth = WindowMotion(d=0.01, p=0.1, A1=0.02, g1=300, f1=1200, phi1=0.1, A2=0.005, g2=900, f2=2800, phi2=-0.4)
     t = np.arange(190) / 19000
     c = truth.coefficients(t)
     assert len(c) == 190 and c.to_array().shape == (190, 4)

@@ -14,6 +14,7 @@ from service import DEFAULT_MODELS, DEFAULT_SCENE
 from service.analysis.offline import analyse_recording
 from service.analysis.results import FitSettings
 from service.inverse.network import NetworkMethod
+from service.inverse.window_model import FILE as WINDOW_MODEL
 from service.pipeline.fitting import OnFitted
 from service.pipeline.runtime import FittedWindow, Pipeline, PipelineStats
 from service.pipeline.windows import WindowJob, fit_job
@@ -49,10 +50,14 @@ class Published:
         pass
 
 
-@pytest.fixture(scope="module")
-def live_and_offline(demo_cine: Path) -> tuple[list[FittedWindow], object]:
+@pytest.fixture(scope="module", params=["steady", "window"])
+def live_and_offline(request: pytest.FixtureRequest, demo_cine: Path) -> tuple[list[FittedWindow], object]:
+    """Both front doors on one recording, fitting each window's steady series or the window model's (issue 17)."""
+    if request.param == "window" and not (DEFAULT_MODELS / WINDOW_MODEL).is_file():
+        pytest.skip(f"no {WINDOW_MODEL} in {DEFAULT_MODELS}")
     scene = Scene.load(DEFAULT_SCENE)
-    settings = ServiceSettings(read_frames=37, queue_batches=1024)  # odd reads; room for every one: none dropped
+    # odd reads; room for every one: none dropped
+    settings = ServiceSettings(read_frames=37, queue_batches=1024, fit=FitSettings(series_model=request.param))
     method = NetworkMethod(DEFAULT_MODELS, scene)
     published, stats = Published(), PipelineStats()
     with open_source(f"file://{demo_cine}?speed=max") as source:

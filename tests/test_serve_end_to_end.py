@@ -23,6 +23,7 @@ from service.analysis.results import FitSettings
 from service.analysis.segment import frame_brightness
 from service.analysis.steady import window_steady_centre
 from service.inverse.network import NetworkMethod
+from service.inverse.window_model import WindowModel
 from service.pipeline.demo import DEMO_TRUTH
 from service.recordings import open_recording
 from service.recordings.roi import roi_frames
@@ -90,16 +91,17 @@ def session(demo_cine: Path, tmp_path_factory: pytest.TempPathFactory):  # type:
 
 @pytest.fixture(scope="module")
 def offline(demo_cine: Path) -> dict[int, float]:
-    """The dominant frequency of each truth window, analysed offline: same model, same steady D(0, t) and frame
-    brightness, same fit."""
+    """The dominant frequency of each truth window, analysed offline: same model, same steady D(0, t) corrected by
+    the same window model, frame brightness, same fit."""
     scene, fps = Scene.load(DEFAULT_SCENE), TRUTH["recording"]["fps"]
     with open_recording(demo_cine) as rec:
         frames = roi_frames(rec, scene, 0, len(rec))  # what the pipeline infers: the ROI
     coeffs, brightness = NetworkMethod(DEFAULT_MODELS, scene).infer(frames).coefficients, frame_brightness(frames)
-    out = {}
+    out, window_model, skip = {}, WindowModel.of_folder(DEFAULT_MODELS), FitSettings().transient_frames(fps)
     for w in TRUTH["windows"]:
         s, e = w["start_frame"], w["end_frame"]
-        steady = window_steady_centre(coeffs[s:e], scene.nozzle.radius_mm, FitSettings().transient_frames(fps), True)
+        steady = window_steady_centre(coeffs[s:e], scene.nozzle.radius_mm, skip, True)
+        steady = window_model.correct(coeffs[s:e], brightness[s:e], steady, skip)  # serve's default (issue 17)
         result = fit_window(steady, fps, starts_at_ejection=True, ends_at_ejection=True, brightness=brightness[s:e])
         out[s] = result.modes[0].frequency_hz if result.modes else float("nan")
     return out

@@ -15,7 +15,7 @@ import pytest
 from service.camera_effects import CameraEffects, noise_preset
 from service.cli import main
 from service.errors import MeniscopeError
-from service.physics import CoefficientRanges, WindowTruth
+from service.physics import CoefficientRanges, WindowMotion
 from service.recordings import open_recording
 from service.render import Renderer
 from service.scene import Scene
@@ -63,7 +63,7 @@ def coefficients_from_truth(truth: dict) -> np.ndarray:
     rows = []
     for w in truth["windows"]:
         i = np.arange(w["end_frame"] - w["start_frame"])
-        coeffs = WindowTruth(**w["truth"]).coefficients(i / fps).to_array()
+        coeffs = WindowMotion(**w["truth"]).coefficients(i / fps).to_array()
         bulge = i < n_transient
         coeffs[bulge, 2] += w["bulge_mm"] * np.sin(np.pi * (i[bulge] + 0.5) / n_transient)
         rows.append(coeffs)

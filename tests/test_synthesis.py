@@ -15,12 +15,12 @@ from service.analysis.fit import fit_window
 from service.analysis.offline import _with_pixel_intervals
 from service.camera_effects import CameraEffects
 from service.inverse.synthesis import frames_start, plausible, refine_window, standard_errors, start_motion
-from service.physics import WindowTruth
+from service.physics import WindowMotion
 from service.render.renderer import Renderer
 from service.scene import Scene
 
 FPS = 19000.0
-TRUE = WindowTruth(d=0.01, p=-0.08, A1=0.018, g1=400.0, f1=1400.0, phi1=1.0, A2=0.007, g2=900.0, f2=3200.0, phi2=4.0)
+TRUE = WindowMotion(d=0.01, p=-0.08, A1=0.018, g1=400.0, f1=1400.0, phi1=1.0, A2=0.007, g2=900.0, f2=3200.0, phi2=4.0)
 T = np.arange(5, 150) / FPS  # after the ejection's transient, s since the window start
 
 
@@ -30,7 +30,7 @@ def renderer() -> Renderer:
     return Renderer(Scene.load(DEFAULT_SCENE), supersample=1, sun_samples=1)
 
 
-def frames_of(renderer: Renderer, motion: WindowTruth, camera: CameraEffects, seed: int = 0) -> np.ndarray:
+def frames_of(renderer: Renderer, motion: WindowMotion, camera: CameraEffects, seed: int = 0) -> np.ndarray:
     """A window's ROI frames as a camera stores them."""
     return camera.apply(renderer.render(motion.coefficients(T).to_array()), np.random.default_rng(seed))
 
@@ -44,7 +44,7 @@ def test_refinement_recovers_the_motion_from_a_poor_start_through_gain_offset_bl
         gain=0.8, offset=0.02, blur_sigma_px=0.6, full_well_e=16000.0, read_noise_dn=5.0, bit_depth=12
     )
     frames = frames_of(renderer, TRUE, camera)
-    start = WindowTruth(
+    start = WindowMotion(
         d=0.013, p=-0.06, A1=0.011, g1=250.0, f1=1390.0, phi1=1.4, A2=0.004, g2=600.0, f2=3150.0, phi2=3.5
     )
     refined = refine_window(renderer, frames, T, start).motion
@@ -57,7 +57,7 @@ def test_refinement_recovers_the_motion_from_a_poor_start_through_gain_offset_bl
 
 def test_refinement_lowers_the_pixel_residual_and_reports_its_search(renderer):
     frames = frames_of(renderer, TRUE, CameraEffects(bit_depth=12, blur_sigma_px=0.7, full_well_e=16000.0))
-    start = WindowTruth(**{**TRUE.as_dict(), "A1": 0.012, "g1": 600.0})
+    start = WindowMotion(**{**TRUE.as_dict(), "A1": 0.012, "g1": 600.0})
     refined = refine_window(renderer, frames, T, start)
     assert refined.rms < 0.2 * refined.rms_start
     # one render per start variant tried (two starts), then per LM evaluation one and per Jacobian four, and one

@@ -403,6 +403,40 @@ def test_the_settling_time_that_stopped_bench_tradeoff():
     assert envelope(t, a, g)[0] == pytest.approx(5e-4, rel=1e-9)
 
 
+@settings(max_examples=60, deadline=None)
+@given(
+    w=st.floats(0.0, np.pi),
+    g=st.floats(0.0, 1.0),
+    gaps=st.lists(st.integers(1, 1999), max_size=20),
+    size=st.sampled_from([12, 190, 2000]),
+)
+def test_the_stepped_oscillations_match_the_closed_form_at_any_length_and_gaps(w, g, gaps, size):
+    """The model and Jacobian, built by stepping each mode's damped cosine and sine sample to sample, equal
+    exp(-g t) (a cos w t + b sin w t) and its derivatives computed directly, over 2,000 samples and across gaps."""
+    n = np.delete(np.arange(size, dtype=np.float64), [k for k in gaps if k < size - 3])
+    params = np.array([0.3, 1e-3, 0.8, -0.5, w, g])
+    model, jac = kernels.columns(n, params)
+    e = np.exp(-g * n)
+    ec, es = e * np.cos(w * n), e * np.sin(w * n)
+    assert np.allclose(model, 0.3 + 1e-3 * n + 0.8 * ec - 0.5 * es, rtol=0, atol=1e-11)
+    assert np.allclose(jac[:, 2:4], np.stack([ec, es], axis=1), rtol=0, atol=1e-11)
+    assert np.allclose(jac[:, 4], -n * (0.8 * es + 0.5 * ec), rtol=1e-9, atol=1e-11 * size)
+
+
+def test_the_search_stops_once_a_mode_dies_within_a_frame():
+    """A second mode sent after a spike in the first sample decays ever faster as it chases it; with the bound the
+    search stops as it passes 1/frame (the fit judges such a mode a transient whatever follows), with the first
+    mode already within 1 % of its frequency and 20 % of its decay (the ok band of ``bench fit``)."""
+    n = np.arange(N, dtype=np.float64)
+    y = np.exp(-0.02 * n) * np.cos(0.6 * n) + np.where(n == 0, 3.0, 0.0)
+    start = np.array([0.0, 0.0, 1.0, 0.0, 0.6, 0.02, 0.5, 0.0, 1.5, 0.3])
+    free = np.ones(start.size, dtype=np.bool_)
+    bounded = kernels.levenberg_marquardt(n, y, 1.0, False, start, 1e-10, 2000, free, 1.0)
+    unbounded = kernels.levenberg_marquardt(n, y, 1.0, False, start, 1e-10, 2000, free)
+    assert unbounded[9] > 1.0 and 1.0 < bounded[9] < unbounded[9]
+    assert bounded[4] == pytest.approx(0.6, rel=1e-2) and bounded[5] == pytest.approx(0.02, rel=0.2)
+
+
 @settings(max_examples=40, deadline=None)
 @given(
     seed=st.integers(0, 10_000),

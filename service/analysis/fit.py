@@ -174,13 +174,21 @@ class _Window:
         slow = _slow_swing(without.params, self.n[-1] - self.n[0] + 1)
         if not slow and kernels.step_z(self.n, self.y, self.scale, self.robust, without.params, 1) < _DRIFT_TEST:
             return without
-        with_drift = self._judge(order, _canonical(self._refine(start, np.ones(start.size, np.bool_))))
+        with_drift = self._judge(order, _canonical(self._refine(without.params, np.ones(start.size, np.bool_))))
         return min(without, with_drift, key=lambda f: f.bic)
 
     def _refine(self, start: np.ndarray, free: np.ndarray) -> np.ndarray:
         """The LM optimum from ``start`` over the ``free`` parameters."""
         return kernels.levenberg_marquardt(
-            self.n, self.y, self.scale, self.robust, start, _LM_TOLERANCE, _LM_EVALUATIONS * (start.size + 1), free
+            self.n,
+            self.y,
+            self.scale,
+            self.robust,
+            start,
+            _LM_TOLERANCE,
+            _LM_EVALUATIONS * (start.size + 1),
+            free,
+            _MAX_DECAY,
         )
 
     def pinned(self, poles: _OrderFit) -> _OrderFit:
@@ -607,19 +615,14 @@ def fit_windows(
     progress: bool = True,
     brightness: ArrayLike | None = None,
 ) -> list[WindowResult]:
-    """One :func:`fit_window` per window of ``series`` (mm per frame), with a progress bar over windows;
-    ``brightness`` (same shape, the frames' mean brightness) as :func:`fit_window` takes it."""
+    """One window fit per window of ``series`` (mm per frame), as every front door runs it
+    (:func:`service.pipeline.windows.fit_job`), with a progress bar over windows; ``brightness`` (same shape, the
+    frames' mean brightness) as :func:`fit_window` takes it."""
+    from service.pipeline.windows import WindowJob, fit_job  # the pipeline's job calls this module's fit_window
+
     x = np.asarray(series, dtype=np.float64).reshape(-1)
+    b = None if brightness is None else np.asarray(brightness, dtype=np.float64).reshape(-1)
     return [
-        fit_window(
-            x[w.start : w.end],
-            fps,
-            settings,
-            index=w.index,
-            start_frame=w.start,
-            starts_at_ejection=w.starts_at_ejection,
-            ends_at_ejection=w.ends_at_ejection,
-            brightness=None if brightness is None else np.asarray(brightness)[w.start : w.end],
-        )
+        fit_job(WindowJob(w, x[w.start : w.end], None if b is None else b[w.start : w.end]), fps, settings)
         for w in tqdm(windows, desc="fit", unit="window", disable=not progress)
     ]

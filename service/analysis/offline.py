@@ -24,21 +24,20 @@ from tqdm import tqdm
 from service.analysis.fit import fit_windows
 from service.analysis.results import FitSettings, Report, Source, WindowResult
 from service.analysis.segment import Window, find_ejections, frame_activity, series_activity, windows_between
-from service.analysis.steady import steady_centre
 from service.csvtable import write_columns
 from service.errors import MeniscopeError
 from service.inverse import regularised, synthesis
 from service.inverse.base import InverseMethod, InverseOutput
-from service.inverse.manifest import sha256_file
 from service.inverse.methods import open_method
 from service.inverse.nearest import NearestDatabase
-from service.physics import WindowTruth, centre_displacement
+from service.physics import WindowMotion, centre_displacement
 from service.pipeline.ejections import detect_ejections_streamed
 from service.pipeline.records import COEFFICIENTS, FRAME, coefficients_of
 from service.pipeline.segmenter import StreamingSegmenter
 from service.pipeline.stages import FrameStages
-from service.pipeline.windows import JobRunner, job_for
+from service.pipeline.windows import JobRunner, job_for, window_model_for
 from service.recordings import open_recording
+from service.recordings.digest import blake3_file
 from service.recordings.roi import roi_frames
 from service.render.renderer import Renderer
 from service.scene import Scene
@@ -95,13 +94,15 @@ def analyse_recording(
     """
     if refine:
         settings = settings.model_copy(update={"poles": "series"})
+    if refine or method != "network":  # the window model reads the network's per-frame values, not refined ones
+        settings = settings.model_copy(update={"series_model": "steady"})
     with open_recording(path) as rec:
         fps, frames, width, height = rec.fps, len(rec), rec.width, rec.height
     inverse, db = opened or open_method(method, scene, models, database)
     db = db if method == "regularised" else None
     transient, radius = settings.transient_frames(fps), scene.nozzle.radius_mm
     with JobRunner(settings, scheduler, workers) as runner, ThreadPoolExecutor(1) as hasher:
-        digest = hasher.submit(sha256_file, path)  # hashlib lets go of the interpreter lock: read while it hashes
+        digest = hasher.submit(blake3_file, path)  # the hash lets go of the interpreter lock: read while it hashes
         # one pass over the frames (each read once: reading was a fifth of the CPU); the ejections, found over the
         # whole recording's changes, are known at its end, when the windows' fits start on both cores
         parts, found = [], []
@@ -134,8 +135,10 @@ def analyse_recording(
                 path, scene, coefficients_of(records), windows, fps, settings, runner, progress
             )
             _set_coefficients(records, coefficients, centre)
-        results = runner.run([job_for(w, records[w.start : w.end], radius, transient) for w in windows], fps, progress)
-        source = Source(path=str(path), frames=n, fps=fps, width=width, height=height, sha256=digest.result())
+        model = window_model_for(settings, models, method)
+        jobs = [job_for(w, records[w.start : w.end], radius, transient, model=model) for w in windows]
+        results = runner.run(jobs, fps, progress)
+        source = Source(path=str(path), frames=n, fps=fps, width=width, height=height, blake3=digest.result())
     results = [
         _with_pixel_intervals(r, *motions[r.index], fps, settings.confidence) if r.index in motions else r
         for r in results
@@ -143,9 +146,11 @@ def analyse_recording(
     report = Report(
         source=source, method=method_label(method, refine), ejections=cuts.tolist(), windows=results, fit=settings
     )
-    steady = steady_centre(coefficients_of(records), windows, radius, transient)
+    fitted = np.full(n, np.nan)
+    for job in jobs:
+        fitted[job.window.start : job.window.end] = job.series
     return Analysis(
-        report, InverseOutput(coefficients=coefficients_of(records), centre=records["centre"].copy()), steady
+        report, InverseOutput(coefficients=coefficients_of(records), centre=records["centre"].copy()), fitted
     )
 
 
@@ -219,7 +224,7 @@ def _refine(
     settings: FitSettings,
     runner: JobRunner,
     progress: bool,
-) -> tuple[np.ndarray, np.ndarray, dict[int, tuple[WindowTruth, np.ndarray]]]:
+) -> tuple[np.ndarray, np.ndarray, dict[int, tuple[WindowMotion, np.ndarray]]]:
     """Per frame, the coefficients of its window's motion refined on the window's frames (after the ejection's
     transient; windows too short for the search keep their per-frame values), and per refined window (by index)
     its motion and the standard errors of the pixel fit (:func:`synthesis.standard_errors`). Each window is an
@@ -250,8 +255,8 @@ _RENDERERS: dict[str, Renderer] = {}
 
 
 def refine_task(
-    scene: Scene, frames: np.ndarray, t: np.ndarray, start: WindowTruth
-) -> tuple[np.ndarray, WindowTruth, np.ndarray]:
+    scene: Scene, frames: np.ndarray, t: np.ndarray, start: WindowMotion
+) -> tuple[np.ndarray, WindowMotion, np.ndarray]:
     """One window's refinement by synthesis (a task that runs wherever the runner sends it): the refined motion's
     coefficients at times ``t`` (m, 4), the motion, and the pixel fit's standard errors."""
     key = scene.model_dump_json()
@@ -265,7 +270,7 @@ def refine_task(
 
 
 def _with_pixel_intervals(
-    result: WindowResult, motion: WindowTruth, errors: np.ndarray, fps: float, confidence: float
+    result: WindowResult, motion: WindowMotion, errors: np.ndarray, fps: float, confidence: float
 ) -> WindowResult:
     """A refined window's result with each mode's frequency and decay intervals from the pixel fit's standard
     errors (the mode of the motion nearest in frequency), not from the window fit of its noise-free D(0, t)."""

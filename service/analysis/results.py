@@ -49,6 +49,12 @@ class FitSettings(_Frozen):
     #: far less noise than a per-frame estimate of the shape; it says nothing of amplitude or offset, which
     #: the series gives). A window whose frames show no resolved oscillation falls back to the series.
     poles: Literal["series", "frames"] = "frames"
+    #: The series each window is fitted to: the steady D(0, t) of its per-frame estimates ("steady"), or that
+    #: corrected by the model folder's window model (``window.onnx``, :mod:`service.inverse.window_model`), which
+    #: undoes the shrink of the per-frame amplitudes from the whole window's estimates and brightness: on Blender
+    #: recordings it took the amplitude error from ~70 % to ~25 % and the offset's from ~20 um to ~4 um, median).
+    #: The network method's only: the other methods' windows keep their steady series.
+    series_model: Literal["steady", "window"] = "window"
 
     def transient_frames(self, fps: float) -> int:
         """Frames after an ejection that :attr:`transient_s` covers (rounded up)."""
@@ -167,6 +173,9 @@ class Source(_Frozen):
     fps: Annotated[float, Field(gt=0, allow_inf_nan=False)]
     width: Annotated[int, Field(gt=0)] | None = None
     height: Annotated[int, Field(gt=0)] | None = None
+    #: hex BLAKE3 of the file (:mod:`service.recordings.digest`; ``b3sum`` checks it)
+    blake3: str | None = None
+    #: hex SHA-256 of the file, in reports written before the BLAKE3 digest
     sha256: str | None = None
 
 

@@ -7,6 +7,8 @@ window declared settled is settled whatever the phases. ``E`` never increases (`
 
 from __future__ import annotations
 
+import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -44,11 +46,11 @@ def tolerance(amplitudes: ArrayLike, fraction: float, floor_mm: float) -> float:
         return max(float((fraction * np.abs(np.asarray(amplitudes, dtype=np.float64))).sum()), floor_mm)
 
 
-def _log_sum_exp(x: np.ndarray) -> float:
-    """log(sum(exp(x))) of x (M,) with a finite largest entry, without leaving the float range."""
-    top = x.max()
-    with np.errstate(under="ignore"):
-        return float(top + np.log(np.exp(x - top).sum()))
+def _log_sum_exp(x: Sequence[float]) -> float:
+    """log(sum(exp(x))) of a few values (M,) with a finite largest one, without leaving the float range; in plain
+    floats: Brent calls it 10-40 times per window, where numpy's per-call overhead was most of a window's settling."""
+    top = max(x)
+    return float(top + math.log(math.fsum(math.exp(v - top) for v in x)))
 
 
 def settling_time(amplitudes: ArrayLike, decays: ArrayLike, tol_mm: float) -> float:
@@ -77,13 +79,15 @@ def settling_time(amplitudes: ArrayLike, decays: ArrayLike, tol_mm: float) -> fl
         log_a, log_budget = np.log(a), np.log(budget)
         reach = np.maximum(log_a + np.log(a.size) - log_budget, 0.0) / g  # each term under budget / M
         # E(t) >= sum(a) exp(-max(g) t), so E stays above the budget until ``low``
-        low = float((_log_sum_exp(log_a) - log_budget) / g.max())
+        low = float((_log_sum_exp(log_a.tolist()) - log_budget) / g.max())
     if a.size == 1:
         return float(reach[0]) if reach[0] <= _LONGEST_S else float("inf")
 
+    terms = list(zip(log_a.tolist(), g.tolist()))
+
     def excess(t: float) -> float:
         """log E(t) over the budget's, the budget's last 1e-12 counted as rounding (Brent calls this ~10-40 times)."""
-        return _log_sum_exp(log_a - g * t) - log_budget - 1e-12
+        return _log_sum_exp([log_ak - g_k * t for log_ak, g_k in terms]) - log_budget - 1e-12
 
     # every term is under its share by ``high``: the crossing is between, found in log t (no loss of
     # precision at any scale)

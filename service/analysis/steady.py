@@ -10,7 +10,6 @@ import warnings
 
 import numpy as np
 
-from service.analysis.segment import Window
 from service.physics import centre_displacement
 
 
@@ -30,13 +29,3 @@ def window_steady_centre(
     with warnings.catch_warnings():  # a window whose frames are all missing: NaN, which the fit reports
         warnings.simplefilter("ignore", RuntimeWarning)
         return centre_displacement(np.nanmedian(d[lo:]), np.nanmedian(p[lo:]), a, b, radius_mm)
-
-
-def steady_centre(coefficients: np.ndarray, windows: list[Window], radius_mm: float, transient: int) -> np.ndarray:
-    """:func:`window_steady_centre` of every window of a recording, shape (N,), mm."""
-    steady = np.empty(len(coefficients))
-    for w in windows:
-        steady[w.start : w.end] = window_steady_centre(
-            coefficients[w.start : w.end], radius_mm, transient, w.starts_at_ejection
-        )
-    return steady

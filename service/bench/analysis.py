@@ -22,6 +22,7 @@ import numpy as np
 
 from service import DEFAULT_MODELS
 from service.analysis.offline import analyse_recording, method_label
+from service.analysis.results import FitSettings
 from service.bench.results import write_results
 from service.errors import MeniscopeError, require_folder_of
 from service.inverse.methods import DATABASE_METHODS, METHODS, database_folder, open_method
@@ -41,7 +42,9 @@ COLUMNS = (
     ("decay_median", "decay err. median", ".1%"),
     ("decay_p90", "p90", ".1%"),
     ("amplitude_median", "ampl. err. median", ".1%"),
+    ("amplitude_p90", "p90", ".1%"),
     ("offset_mm_median", "offset err. median (um)", "um"),
+    ("offset_mm_p90", "p90", "um"),
     ("centre_rmse_mm", "D(0,t) RMSE (um)", "um"),
     ("centre_correlation", "D(0,t) corr.", ".3f"),
     ("a_mm_rmse", "a RMSE (um)", "um"),
@@ -65,6 +68,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         action="store_true",
         help="each window's motion refined on its frames through the renderer (analyze --refine)",
     )
+    p.add_argument(
+        "--series",
+        default="steady,window",
+        help="comma-separated, of steady, window: the series each window is fitted to (analyze --series); "
+        "window rows are the network method's only",
+    )
     p.add_argument("--out", type=Path, default=Path("bench-analysis.json"), help="JSON of the results (+ .md)")
     p.set_defaults(func=run)
 
@@ -78,11 +87,19 @@ def recordings_in(folder: Path) -> list[Path]:
 
 
 def run_method(
-    method: str, recordings: list[Path], scene: Scene, models: Path, database: Path | None, refine: bool = False
+    method: str,
+    recordings: list[Path],
+    scene: Scene,
+    models: Path,
+    database: Path | None,
+    refine: bool = False,
+    series: str = "steady",
 ) -> dict:
     """Open ``method`` once (timed), then one row per recording: noise preset, wall time, frames and
     :func:`summary` figures; with this process's peak resident memory. Run in a fresh process per method.
-    ``refine``: each window's motion refined on its frames (:mod:`service.inverse.synthesis`)."""
+    ``refine``: each window's motion refined on its frames (:mod:`service.inverse.synthesis`); ``series``:
+    :attr:`FitSettings.series_model`."""
+    settings = FitSettings(series_model=series)
     start = time.perf_counter()
     opened = open_method(method, scene, models, database)
     setup_s = time.perf_counter() - start
@@ -91,7 +108,7 @@ def run_method(
         truth = read_truth(path)
         start = time.perf_counter()
         analysis = analyse_recording(
-            path, scene, method, models, database, progress=False, opened=opened, refine=refine
+            path, scene, method, models, database, settings=settings, progress=False, opened=opened, refine=refine
         )
         seconds = time.perf_counter() - start
         rows.append(
@@ -108,12 +125,10 @@ def run_method(
     return {"setup_s": setup_s, "peak_memory_mb": peak_mb, "rows": rows}
 
 
-def run_method_apart(
-    method: str, recordings: list[Path], scene: Scene, models: Path, database: Path | None, refine: bool = False
-) -> dict:
-    """:func:`run_method` in a fresh process, so that its peak memory is the method's own."""
+def run_method_apart(*args: object) -> dict:
+    """:func:`run_method` of ``args`` in a fresh process, so that its peak memory is the method's own."""
     with ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn")) as pool:
-        return pool.submit(run_method, method, recordings, scene, models, database, refine).result()
+        return pool.submit(run_method, *args).result()
 
 
 def aggregate(rows: list[dict]) -> dict:
@@ -153,9 +168,13 @@ def run(args: argparse.Namespace) -> int:
     recordings = recordings_in(args.recordings)
     scene = Scene.load(args.scene)
     results: dict = {"recordings": [p.name for p in recordings], "methods": {}, "per_recording": {}}
-    for method in methods:
-        measured = run_method_apart(method, recordings, scene, args.models, args.database, args.refine)
-        method = method_label(method, args.refine)
+    series = [s.strip() for s in args.series.split(",") if s.strip()]
+    if not series or any(s not in ("steady", "window") for s in series):
+        raise MeniscopeError("--series", f"{args.series!r}: choose from steady, window")
+    runs = [(m, s) for m in methods for s in series if s == "steady" or (m == "network" and not args.refine)]
+    for method, fitted in runs:
+        measured = run_method_apart(method, recordings, scene, args.models, args.database, args.refine, fitted)
+        method = method_label(method, args.refine) + ("+window" if fitted == "window" else "")
         rows = measured["rows"]
         by_noise = defaultdict(list)
         for r in rows:

@@ -74,7 +74,8 @@ def _pair(values: tuple[float, float] | None) -> str:
 
 def markdown(results: dict) -> str:
     """One row per category: ok share of each method, false detections, our efficiency (curve_fit's beside it),
-    our interval coverage and time; then the pooled row and the targets missed."""
+    our interval coverage and median CPU time; then the pooled row, each method's CPU time per window and the
+    targets missed."""
     names = list(results["categories"][0]["ok"])
     lines = [
         "| category | windows | " + " | ".join(f"ok {n}" for n in names) + " | false det. ours | "
@@ -97,6 +98,14 @@ def markdown(results: dict) -> str:
         f"{_pair(p['ours']['efficiency'])} | {_pair(p['curve_fit']['efficiency'])} | "
         f"{_pair(p['ours']['coverage'])} | |"
     )
+    lines += [
+        "",
+        "CPU time per window (this thread and harminv's processes), ms:",
+        "",
+        "| method | median | mean | p99 |",
+        "|---|---|---|---|",
+    ]
+    lines += [f"| {n} | {p[n]['ms_median']:.2f} | {p[n]['ms_mean']:.2f} | {p[n]['ms_p99']:.2f} |" for n in names]
     missed = misses(results)
     lines += ["", "Targets missed: " + ("; ".join(missed) if missed else "none") + "."]
     return "\n".join(lines) + "\n"

@@ -53,6 +53,19 @@ def measure(recording: Path, scene, opened, scheduler: str | None, workers: int 
     }
 
 
+def differences(first: list[dict], other: list[dict]) -> list[str]:
+    """Where ``other``'s windows differ from ``first``'s: one line per differing field (window index, field, both
+    values), so that a report that is not the same says how."""
+    if len(first) != len(other):
+        return [f"{len(other)} windows against {len(first)}"]
+    return [
+        f"window {a['index']} {key}: {a.get(key)!r} against {b.get(key)!r}"
+        for a, b in zip(first, other)
+        for key in sorted(set(a) | set(b))
+        if a.get(key) != b.get(key)
+    ]
+
+
 def markdown(results: dict) -> str:
     """One row per way of running."""
     lines = [
@@ -65,7 +78,9 @@ def markdown(results: dict) -> str:
             f"| {r['name']} | {r['windows']} | {r['seconds']:.1f} | {r['windows_per_s']:.2f} | "
             f"{r['windows_per_s'] / base:.2f} | {'yes' if r['same_report'] else 'NO'} |"
         )
-    return "\n".join(lines) + f"\n\n{results['recording']}, {results['cores']} cores\n"
+    notes = [f"- {r['name']}: {line}" for r in results["runs"] for line in r["differences"][:10]]
+    text = "\n".join(lines) + f"\n\n{results['recording']}, {results['cores']} cores\n"
+    return text + ("\nWhere the REPORTs differ (first 10 per run):\n\n" + "\n".join(notes) + "\n" if notes else "")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -104,7 +119,8 @@ def run(args: argparse.Namespace) -> int:
                 }
             )
     for r in runs:
-        r["same_report"] = r["report"] == runs[0]["report"]
+        r["differences"] = differences(runs[0]["report"], r["report"])
+        r["same_report"] = not r["differences"]
     for r in runs:
         del r["report"]
     results = {"recording": str(args.recording), "cores": cores, "runs": runs}

@@ -175,6 +175,8 @@ def stage_costs(recording: Path, configs: list[tuple[int, int]], frames: int = 3
     pipeline's own stages (:class:`FrameStages`, the segmenter, :func:`job_for`, :func:`fit_job`) called in turn."""
     from service import DEFAULT_MODELS, DEFAULT_SCENE
     from service.inverse.network import NetworkMethod
+    from service.inverse.window_model import FILE as WINDOW_MODEL
+    from service.inverse.window_model import WindowModel
     from service.pipeline.runtime import segmenter_for
     from service.pipeline.stages import FrameStages
     from service.pipeline.windows import fit_job, job_for
@@ -212,7 +214,15 @@ def stage_costs(recording: Path, configs: list[tuple[int, int]], frames: int = 3
         len(batch),
     )
     settings = FitSettings()
-    jobs = [job_for(c.window, c.values, scene.nozzle.radius_mm, settings.transient_frames(fps)) for c in closed]
+    skip = settings.transient_frames(fps)
+    jobs = [job_for(c.window, c.values, scene.nozzle.radius_mm, skip) for c in closed]
+    if (DEFAULT_MODELS / WINDOW_MODEL).is_file():  # making a job with the window model (issue 17), all of it
+        model = WindowModel.of_folder(DEFAULT_MODELS)
+        job_us, _ = cpu_us_per_frame(
+            lambda: [job_for(c.window, c.values, scene.nozzle.radius_mm, skip, model=model) for c in closed],
+            len(closed),
+        )
+        costs["job_with_window_model_ms_per_window"] = job_us / 1e3
     fit_us, _ = cpu_us_per_frame(lambda: [fit_job(job, fps, settings) for job in jobs], len(jobs))
     costs["fit_ms_per_window"] = fit_us / 1e3
     costs["fit_per_frame_at_100_hz"] = fit_us * 100 / fps

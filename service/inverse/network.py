@@ -13,6 +13,7 @@ import numpy as np
 import onnxruntime as ort
 
 from service.errors import MeniscopeError
+from service.inverse import pooling
 from service.inverse.base import InverseMethod, InverseOutput
 from service.inverse.manifest import INPUT, OUTPUTS, load_manifest
 from service.scene import Scene
@@ -56,7 +57,8 @@ class NetworkMethod(InverseMethod):
     """An ONNX inverse method of a model folder made by ``meniscope train`` for this scene.
 
     ``method``: "network" (VAE encoder + regressor) or "direct" (the end-to-end CNN); frames are
-    run ``batch`` at a time on ``threads`` CPU threads, with ``optimisation`` (:data:`OPTIMISATION`).
+    run ``batch`` at a time on ``threads`` CPU threads, with ``optimisation`` (:data:`OPTIMISATION`); the graph's
+    input pooling is done outside onnxruntime where that reproduces it (:mod:`service.inverse.pooling`).
     """
 
     def __init__(
@@ -74,16 +76,31 @@ class NetworkMethod(InverseMethod):
         if method not in manifest.methods:
             raise MeniscopeError(model_dir, f"has no {method!r} model; it has {sorted(manifest.methods)}")
         path = Path(model_dir) / manifest.methods[method].file
+        options = session_options(threads, optimisation)
         try:
-            self._session = ort.InferenceSession(
-                str(path), session_options(threads, optimisation), providers=["CPUExecutionProvider"]
-            )
+            self._session = ort.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
         except Exception as exc:  # onnxruntime raises its own untyped errors for unloadable graphs
             raise MeniscopeError(path, f"onnxruntime cannot load it: {str(exc).splitlines()[0]}") from None
         self.name = method
         self.batch = batch
         self._dtype = np.dtype(manifest.input.dtype)
         self._shape = (manifest.input.height, manifest.input.width)
+        self._input, self._pooling = INPUT, 0
+        self._pool_outside(path, manifest.input.downsample, options)
+
+    def _pool_outside(self, path: Path, factor: int, options: ort.SessionOptions) -> None:
+        """Run the graph from its input pooling on, the pooling done by :func:`pooling.block_means`, where the
+        graph starts with it and the split reproduces the whole graph's outputs on test frames
+        (:data:`pooling.PARITY_ABS`); the whole graph otherwise."""
+        split = pooling.after_pooling(path, INPUT, factor)
+        if split is None:
+            return
+        session = ort.InferenceSession(split[0], options, providers=["CPUExecutionProvider"])
+        frames = np.random.default_rng(0).integers(0, 4096, (8, *self._shape), endpoint=True).astype(self._dtype)
+        whole = self._session.run(list(OUTPUTS), {INPUT: frames})
+        pooled = session.run(list(OUTPUTS), {split[1]: pooling.block_means(frames, factor)})
+        if all(np.abs(a - b).max() <= pooling.PARITY_ABS for a, b in zip(whole, pooled)):
+            self._session, self._input, self._pooling = session, split[1], factor
 
     def infer(self, frames: np.ndarray) -> InverseOutput:
         frames = np.asarray(frames)
@@ -98,5 +115,6 @@ class NetworkMethod(InverseMethod):
         centre = np.empty(len(x), np.float64)
         for start in range(0, len(x), self.batch):
             part = slice(start, start + self.batch)
-            coefficients[part], centre[part] = self._session.run(list(OUTPUTS), {INPUT: x[part]})
+            feed = pooling.block_means(x[part], self._pooling) if self._pooling else x[part]
+            coefficients[part], centre[part] = self._session.run(list(OUTPUTS), {self._input: feed})
         return InverseOutput(coefficients=coefficients, centre=centre)

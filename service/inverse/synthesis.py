@@ -29,10 +29,10 @@ from scipy.optimize import least_squares
 
 from service.analysis.fit import fit_window
 from service.analysis.results import FitSettings
-from service.physics import L1, L2, CoefficientRanges, WindowTruth
+from service.physics import L1, L2, CoefficientRanges, WindowMotion
 from service.render.renderer import Renderer
 
-#: Search parameters: Eq. 1's window motion in WindowTruth's order (d, p, A1, g1, f1, phi1, A2, g2, f2,
+#: Search parameters: Eq. 1's window motion in WindowMotion's order (d, p, A1, g1, f1, phi1, A2, g2, f2,
 #: phi2), then the camera's blur sigma (px). Typical size of each parameter's change (mm, -, mm, 1/s, Hz,
 #: rad, ..., px): LM works in units of these.
 _SCALE = np.array([1e-3, 1e-2, 1e-3, 30.0, 5.0, 0.05, 1e-3, 60.0, 10.0, 0.1, 0.1])
@@ -68,14 +68,14 @@ _EVALUATIONS = 100
 class Refined:
     """A window's motion refined on its frames, and how the search went."""
 
-    motion: WindowTruth
+    motion: WindowMotion
     blur_sigma_px: float
     rms_start: float  # pixel residual RMS at the start, in stored pixel units
     rms: float  # and at the end
     evaluations: int  # renders of the window the search made
 
 
-def start_motion(coefficients: np.ndarray, t: np.ndarray, fps: float) -> WindowTruth:
+def start_motion(coefficients: np.ndarray, t: np.ndarray, fps: float) -> WindowMotion:
     """The search's start from a window's per-frame estimates (m, 4) at consecutive times ``t`` (s since the
     window start): d and p medians, one damped mode fitted to a(t) and one to b(t) (Eq. 1 puts mode 1 in a
     and mode 2 in b). A coefficient without a resolved mode (``ok``) starts from the other's: mode 2 at the
@@ -106,7 +106,7 @@ def start_motion(coefficients: np.ndarray, t: np.ndarray, fps: float) -> WindowT
     return _canonical(np.array([d, p, *one, *two], np.float64))
 
 
-def frames_start(start: WindowTruth, frames: np.ndarray, t: np.ndarray) -> WindowTruth:
+def frames_start(start: WindowMotion, frames: np.ndarray, t: np.ndarray) -> WindowMotion:
     """``start`` with each mode's frequency, phase and decay read from the window's frames (m, H, W) at
     consecutive times ``t``, not from the per-frame method, whose a(t) and b(t) can miss a mode (a slow swing
     or the other mode taken for it) where every pixel still oscillates with it. Mode 1 is the strongest peak of
@@ -131,7 +131,7 @@ def frames_start(start: WindowTruth, frames: np.ndarray, t: np.ndarray) -> Windo
         new_decay, new_phase = _decay_and_phase(y, t, frequency, phase)
         rms = np.sqrt(np.mean(np.exp(-2 * decay * t)) / np.mean(np.exp(-2 * new_decay * t)))
         modes += [np.clip(amplitude * rms, 0.1 * most, most), new_decay, frequency, new_phase]
-    return WindowTruth(start.d, start.p, *map(float, modes))
+    return WindowMotion(start.d, start.p, *map(float, modes))
 
 
 def _peak(freqs: np.ndarray, power: np.ndarray, low: float, high: float) -> float | None:
@@ -169,11 +169,11 @@ class _Problem:
         self.renders += len(coefficients) // len(self.t)
         return self.renderer.render(coefficients)
 
-    def cost(self, motion: WindowTruth, blur: float) -> float:
+    def cost(self, motion: WindowMotion, blur: float) -> float:
         """Mean squared residual of ``motion`` seen through ``blur`` (px): one render."""
         return float(np.mean(self.residuals(_point(motion, blur)) ** 2))
 
-    def best(self, motions: list[WindowTruth]) -> tuple[float, WindowTruth]:
+    def best(self, motions: list[WindowMotion]) -> tuple[float, WindowMotion]:
         """The cost and the motion of whichever of ``motions`` fits the frames best at the start's blur."""
         costs = [self.cost(m, _START_BLUR) for m in motions]
         return min(costs), motions[int(np.argmin(costs))]
@@ -211,7 +211,7 @@ class _Problem:
 def _coefficients(params: np.ndarray, t: np.ndarray) -> np.ndarray:
     """Per-frame (d, p, a, b), shape (m, 4), of the motion in ``params[:10]`` at ``t`` (s); the search's decay
     parameters stand for their absolute values (a decay rate is >= 0 without bounds on the search)."""
-    return WindowTruth(*np.where(_DECAYS, np.abs(params[:10]), params[:10])).coefficients(t).to_array()
+    return WindowMotion(*np.where(_DECAYS, np.abs(params[:10]), params[:10])).coefficients(t).to_array()
 
 
 def _coefficient_derivatives(params: np.ndarray, t: np.ndarray) -> np.ndarray:
@@ -230,7 +230,7 @@ def _coefficient_derivatives(params: np.ndarray, t: np.ndarray) -> np.ndarray:
     return out
 
 
-def _canonical(params: np.ndarray) -> WindowTruth:
+def _canonical(params: np.ndarray) -> WindowMotion:
     """Positive amplitudes and frequencies (a sign moves into the phase), phases in [0, 2 pi)."""
     p = params[:10].copy()
     for first in (2, 6):
@@ -241,10 +241,10 @@ def _canonical(params: np.ndarray) -> WindowTruth:
         if amplitude < 0:
             amplitude, phase = -amplitude, phase + np.pi
         p[first : first + 4] = amplitude, decay, frequency, np.mod(phase, 2 * np.pi)
-    return WindowTruth(*map(float, p))
+    return WindowMotion(*map(float, p))
 
 
-def _variants(start: WindowTruth) -> list[WindowTruth]:
+def _variants(start: WindowMotion) -> list[WindowMotion]:
     """``start`` with both mode amplitudes times each of :data:`_AMPLIFY`, mode 1 as it is and turned over
     (phase + pi), p moved by each of :data:`_SHIFT_P`: per-frame estimates of a and b shrink towards 0 (a
     regressor given an ambiguous image returns the mean of its possible shapes), a bulge and a dip of the
@@ -257,7 +257,7 @@ def _variants(start: WindowTruth) -> list[WindowTruth]:
     ]
 
 
-def plausible(motion: WindowTruth, t: np.ndarray) -> bool:
+def plausible(motion: WindowMotion, t: np.ndarray) -> bool:
     """Whether a window's motion is one the analysis can report: mode 1 at two cycles per window or more (a
     slower swing is not an oscillation the window can show), below mode 2, below the Nyquist frequency of the
     times ``t`` (consecutive frames), and its per-frame (d, p, a, b) inside the default
@@ -273,12 +273,12 @@ def plausible(motion: WindowTruth, t: np.ndarray) -> bool:
     )
 
 
-def _point(motion: WindowTruth, blur: float) -> np.ndarray:
+def _point(motion: WindowMotion, blur: float) -> np.ndarray:
     """The search's point (its units: :data:`_SCALE`) of a motion and blur (px)."""
     return np.array([*motion.as_dict().values(), blur]) / _SCALE
 
 
-def _mirrored(motion: WindowTruth) -> WindowTruth:
+def _mirrored(motion: WindowMotion) -> WindowMotion:
     """The motion's surface mirrored about its rim plane (p and both modes of the other sign), which can look
     alike from below: on a window of s101_lab the search from the network's start ended at p = -0.125, mode 1
     turned over, where the truth was p = +0.126, with 11 times the truth's pixel residual (two more windows
@@ -286,7 +286,7 @@ def _mirrored(motion: WindowTruth) -> WindowTruth:
     return replace(motion, p=-motion.p, phi1=motion.phi1 + np.pi, phi2=motion.phi2 + np.pi)
 
 
-def _search(problem: _Problem, motion: WindowTruth, blur: float) -> tuple[WindowTruth, float, float]:
+def _search(problem: _Problem, motion: WindowMotion, blur: float) -> tuple[WindowMotion, float, float]:
     """LM from ``motion`` and ``blur``, then once more from the mirror of where it ended (:func:`_mirrored`;
     LM, not the mirror's own residual, decides: the mirrored minimum's rim d sits elsewhere, by 0.023 and
     0.027 mm on two windows of s101_lab): the motion, blur and mean squared residual of the better end."""
@@ -294,7 +294,7 @@ def _search(problem: _Problem, motion: WindowTruth, blur: float) -> tuple[Window
     return min(first, _levenberg_marquardt(problem, _mirrored(first[0]), first[1]), key=lambda end: end[2])
 
 
-def _levenberg_marquardt(problem: _Problem, motion: WindowTruth, blur: float) -> tuple[WindowTruth, float, float]:
+def _levenberg_marquardt(problem: _Problem, motion: WindowMotion, blur: float) -> tuple[WindowMotion, float, float]:
     """LM from ``motion`` and ``blur``: the motion, blur and mean squared residual it ends at."""
     found = least_squares(
         problem.residuals,
@@ -309,7 +309,7 @@ def _levenberg_marquardt(problem: _Problem, motion: WindowTruth, blur: float) ->
     return _canonical(params), abs(float(params[10])), float(np.mean(found.fun**2))
 
 
-def refine_window(renderer: Renderer, frames: np.ndarray, t: np.ndarray, start: WindowTruth) -> Refined:
+def refine_window(renderer: Renderer, frames: np.ndarray, t: np.ndarray, start: WindowMotion) -> Refined:
     """Refine ``start`` on a window's ROI frames (m, H, W) at times ``t`` (m,) s since the window start. Two
     starts: ``start`` and :func:`frames_start` of it; each one's :func:`_variants` are rendered once and
     :func:`_search` runs from the best-fitting variant of the better start, then (where it ends in an
@@ -332,7 +332,7 @@ def refine_window(renderer: Renderer, frames: np.ndarray, t: np.ndarray, start: 
 
 
 def standard_errors(renderer: Renderer, frames: np.ndarray, t: np.ndarray, refined: Refined) -> np.ndarray:
-    """Standard errors of a refined window's motion (WindowTruth's order, d ... phi2) and blur (px), shape (11,),
+    """Standard errors of a refined window's motion (WindowMotion's order, d ... phi2) and blur (px), shape (11,),
     from the pixel fit at its optimum: s^2 (J'J)^-1, s^2 the residual variance per pixel. The pixels'
     errors are not independent (a renderer's mismatch is correlated across a highlight), so these are
     lower bounds; still they say how sharply the window's frames pin each number down, where the window

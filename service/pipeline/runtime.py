@@ -33,7 +33,7 @@ from service.pipeline.fitting import FitPool
 from service.pipeline.segmenter import ClosedWindow, StreamingSegmenter
 from service.pipeline.stages import FrameStages
 from service.pipeline.trigger import TriggerCheck, TriggerCounts, TriggerInbox
-from service.pipeline.windows import WindowJob, job_for
+from service.pipeline.windows import WindowJob, job_for, window_model_for
 from service.scene import Scene
 from service.server.settings import ServiceSettings
 from service.sources import FrameBatch, FrameSource
@@ -219,6 +219,7 @@ class Pipeline:
         self._error: BaseException | None = None
         self._fps = fps
         self._radius, self._transient = scene.nozzle.radius_mm, settings.fit.transient_frames(fps)
+        self._window_model = window_model_for(settings.fit, settings.models, settings.method)
         self._reported = (time.monotonic(), stats.frames_dropped, stats.windows_skipped)
 
     def run(self, stop: threading.Event) -> bool:
@@ -349,7 +350,9 @@ class Pipeline:
     def _dispatch(self, closed: list[ClosedWindow]) -> None:
         """Each closed window's job (:func:`job_for`, as ``meniscope analyze`` makes it) to the fit workers."""
         for window in closed:
-            job = job_for(window.window, window.values, self._radius, self._transient, window.closed_at)
+            job = job_for(
+                window.window, window.values, self._radius, self._transient, window.closed_at, self._window_model
+            )
             self.stats.windows_closed += 1
             dispatched_at = time.monotonic()
             if not self.fits.submit(job, self._fps, partial(self._fitted, dispatched_at)):

@@ -11,9 +11,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from service.analysis.segment import frame_brightness
 from service.inverse.base import InverseMethod
 from service.pipeline.activity import ActivityTracker
+from service.pipeline.measures import PixelMeasures
 from service.pipeline.records import COEFFICIENTS, FRAME
 from service.scene import Scene
 from service.sources.base import FrameBatch, StreamFormat
@@ -30,6 +30,7 @@ class FrameStages:
         self._roi = (slice(None), slice(y, y + h), slice(x, x + w))
         self._roi_is_frame = (height, width) == (h, w)
         self.method = method
+        self.pixels = PixelMeasures()
         self.activity = ActivityTracker()
 
     def roi(self, batch: FrameBatch) -> FrameBatch:
@@ -43,10 +44,10 @@ class FrameStages:
         """Records (N,) of a batch of ROI frames with what the pixels alone say (change from the frame before,
         activity, mean brightness); the inverse's fields NaN until :meth:`infer`."""
         records = np.full(len(batch), np.nan, FRAME)
-        records["change"], records["activity"] = self.activity.update(batch.pixels, batch.indices)
-        records["brightness"] = frame_brightness(batch.pixels)
-        peak = batch.pixels.reshape(len(batch), -1).max(axis=1)
-        records["highlight"] = (peak - records["brightness"]) / self._full_scale
+        change, brightness, peak = self.pixels.update(batch.pixels, batch.indices)
+        records["change"], records["activity"] = change, self.activity.score(change)
+        records["brightness"] = brightness
+        records["highlight"] = (peak - brightness) / self._full_scale
         return records
 
     def infer(self, pixels: np.ndarray, records: np.ndarray) -> np.ndarray:

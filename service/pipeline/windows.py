@@ -11,6 +11,7 @@ import math
 from collections.abc import Callable
 from concurrent.futures import Future
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -18,6 +19,7 @@ import numpy as np
 from service.analysis.results import FitSettings, Status, WindowResult
 from service.analysis.segment import Window
 from service.analysis.steady import window_steady_centre
+from service.inverse.window_model import WindowModel
 from service.pipeline.records import NO_HIGHLIGHT, coefficients_of
 
 
@@ -36,11 +38,20 @@ class WindowJob:
 
 
 def job_for(
-    window: Window, records: np.ndarray, radius_mm: float, transient: int, closed_at: float = math.nan
+    window: Window,
+    records: np.ndarray,
+    radius_mm: float,
+    transient: int,
+    closed_at: float = math.nan,
+    model: WindowModel | None = None,
 ) -> WindowJob:
-    """The job of ``window`` from its frames' records: its steady D(0, t) (:mod:`service.analysis.steady`) and
-    brightness."""
-    series = window_steady_centre(coefficients_of(records), radius_mm, transient, window.starts_at_ejection)
+    """The job of ``window`` from its frames' records: its steady D(0, t) (:mod:`service.analysis.steady`), with
+    ``model``'s correction where there is one (:func:`window_model_for`), and brightness."""
+    coefficients = coefficients_of(records)
+    series = window_steady_centre(coefficients, radius_mm, transient, window.starts_at_ejection)
+    if model is not None:
+        skip = transient if window.starts_at_ejection else 0
+        series = model.correct(coefficients, records["brightness"], series, skip)
     highlight = records["highlight"][np.isfinite(records["highlight"])]
     return WindowJob(
         window,
@@ -49,6 +60,13 @@ def job_for(
         float(np.median(highlight)) if len(highlight) else math.nan,
         closed_at,
     )
+
+
+def window_model_for(settings: FitSettings, models: Path, method: str) -> WindowModel | None:
+    """The window model of the model folder ``models`` when ``settings`` ask for it (``series_model``) and the
+    per-frame ``method`` is the network whose outputs it reads (the other methods' windows keep their steady
+    series)."""
+    return WindowModel.of_folder(models) if settings.series_model == "window" and method == "network" else None
 
 
 def fit_job(job: WindowJob, fps: float, settings: FitSettings) -> WindowResult:

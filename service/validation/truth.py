@@ -9,7 +9,7 @@ import numpy as np
 
 from service.inverse.manifest import Scores
 from service.jsonfile import read_schema_json
-from service.physics import WindowTruth, centre_displacement
+from service.physics import WindowMotion, centre_displacement
 from service.scene import Scene
 from service.simulate import SCHEMA, Transient, truth_path
 
@@ -24,7 +24,7 @@ class TruthWindow:
 
     frames: np.ndarray
     targets: np.ndarray
-    motion: WindowTruth
+    motion: WindowMotion
 
 
 def read_truth(recording: str | Path) -> dict:
@@ -41,7 +41,7 @@ def truth_coefficients(truth: dict) -> np.ndarray:
     bulge_profile = Transient().profile(truth["transient"]["frames"])
     for w in truth["windows"]:
         frames = np.arange(w["start_frame"], w["end_frame"])
-        coeffs[frames] = WindowTruth(**w["truth"]).coefficients((frames - w["start_frame"]) / fps).to_array()
+        coeffs[frames] = WindowMotion(**w["truth"]).coefficients((frames - w["start_frame"]) / fps).to_array()
         bulge = frames < w["oscillation_start_frame"]
         coeffs[frames[bulge], 2] += w["bulge_mm"] * bulge_profile[frames[bulge] - w["start_frame"]]
     return coeffs
@@ -65,7 +65,7 @@ def truth_windows(truth: dict, scene: Scene) -> list[TruthWindow]:
         idx = np.arange(window["oscillation_start_frame"], window["end_frame"])  # (m,)
         c = coeffs[idx]
         targets = np.column_stack([c, centre_displacement(*c.T, radius)])
-        windows.append(TruthWindow(idx, targets, WindowTruth(**window["truth"])))
+        windows.append(TruthWindow(idx, targets, WindowMotion(**window["truth"])))
     return windows
 
 

@@ -84,6 +84,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "(default; amplitudes, phases and offset still from D(0, t)) or D(0, t) alone (always with --refine: "
         "the refined motion is the window's inversion, its poles its own)",
     )
+    p.add_argument(
+        "--series",
+        choices=("steady", "window"),
+        help="the series each window is fitted to: the steady D(0, t) of the per-frame estimates or that "
+        "corrected by the model folder's window model (window.onnx), which undoes the shrink of the per-frame "
+        "amplitudes; window is the network method's only (default: window with it, steady otherwise)",
+    )
     _common(p)
     p.set_defaults(func=run_analyze)
 
@@ -154,7 +161,15 @@ def run_analyze(args: argparse.Namespace) -> int:
         raise MeniscopeError("--poles", "frames cannot be used with --refine: a refined window's poles are its own")
     if args.workers is not None and args.workers < 1:
         raise MeniscopeError("--workers", f"must be at least 1, got {args.workers}")
+    if args.series == "window" and (args.method != "network" or args.refine):
+        raise MeniscopeError(
+            "--series",
+            "window reads the network method's per-frame values: not with --method "
+            f"{args.method}{' --refine' if args.refine else ''}",
+        )
     settings = _settings(args, args.poles or ("series" if args.refine else "frames"))
+    if args.series:
+        settings = settings.model_copy(update={"series_model": args.series})
     report_path, csv_path, png_path = _outputs(args.out)
     scene = Scene.load(args.scene)
     analysis = analyse_recording(
@@ -188,7 +203,7 @@ def run_fit(args: argparse.Namespace) -> int:
     from service.analysis.plot import plot_report
     from service.analysis.results import Source
     from service.csvtable import read_columns, write_columns
-    from service.inverse.manifest import sha256_file
+    from service.recordings.digest import blake3_file
 
     if not (math.isfinite(args.fps) and args.fps > 0):
         raise MeniscopeError("--fps", f"must be a positive number, got {args.fps}")
@@ -197,7 +212,7 @@ def run_fit(args: argparse.Namespace) -> int:
     values = read_columns(args.series, (args.column,), allow_empty=True)[:, 0]
     if values.size == 0:
         raise MeniscopeError(args.series, f"no rows in column {args.column!r}")
-    source = Source(path=str(args.series), frames=values.size, fps=args.fps, sha256=sha256_file(args.series))
+    source = Source(path=str(args.series), frames=values.size, fps=args.fps, blake3=blake3_file(args.series))
     report = analyse_series(
         values, args.fps, source, Ejections(args.ejections, args.ejection_hz), settings, progress=not args.quiet
     )

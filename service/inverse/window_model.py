@@ -1,0 +1,96 @@
+"""The window model: a window's per-frame estimates in, its de-shrunk D(0, t) out (issue 17's first step).
+
+A frame's highlights pin down only some combinations of Eq. 1's (d, p, a, b), so the per-frame network's a and b
+shrink towards zero (slope 0.23-0.58) and the window's amplitude came out 42-70 % low. Over a whole window the
+shape of the series (a damped oscillation), its brightness and how the per-frame values move together say more:
+a small 1-D convolutional network (``training/window.py``), run here by onnxruntime, maps a window's per-frame
+d, p, a, b and brightness to the correction of its steady D(0, t) (:mod:`service.analysis.steady`), which the
+window fit then takes as before. Its graph is ``window.onnx`` beside the per-frame network it was trained on.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from service.errors import MeniscopeError
+from service.inverse.manifest import sha256_file
+
+#: File name of the window model in a model folder (it reads that folder's per-frame network's outputs).
+FILE = "window.onnx"
+#: Its record beside it: the sha256 of the per-frame network whose outputs it was trained on, and how it was trained.
+RECORD = "window.json"
+#: The per-frame graph whose outputs the window model reads.
+NETWORK = "network.onnx"
+#: Input and output names of the graph: features (1, FEATURES, m) -> correction (1, m), in units of SCALE_MM.
+INPUT, OUTPUT = "features", "correction"
+#: Scales (mm, 1, mm, mm) that bring d, p, a, b to order one; D(0, t) and its correction are in SCALE_MM.
+COEFFICIENT_SCALE = np.array([0.03, 0.15, 0.02, 0.02])
+SCALE_MM = 0.02
+#: Relative brightness modulation is multiplied by this (a few per cent of the mean) to be of order one.
+BRIGHTNESS_SCALE = 20.0
+#: Frame index is divided by this (a window at 100 ejections/s and 19,000 frames/s is 190 frames).
+TIME_SCALE = 200.0
+#: Channels per frame: d, p, a, b, steady D(0, t), brightness, time since the window start, whether the frame
+#: is in the ejection's transient, whether its values are there (missing frames are zeros).
+FEATURES = 9
+
+
+def window_features(coefficients: np.ndarray, brightness: np.ndarray, steady: np.ndarray, skip: int) -> np.ndarray:
+    """The model's input (FEATURES, m) float32 of one window of m frames: its per-frame coefficients (m, 4), mean
+    brightness (m,), steady D(0, t) (m,, mm) and the number of transient frames at its start (``skip``)."""
+    c = np.asarray(coefficients, np.float64)
+    m = len(c)
+    present = np.isfinite(c).all(axis=1) & np.isfinite(steady) & np.isfinite(brightness)
+    out = np.zeros((FEATURES, m), np.float32)
+    if not present.any():
+        return out
+    b = np.asarray(brightness, np.float64)
+    mean = float(np.mean(b[present]))
+    out[0:4] = np.where(present, (c / COEFFICIENT_SCALE).T, 0.0)
+    out[4] = np.where(present, steady / SCALE_MM, 0.0)
+    out[5] = np.where(present, BRIGHTNESS_SCALE * (b / mean - 1.0) if mean > 0 else 0.0, 0.0)
+    out[6] = np.arange(m) / TIME_SCALE
+    out[7, : min(skip, m)] = 1.0
+    out[8] = present
+    return out
+
+
+class WindowModel:
+    """The window model of a model folder, run on one CPU thread (it serves one window at a time)."""
+
+    def __init__(self, path: Path) -> None:
+        import onnxruntime as ort
+
+        from service.inverse.network import session_options
+
+        if not path.is_file():
+            raise MeniscopeError(path, "no window model here: `python -m training.window` makes one")
+        record = path.with_name(RECORD)
+        network = path.with_name(NETWORK)
+        if not record.is_file() or not network.is_file():
+            raise MeniscopeError(path, f"needs {RECORD} and {NETWORK} beside it (`python -m training.window`)")
+        trained_on = json.loads(record.read_text()).get("network_sha256")
+        if trained_on != sha256_file(network):
+            raise MeniscopeError(
+                path,
+                f"trained on another {NETWORK} than the one beside it: its corrections would be wrong "
+                "(train it again: `python -m training.window`)",
+            )
+        self.path = path
+        self._session = ort.InferenceSession(str(path), session_options(1), providers=["CPUExecutionProvider"])
+
+    @classmethod
+    def of_folder(cls, models: Path) -> WindowModel:
+        """The window model beside the per-frame network of ``models``."""
+        return cls(Path(models) / FILE)
+
+    def correct(self, coefficients: np.ndarray, brightness: np.ndarray, steady: np.ndarray, skip: int) -> np.ndarray:
+        """The window's steady D(0, t) (m,, mm) with the model's correction added; missing frames stay NaN."""
+        features = window_features(coefficients, brightness, steady, skip)
+        if len(steady) == 0 or not features[8].any():
+            return steady
+        correction = self._session.run([OUTPUT], {INPUT: features[None]})[0][0].astype(np.float64)
+        return steady + SCALE_MM * correction

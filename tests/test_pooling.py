@@ -1,0 +1,66 @@
+"""The graphs' input pooling outside onnxruntime: the same block means, and the same outputs as the whole graph."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import onnx
+import onnxruntime as ort
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from onnx import TensorProto, helper
+
+from service import DEFAULT_MODELS, DEFAULT_SCENE
+from service.inverse import pooling
+from service.inverse.manifest import INPUT, OUTPUTS, load_manifest
+from service.inverse.network import NetworkMethod
+from service.scene import Scene
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    dtype=st.sampled_from([np.uint8, np.uint16]),
+    factor=st.integers(1, 4),
+    blocks=st.tuples(st.integers(1, 5), st.integers(1, 5)),
+    full=st.booleans(),
+    seed=st.integers(0, 2**16),
+)
+def test_block_means_are_the_float64_means_rounded_once(dtype, factor, blocks, full, seed) -> None:
+    """Full-scale and random pixels of either stored type: each block's exact mean, rounded once to float32."""
+    shape = (3, blocks[0] * factor, blocks[1] * factor)
+    top = np.iinfo(dtype).max
+    frames = np.full(shape, top, dtype) if full else np.random.default_rng(seed).integers(0, top, shape, dtype)
+    want = frames.reshape(3, blocks[0], factor, blocks[1], factor).mean(axis=(2, 4), dtype=np.float64)
+    assert np.array_equal(pooling.block_means(frames, factor)[:, 0], want.astype(np.float32))
+
+
+def test_the_shipped_graphs_run_from_their_pooling_with_the_whole_graphs_outputs() -> None:
+    """Both shipped methods start with the pooling, and their outputs on recorded-like frames are the whole
+    graph's."""
+    manifest = load_manifest(DEFAULT_MODELS, Scene.load(DEFAULT_SCENE))
+    frames = np.random.default_rng(1).integers(0, 4096, (100, 96, 96)).astype(np.uint16)
+    for name, entry in manifest.methods.items():
+        method = NetworkMethod(DEFAULT_MODELS, Scene.load(DEFAULT_SCENE), name, threads=1, batch=32)
+        assert method._pooling == manifest.input.downsample  # the split was taken
+        whole = ort.InferenceSession(str(DEFAULT_MODELS / entry.file), providers=["CPUExecutionProvider"])
+        coefficients, centre = whole.run(list(OUTPUTS), {INPUT: frames})
+        out = method.infer(frames)
+        np.testing.assert_allclose(out.coefficients, coefficients, atol=pooling.PARITY_ABS)
+        np.testing.assert_allclose(out.centre, centre, atol=pooling.PARITY_ABS)
+
+
+def test_a_graph_that_does_not_start_with_the_pooling_is_left_whole(tmp_path: Path) -> None:
+    """A graph without the exported input layers (here: max pooling) is not split."""
+    x = helper.make_tensor_value_info(INPUT, TensorProto.UINT16, [None, 6, 6])
+    y = helper.make_tensor_value_info("y", TensorProto.FLOAT, [None, 1, 2, 2])
+    axis = helper.make_tensor("axis", TensorProto.INT64, [1], [1])
+    nodes = [
+        helper.make_node("Cast", [INPUT], ["a"], to=TensorProto.FLOAT),
+        helper.make_node("Cast", ["a"], ["b"], to=TensorProto.FLOAT),
+        helper.make_node("Unsqueeze", ["b", "axis"], ["c"]),
+        helper.make_node("MaxPool", ["c"], ["y"], kernel_shape=[3, 3], strides=[3, 3]),
+    ]
+    graph = helper.make_graph(nodes, "g", [x], [y], initializer=[axis])
+    onnx.save(helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)]), tmp_path / "g.onnx")
+    assert pooling.after_pooling(tmp_path / "g.onnx", INPUT, 3) is None

@@ -1,0 +1,274 @@
+"""Training of the window model (:mod:`service.inverse.window_model`) on simulated recordings, and its export.
+
+Each recording (``meniscope simulate``: frames and their truth) is replayed through the pipeline's own per-frame
+stages with the model folder's network, exactly as ``meniscope analyze`` and ``serve`` see it; each true window
+gives one example: its features in, the correction that takes its steady D(0, t) to the true one out (scored on
+the oscillating frames only). Usage::
+
+    python -m training.window --models models/default REC1.cine REC2.cine ...
+"""
+
+from __future__ import annotations
+
+import argparse
+import io
+import json
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import onnx
+import torch
+from torch import nn
+from tqdm import tqdm
+
+from service import DEFAULT_MODELS, DEFAULT_SCENE
+from service.analysis.results import FitSettings
+from service.analysis.steady import window_steady_centre
+from service.inverse import window_model as wm
+from service.inverse.manifest import sha256_file
+from service.inverse.methods import open_method
+from service.pipeline.records import FRAME, coefficients_of
+from service.pipeline.stages import FrameStages
+from service.scene import Scene
+from service.simulate import WindowRanges
+from service.sources.replay import ReplaySource
+from service.validation.truth import read_truth, truth_centre
+
+OPSET = 17
+
+
+@dataclass(frozen=True)
+class Examples:
+    """Windows padded to one length: features (W, FEATURES, m), targets (W, m) (the correction, SCALE_MM units) and
+    which frames are scored (W, m): the oscillating frames with values."""
+
+    features: np.ndarray
+    targets: np.ndarray
+    scored: np.ndarray
+
+    def select(self, windows: np.ndarray) -> Examples:
+        """These examples' ``windows`` (indices)."""
+        return Examples(self.features[windows], self.targets[windows], self.scored[windows])
+
+
+#: The motion of the training windows: the simulator's ranges (:class:`service.simulate.WindowRanges`) widened down
+#: to windows that barely move or settle within a few periods, which the live service sees too (a model never
+#: shown one makes up an oscillation there).
+TRAINING_RANGES = WindowRanges(A1=(0.0, 0.025), A2=(0.0, 0.012), g1=(100.0, 5000.0))
+#: Camera noise presets the training windows are rendered at, so that the model holds at each.
+TRAINING_NOISE = ("low", "lab", "high")
+
+
+def render_training(folder: Path, scene: Scene, windows: int, seed: int) -> list[Path]:
+    """Recordings of ``windows`` windows each at every :data:`TRAINING_NOISE` preset (12-bit, our renderer, motion
+    from :data:`TRAINING_RANGES`), written to ``folder`` (kept: reused when there) with their truth."""
+    from service.camera_effects import noise_preset
+    from service.simulate import simulate, truth_path
+
+    folder.mkdir(parents=True, exist_ok=True)
+    paths = []
+    for k, noise in enumerate(TRAINING_NOISE):
+        path = folder / f"window-{noise}-{seed + k}.cine"
+        if not truth_path(path).exists():
+            simulate(
+                scene,
+                path,
+                windows=windows,
+                seed=seed + k,
+                effects=noise_preset(noise, 12),
+                noise=noise,
+                ranges=TRAINING_RANGES,
+            )
+        paths.append(path)
+    return paths
+
+
+def recording_records(path: Path, scene: Scene, models: Path) -> np.ndarray:
+    """Every frame's record of a recording, replayed through the pipeline's per-frame stages and ``models``' network."""
+    method, _ = open_method("network", scene, models)
+    parts = []
+    with ReplaySource(path, speed=0.0) as source:
+        stages = FrameStages(scene, source.format, str(path), method)
+        while (batch := source.read(512)) is not None:
+            batch = stages.roi(batch)
+            parts.append(stages.infer(batch.pixels, stages.measure(batch)))
+    return np.concatenate(parts) if parts else np.empty(0, FRAME)
+
+
+def recording_examples(path: Path, scene: Scene, models: Path, settings: FitSettings = FitSettings()) -> Examples:
+    """One example per true window of a simulated recording."""
+    truth = read_truth(path)
+    records = recording_records(path, scene, models)
+    true = truth_centre(truth)
+    fps, radius = truth["recording"]["fps"], scene.nozzle.radius_mm
+    skip = settings.transient_frames(fps)
+    feats, targets, scored = [], [], []
+    for w in truth["windows"]:
+        lo, hi = w["start_frame"], w["end_frame"]
+        r = records[lo:hi]
+        coefficients = coefficients_of(r)
+        steady = window_steady_centre(coefficients, radius, skip, True)
+        f = wm.window_features(coefficients, r["brightness"], steady, skip)
+        feats.append(f)
+        targets.append(np.nan_to_num((true[lo:hi] - steady) / wm.SCALE_MM).astype(np.float32))
+        keep = f[8] > 0
+        keep[: w["oscillation_start_frame"] - lo] = False
+        scored.append(keep)
+    return pad(feats, targets, scored)
+
+
+def cached_examples(path: Path, scene: Scene, models: Path) -> Examples:
+    """:func:`recording_examples`, kept beside the recording (``REC.window-examples.npz``) and reused while the
+    per-frame network it came from is the same."""
+    cache = path.with_name(path.name + ".window-examples.npz")
+    network = sha256_file(models / wm.NETWORK)
+    if cache.is_file():
+        with np.load(cache) as stored:
+            if str(stored["network_sha256"]) == network:
+                return Examples(stored["features"], stored["targets"], stored["scored"])
+    examples = recording_examples(path, scene, models)
+    np.savez(cache, network_sha256=network, **examples.__dict__)
+    return examples
+
+
+def pad(feats: list[np.ndarray], targets: list[np.ndarray], scored: list[np.ndarray]) -> Examples:
+    """Windows of different lengths zero-padded (not scored) to the longest."""
+    m = max(f.shape[1] for f in feats)
+    out = Examples(
+        np.zeros((len(feats), wm.FEATURES, m), np.float32),
+        np.zeros((len(feats), m), np.float32),
+        np.zeros((len(feats), m), bool),
+    )
+    for i, (f, t, s) in enumerate(zip(feats, targets, scored)):
+        out.features[i, :, : f.shape[1]], out.targets[i, : t.size], out.scored[i, : s.size] = f, t, s
+    return out
+
+
+def concat(parts: list[Examples]) -> Examples:
+    """Examples of several recordings together."""
+    return pad(
+        [f[:, : s.size] for p in parts for f, s in zip(p.features, p.scored)],
+        [t for p in parts for t in p.targets],
+        [s for p in parts for s in p.scored],
+    )
+
+
+class WindowNet(nn.Module):
+    """Dilated residual 1-D convolutions over the window's frames (a receptive field of the whole window), each
+    block also fed the mean of the window's present frames (what holds for the whole window: its amplitude,
+    the shrink of its per-frame estimates)."""
+
+    def __init__(self, width: int = 48, dilations: tuple[int, ...] = (1, 2, 4, 8, 16, 32)) -> None:
+        super().__init__()
+        self.inp = nn.Conv1d(wm.FEATURES, width, 1)
+        self.convs = nn.ModuleList(nn.Conv1d(width, width, 5, dilation=d, padding=2 * d) for d in dilations)
+        self.context = nn.ModuleList(nn.Linear(width, width) for _ in dilations)
+        self.out = nn.Conv1d(width, 1, 1)
+        nn.init.zeros_(self.out.weight)  # starts as the steady series itself
+        nn.init.zeros_(self.out.bias)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        present = x[:, 8:9]
+        count = present.sum(-1).clamp(min=1.0)
+        h = self.inp(x)
+        for conv, context in zip(self.convs, self.context):
+            mean = (h * present).sum(-1) / count
+            h = h + nn.functional.gelu(conv(h) + context(mean)[..., None])
+        return self.out(h)[:, 0]
+
+
+def train(train_set: Examples, check: Examples, epochs: int = 300, seed: int = 0) -> tuple[WindowNet, list[float]]:
+    """The net with the lowest scored MSE on ``check`` over ``epochs`` of Adam on ``train_set``; check losses."""
+    torch.manual_seed(seed)
+    net = WindowNet()
+    opt = torch.optim.AdamW(net.parameters(), 2e-3, weight_decay=1e-4)
+    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, epochs)
+    x, y, s = (torch.from_numpy(a) for a in (train_set.features, train_set.targets, train_set.scored))
+    cx, cy, cs = (torch.from_numpy(a) for a in (check.features, check.targets, check.scored))
+    best, best_state, history = np.inf, None, []
+    rng = np.random.default_rng(seed)
+    for _ in tqdm(range(epochs), desc="window model", unit="epoch"):
+        net.train()
+        for batch in np.array_split(rng.permutation(len(x)), max(1, len(x) // 32)):
+            loss = ((net(x[batch]) - y[batch]) ** 2)[s[batch]].mean()
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+        sched.step()
+        net.eval()
+        with torch.no_grad():
+            value = float(((net(cx) - cy) ** 2)[cs].mean())
+        history.append(value)
+        if value < best:
+            best, best_state = value, {k: v.clone() for k, v in net.state_dict().items()}
+    net.load_state_dict(best_state)
+    return net.eval(), history
+
+
+def export(net: WindowNet, path: Path) -> None:
+    """``net`` as an ONNX graph features (1, FEATURES, m) -> correction (1, m), m dynamic, weights inside."""
+    buffer = io.BytesIO()
+    example = torch.zeros(1, wm.FEATURES, 190)
+    with warnings.catch_warnings():  # the TorchScript exporter's deprecation notices (see training.export)
+        warnings.simplefilter("ignore", DeprecationWarning)
+        torch.onnx.export(
+            net,
+            (example,),
+            buffer,
+            input_names=[wm.INPUT],
+            output_names=[wm.OUTPUT],
+            dynamic_axes={wm.INPUT: {2: "frames"}, wm.OUTPUT: {1: "frames"}},
+            opset_version=OPSET,
+            dynamo=False,
+        )
+    model = onnx.load_from_string(buffer.getvalue())
+    onnx.checker.check_model(model)
+    onnx.save(model, str(path))
+
+
+def main(argv: list[str] | None = None) -> None:
+    p = argparse.ArgumentParser(prog="python -m training.window", description=__doc__.splitlines()[0])
+    p.add_argument("recordings", nargs="*", type=Path, help="simulated recordings (with .truth.json) to train on")
+    p.add_argument(
+        "--render",
+        type=int,
+        default=0,
+        metavar="N",
+        help="also render N training windows per noise preset (low, lab, high) into --data first",
+    )
+    p.add_argument("--data", type=Path, default=Path("data/window"), help="folder of the rendered training windows")
+    p.add_argument("--models", type=Path, default=DEFAULT_MODELS, help="model folder: its network, and the output")
+    p.add_argument("--epochs", type=int, default=300)
+    p.add_argument("--seed", type=int, default=0)
+    args = p.parse_args(argv)
+    torch.set_num_threads(1)
+    scene = Scene.load(DEFAULT_SCENE)
+    recordings = args.recordings + (render_training(args.data, scene, args.render, args.seed) if args.render else [])
+    if not recordings:
+        p.error("no recordings: name some or --render N")
+    data = concat([cached_examples(r, scene, args.models) for r in tqdm(recordings, desc="replay")])
+    order = np.random.default_rng(args.seed).permutation(len(data.features))
+    held = order[: max(1, len(order) // 10)]
+    rest = order[len(held) :]
+    net, history = train(data.select(rest), data.select(held), args.epochs, args.seed)
+    baseline = float((data.targets[held] ** 2)[data.scored[held]].mean())
+    print(f"{len(rest)} windows trained on, {len(held)} checked: scored MSE {min(history):.4g} (steady {baseline:.4g})")
+    export(net, args.models / wm.FILE)
+    record = {
+        "network_sha256": sha256_file(args.models / wm.NETWORK),
+        "recordings": [str(r) for r in recordings],
+        "windows_trained": int(len(rest)),
+        "windows_checked": int(len(held)),
+        "epochs": args.epochs,
+        "seed": args.seed,
+        "check_mse": float(min(history)),
+        "check_mse_steady": baseline,
+    }
+    (args.models / wm.RECORD).write_text(json.dumps(record, indent=1) + "\n")
+    print(f"wrote {args.models / wm.FILE} and {wm.RECORD}")
+
+
+if __name__ == "__main__":
+    main()
