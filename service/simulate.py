@@ -16,6 +16,7 @@ from __future__ import annotations
 import json
 import math
 import os
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -31,6 +32,7 @@ from service.scene import Scene
 
 if TYPE_CHECKING:  # the renderer (numba) loads only when frames are rendered
     from service.render import Renderer
+    from service.window_kinds import WindowKind
 
 SCHEMA = "meniscope.truth/1"
 #: Recording formats by extension and the bit depths each stores.
@@ -157,9 +159,12 @@ def plan_recording(
     ranges: WindowRanges = WindowRanges(),
     transient: Transient = Transient(),
     first_window: int = 0,
+    kinds: Sequence[WindowKind] = (),
 ) -> Plan:
     """Draw the motion of windows ``first_window ..`` of the ejection schedule: one :class:`WindowMotion` and
-    one bulge per window.
+    one bulge per window. With ``kinds`` (:mod:`service.window_kinds`), window k is of kind
+    ``kinds[k % len(kinds)]``: its ranges, bulge and length come from there instead of ``ranges`` and
+    ``transient.bulge_mm`` and the uniform schedule.
 
     Raises ValueError when the schedule's windows (``floor(fps / hz)`` frames or one more, however many
     are drawn) would be too short to hold the transient and ten frames of oscillation, or when ``fps``
@@ -176,6 +181,15 @@ def plan_recording(
             f"an ejection every {fps / ejection_hz:.3g} frames leaves no room for the {n_transient}-frame "
             f"transient and ten frames of oscillation: lower the ejection rate"
         )
+    if kinds:
+        of = [kinds[(first_window + k) % len(kinds)] for k in range(windows)]
+        periods = [kind.periods(first_window + k) * fps / ejection_hz for k, kind in enumerate(of)]
+        ejections = ejections[0] + np.floor(np.concatenate([[0.0], np.cumsum(periods)]) + 0.5).astype(np.int64)
+        if min(periods) < n_transient + 10:
+            raise ValueError("a window kind's period leaves no room for the transient: lower the ejection rate")
+        truths = tuple(kind.ranges.for_fps(fps).sample(rng) for kind in of)
+        bulges = np.array([rng.uniform(*kind.bulge_mm) for kind in of])
+        return Plan(fps, ejections, truths, bulges, n_transient, ranges, transient, first_window)
     truths = tuple(ranges.sample(rng) for _ in range(windows))
     bulges = rng.uniform(*transient.bulge_mm, size=windows)
     return Plan(fps, ejections, truths, bulges, n_transient, ranges, transient, first_window)
@@ -314,6 +328,8 @@ def simulate(
     transient: Transient = Transient(),
     renderer: Renderer | None = None,
     frame: tuple[int, int] | None = None,
+    kinds: Sequence[WindowKind] = (),
+    kind_names: Sequence[str] = (),
 ) -> dict[str, Any]:
     """Render, pass through the camera and write a recording plus its ``.truth.json``; returns the truth.
 
@@ -323,14 +339,17 @@ def simulate(
     came from, for the record; ``frame``: the recorded (width, height) when larger than the ROI (the renderer then
     renders :func:`canvas`'s scene); ``renderer`` is anything with ``render(coeffs (N, 4)) -> (N, H, W)`` linear
     frames, ours by default (``service.render.blender.BlenderRenderer`` for a second renderer), and the
-    truth names its class. Memory stays bounded: at most :data:`BATCH_FRAMES` frames at once.
+    truth names its class. ``kinds`` (named ``kind_names`` in the truth) draw window k as
+    ``kinds[k % len(kinds)]`` (:mod:`service.window_kinds`), spatter included. Memory stays bounded: at most :data:`BATCH_FRAMES` frames at once.
     """
     out = Path(out)
     check_output(out, effects.bit_depth)
     cam = scene.camera
     motion_seed, noise_seed = np.random.SeedSequence(seed).spawn(2)
     try:
-        plan = plan_recording(windows, cam.fps, ejection_hz, np.random.default_rng(motion_seed), ranges, transient)
+        plan = plan_recording(
+            windows, cam.fps, ejection_hz, np.random.default_rng(motion_seed), ranges, transient, kinds=kinds
+        )
     except ValueError as exc:
         raise MeniscopeError(out, str(exc)) from None
     shown, corner = canvas(scene, frame) if frame else (scene, (0, 0))
@@ -350,11 +369,18 @@ def simulate(
                 length = int(plan.ejections[k + 1] - plan.ejections[k])
                 for start in range(0, length, BATCH_FRAMES):
                     stop = min(length, start + BATCH_FRAMES)
-                    writer.write(camera.take(plan.coefficients(k, start, stop), rng), None)
+                    frames = camera.take(plan.coefficients(k, start, stop), rng)
+                    if kinds:
+                        from service.window_kinds import spatter
+
+                        spatter(frames, kinds[k % len(kinds)].spatter, 2**effects.bit_depth - 1, rng)
+                    writer.write(frames, None)
                     bar.update(stop - start)
         truth = truth_document(
             plan, scene, out, effects, seed, ejection_hz, noise, type(renderer).__name__, (camera.width, camera.height)
         )
+        for k, window in enumerate(truth["windows"]) if kind_names else ():
+            window["kind"] = kind_names[k % len(kind_names)]
         try:
             sidecar.write_text(json.dumps(truth, indent=1, allow_nan=False) + "\n")
         except OSError as exc:

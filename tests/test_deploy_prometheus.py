@@ -23,6 +23,7 @@ ALERTS = {
     "MeniscopeDown",
     "MeniscopeNoSignal",
     "MeniscopeHistoryFailing",
+    "MeniscopeTriggerDisagrees",
 }
 
 

@@ -1,4 +1,4 @@
-"""Live segmentation: frame activity and the streaming segmenter cut a stream as the offline analysis would."""
+"""Live segmentation: the ejection detector and the streaming segmenter cut a stream as the offline analysis would."""
 
 from __future__ import annotations
 
@@ -8,21 +8,32 @@ import numpy as np
 import pytest
 
 from service.analysis.segment import windows_between
-from service.pipeline.activity import ActivityTracker
 from service.pipeline.demo import DEMO_AVI, DEMO_TRUTH
+from service.pipeline.ejections import EjectionDetector
 from service.pipeline.measures import PixelMeasures
 from service.pipeline.segmenter import StreamingSegmenter
 from service.recordings import open_recording
 
+FPS = 19_000.0
+
 
 def segment(
-    segmenter: StreamingSegmenter, indices: np.ndarray, values: np.ndarray, activity: np.ndarray, batch: int
+    segmenter: StreamingSegmenter, indices: np.ndarray, values: np.ndarray, change: np.ndarray, batch: int
 ) -> list:
     closed = []
     for lo in range(0, len(indices), batch):
         part = slice(lo, lo + batch)
-        closed += segmenter.push(indices[part], values[part], activity[part], np.full(len(indices[part]), float(lo)))
+        closed += segmenter.push(indices[part], values[part], change[part], np.full(len(indices[part]), float(lo)))
     return closed
+
+
+def bursts(at: list[int], n: int, seed: int = 0) -> np.ndarray:
+    """Frame change as a video gives it: noise about 8, and a 5-frame burst of 40-60 at each of ``at``."""
+    rng = np.random.default_rng(seed)
+    change = rng.normal(8.0, 0.5, n)
+    for e in at:
+        change[e : e + 5] += rng.uniform(40, 60, 5)
+    return change
 
 
 @pytest.mark.parametrize("batch", [1, 37, 128, 1000])
@@ -31,15 +42,14 @@ def test_the_demo_recording_is_cut_at_its_true_ejections_whatever_the_batching(b
         frames = rec.read(0, len(rec))
     frames = np.concatenate([frames, frames])  # as the looping replay delivers them
     indices = np.arange(len(frames))
-    tracker, measures = ActivityTracker(), PixelMeasures()
-    activity = np.concatenate(
-        [
-            tracker.score(measures.update(frames[i : i + batch], indices[i : i + batch])[0])
-            for i in range(0, len(frames), batch)
-        ]
+    measures = PixelMeasures()
+    change = np.concatenate(
+        [measures.update(frames[i : i + batch], indices[i : i + batch])[0] for i in range(0, len(frames), batch)]
     )
-    closed = segment(StreamingSegmenter(95, 950, 8.0), indices, indices.astype(float), activity, batch)
-    truth = json.loads(DEMO_TRUTH.read_text())["ejections"]
+    truth = json.loads(DEMO_TRUTH.read_text())
+    seg = StreamingSegmenter(950, EjectionDetector(truth["recording"]["fps"], refractory=95))
+    closed = segment(seg, indices, indices.astype(float), change, batch)
+    truth = truth["ejections"]
     expected = truth[1:] + [t + len(frames) // 2 for t in truth]
     # frame 0's ejection has no frame before it to differ from: cuts that early are not checked
     starts = [c.window.start for c in closed if c.window.starts_at_ejection and c.window.start >= 95]
@@ -49,20 +59,33 @@ def test_the_demo_recording_is_cut_at_its_true_ejections_whatever_the_batching(b
 
 
 def test_windows_match_the_offline_windows_between_the_same_ejections() -> None:
-    activity = np.zeros(1000)
     ejections = [100, 290, 480, 700]
-    activity[ejections] = 50.0
-    closed = segment(StreamingSegmenter(50, 10_000, 8.0), np.arange(1000), np.zeros(1000), activity, 64)
-    offline = windows_between(ejections, 1000)[:-1]  # the trailing window has not closed
-    assert [c.window for c in closed] == offline
+    seg = StreamingSegmenter(10_000, EjectionDetector(FPS))
+    closed = segment(seg, np.arange(1000), np.zeros(1000), bursts(ejections, 1000), 64)
+    offline = windows_between(ejections, 1000)
+    assert [c.window for c in closed] == offline[:-1]  # the trailing window has not closed
+    assert [c.window for c in seg.finish(0.0)] == offline[-1:]
+
+
+def test_frames_wait_only_for_the_detectors_look_ahead() -> None:
+    detector = EjectionDetector(FPS)
+    seg = StreamingSegmenter(10_000, detector)
+    change = bursts([300], 400)
+    closed = segment(seg, np.arange(300 + detector.latency), np.zeros(400), change, 1)
+    assert closed == []
+    closed = seg.push(
+        np.array([300 + detector.latency]), np.zeros(1), change[300 + detector.latency :][:1], np.zeros(1)
+    )
+    assert [c.window.end for c in closed] == [300]  # closed as soon as the look-ahead after the ejection is in
+    assert detector.latency <= 12  # a few frames at 19,000 frames/s
 
 
 def test_lost_frames_become_missing_samples_and_a_long_gap_cuts_the_window() -> None:
-    seg = StreamingSegmenter(min_gap=10, max_frames=100, threshold=8.0)
+    seg = StreamingSegmenter(max_frames=100)
     idx = np.r_[0:20, 25:40]
     closed = seg.push(idx, idx.astype(float), np.zeros(idx.size), np.zeros(idx.size))
     assert closed == []
-    (window,) = seg.push(np.array([40]), np.array([40.0]), np.array([99.0]), np.array([1.0]))
+    (window,) = seg.push(np.array([40]), np.array([40.0]), np.zeros(1), np.array([1.0]), np.array([40]))
     assert (window.window.start, window.window.end, window.window.ends_at_ejection) == (0, 40, True)
     assert np.isnan(window.values[20:25]).all() and np.isfinite(np.delete(window.values, range(20, 25))).all()
     (cut,) = seg.push(np.array([500]), np.array([1.0]), np.zeros(1), np.array([2.0]))
@@ -70,14 +93,14 @@ def test_lost_frames_become_missing_samples_and_a_long_gap_cuts_the_window() -> 
 
 
 def test_a_window_longer_than_the_limit_is_cut_and_memory_stays_bounded() -> None:
-    seg = StreamingSegmenter(min_gap=10, max_frames=100, threshold=8.0)
+    seg = StreamingSegmenter(max_frames=100, detector=EjectionDetector(FPS))
     closed = segment(seg, np.arange(1050), np.zeros(1050), np.zeros(1050), 64)
     assert [(c.window.start, c.window.end) for c in closed] == [(k, k + 100) for k in range(0, 1000, 100)]
     assert not any(c.window.ends_at_ejection or c.window.starts_at_ejection for c in closed)
 
 
-def test_rises_closer_than_the_minimum_gap_are_one_ejection() -> None:
-    activity = np.zeros(300)
-    activity[[50, 52, 60, 200]] = 20.0
-    closed = segment(StreamingSegmenter(100, 10_000, 8.0), np.arange(300), np.zeros(300), activity, 300)
+def test_bursts_within_the_refractory_time_are_one_ejection() -> None:
+    change = bursts([50, 60, 70, 200], 300)
+    seg = StreamingSegmenter(10_000, EjectionDetector(FPS, refractory=100))
+    closed = segment(seg, np.arange(300), np.zeros(300), change, 300)
     assert [(c.window.start, c.window.end) for c in closed] == [(0, 50), (50, 200)]

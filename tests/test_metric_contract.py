@@ -30,7 +30,7 @@ def _exposition(skip: str = "", kind_of: dict[str, str] | None = None, label_val
 
 def test_the_contract_names_the_issue_metrics() -> None:
     contract = load_contract()
-    assert len(contract) == 21 and {m.kind for m in contract.values()} == {"counter", "gauge", "histogram"}
+    assert len(contract) == 23 and {m.kind for m in contract.values()} == {"counter", "gauge", "histogram"}
     assert contract["meniscope_windows_total"].labels == {"status": ("ok", "settled", "unresolved", "failed")}
     assert all(m.name.endswith("_total") == (m.kind == "counter") for m in contract.values())
 

@@ -1,4 +1,4 @@
-"""Segmentation: ejections read from the printer's file, placed at its rate, or detected from the video."""
+"""Segmentation: ejections read from the printer's file or placed at its rate (detected: test_ejection_detector)."""
 
 from __future__ import annotations
 
@@ -10,16 +10,12 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from service.analysis.segment import (
-    burst_period,
-    detect_ejections,
     ejections_at_rate,
     frame_brightness,
     read_ejections,
-    robust_z,
     windows_between,
 )
 from service.errors import MeniscopeError
-from service.validation.score import ejection_matches
 
 FPS = 19000.0
 
@@ -53,48 +49,11 @@ def test_windows_run_from_each_ejection_to_the_next():
         windows_between([7], 7)
 
 
-@settings(max_examples=40, deadline=None)
-@given(
-    period=st.floats(80, 400),
-    phase=st.integers(0, 59),
-    windows=st.integers(3, 30),
-    seed=st.integers(0, 1000),
-    jitter=st.integers(0, 2),
-)
-def test_periodic_ejections_are_all_found_and_nothing_else(period, phase, windows, seed, jitter):
-    rng = np.random.default_rng(seed)
-    true = np.round(phase + period * np.arange(windows)).astype(int) + rng.integers(-jitter, jitter + 1, windows)
-    true = np.clip(true, 0, None)
-    n = int(true[-1] + period)
-    found = detect_ejections(activity(true, n, seed, tail=int(0.8 * period)), FPS)
-    hits, n_found, n_true = ejection_matches(found, true)
-    assert hits == n_true == n_found, (found, true)
-
-
-def test_irregular_ejections_are_found_above_the_threshold():
-    true = np.array([30, 400, 520, 1100, 1500])
-    found = detect_ejections(activity(true, 1800, 3, np.array([80, 90, 70, 85, 95])), FPS)
-    assert ejection_matches(found, true) == (5, 5, 5)
-
-
-def test_a_quiet_series_has_no_ejections():
-    assert detect_ejections(np.abs(np.random.default_rng(0).normal(1, 0.2, 3000)), FPS).size == 0
-    assert detect_ejections(np.zeros(100), FPS).size == 0
-
-
 def test_a_known_rate_takes_its_phase_from_the_bursts():
     true = 17 + np.round(190.0 * np.arange(10)).astype(int)
     assert np.array_equal(ejections_at_rate(activity(true, 1900, 1), FPS, 100.0), true)
     with pytest.raises(ValueError):
         ejections_at_rate(np.zeros(100), FPS, 15000.0)
-
-
-def test_the_period_of_bursts_is_measured_to_a_fraction_of_a_frame():
-    true = np.round(190.4 * np.arange(30)).astype(int)
-    z = activity(true, 30 * 191, 2)
-    from service.analysis.segment import burst
-
-    assert burst_period(burst(robust_z(z), 6), 38) == pytest.approx(190.4, abs=0.3)
 
 
 def test_ejection_files_in_frames_and_in_seconds(tmp_path: Path):

@@ -129,3 +129,19 @@ def test_fallbacks_hold_only_where_no_file_environment_or_option_sets_the_key(
     monkeypatch.setenv("MENISCOPE_BATCH", "64")
     s = load_settings(config, fallbacks, host="127.0.0.2")
     assert (s.port, s.threads, s.batch, s.host) == (9000, 3, 64, "127.0.0.2")
+
+
+def test_a_config_written_for_the_former_activity_threshold_still_loads_with_one_warning(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
+) -> None:
+    config = tmp_path / "serve.toml"
+    config.write_text("activity_threshold = 8.0\nejection_hz = 120\n")
+    with caplog.at_level("WARNING"):
+        s = load_settings(config)
+    assert s.ejection_hz == 120 and s.ejection_ratio == 2.0  # the old key changes nothing
+    assert [r.getMessage().count("\n") for r in caplog.records if "activity_threshold" in r.getMessage()] == [0]
+    monkeypatch.setenv("MENISCOPE_ACTIVITY_THRESHOLD", "12")
+    caplog.clear()
+    with caplog.at_level("WARNING"):
+        assert load_settings().ejection_ratio == 2.0
+    assert any("activity_threshold is deprecated" in r.getMessage() for r in caplog.records)

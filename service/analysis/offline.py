@@ -31,6 +31,7 @@ from service.inverse.base import InverseMethod, InverseOutput
 from service.inverse.methods import open_method
 from service.inverse.nearest import NearestDatabase
 from service.physics import WindowMotion, centre_displacement
+from service.pipeline.ejections import detect_ejections_streamed
 from service.pipeline.records import COEFFICIENTS, FRAME, coefficients_of
 from service.pipeline.segmenter import StreamingSegmenter
 from service.pipeline.stages import FrameStages
@@ -119,9 +120,12 @@ def analyse_recording(
         n = len(records)
         if n < 2:
             raise MeniscopeError(path, f"{n} frame(s): a window analysis needs at least 2")
-        cuts, _ = find_ejections(frame_activity(records["change"]), fps, ejections.file, ejections.hz)
-        segmenter = StreamingSegmenter(1, n, np.inf)  # cut at the ejections found: the whole recording looked ahead
-        closed = segmenter.push(np.arange(n), records, records["activity"], np.zeros(n), cuts)
+        if ejections.file is None and ejections.hz is None:  # the live detector, looking further ahead
+            cuts = detect_ejections_streamed(records["change"], fps, offline=True)
+        else:
+            cuts, _ = find_ejections(frame_activity(records["change"]), fps, ejections.file, ejections.hz)
+        segmenter = StreamingSegmenter(n)  # cut at the ejections found: the whole recording looked ahead
+        closed = segmenter.push(np.arange(n), records, records["change"], np.zeros(n), cuts)
         windows = [c.window for c in closed + segmenter.finish(np.nan)]
         if db is not None:
             _set_coefficients(records, *_regularise(db, np.concatenate(found), windows, fps, settings, progress))

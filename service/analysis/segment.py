@@ -1,4 +1,4 @@
-"""Ejections and the windows between them: read from a file, placed at a known rate, or detected.
+"""Ejections and the windows between them: read from a file or placed at a known rate; frame measures.
 
 Window i runs from an ejection (that frame included, t = 0) to the next one (excluded). Frames
 before the first ejection form a leading partial window (``starts_at_ejection`` false) and frames
@@ -23,15 +23,11 @@ from pathlib import Path
 import cv2
 import numpy as np
 from numpy.typing import ArrayLike
-from scipy.signal import find_peaks
 
 from service.errors import MeniscopeError
 
 _MAD_TO_SIGMA = 1.482602218505602
 _CHUNK_FRAMES = 256  # frame differences are taken this many frames at a time to bound memory
-#: Ejections closer than this are one (when no rate is given): 250 Hz, 2.5x the printer's usual 100 Hz, and
-#: above the meniscus' slowest oscillation period (2 ms), so that its ringing is not taken for a repeat.
-MIN_EJECTION_PERIOD_S = 4e-3
 
 
 @dataclass(frozen=True)
@@ -216,84 +212,12 @@ def ejections_at_rate(activity: ArrayLike, fps: float, ejection_hz: float, trans
     return np.unique(frames[frames < z.size])
 
 
-def burst_period(bursts: np.ndarray, min_frames: int, min_correlation: float = 0.3) -> float | None:
-    """The repeat period (frames) of a burst signal from its autocorrelation, or None when it does not repeat.
-
-    The first autocorrelation peak at a lag of at least ``min_frames`` whose height is at least 0.7 of the
-    highest (so twice the period is not taken for it), refined by a parabola through its neighbours;
-    None when that peak is under ``min_correlation`` or fewer than two periods fit in the series.
-    """
-    x = bursts - bursts.mean()
-    n = x.size
-    if n < 2 * min_frames or not np.any(x):
-        return None
-    spectrum = np.fft.rfft(x, 2 * n)
-    corr = np.fft.irfft(spectrum * np.conj(spectrum))[: n // 2 + 1]
-    corr /= corr[0]
-    peaks, _ = find_peaks(corr[: n // 2])
-    peaks = peaks[peaks >= min_frames]
-    if peaks.size == 0 or corr[peaks].max() < min_correlation:
-        return None
-    lag = int(peaks[np.argmax(corr[peaks] >= 0.7 * corr[peaks].max())])
-    left, mid, right = corr[lag - 1 : lag + 2]
-    curvature = left - 2 * mid + right
-    return lag + (0.5 * (left - right) / curvature if curvature < 0 else 0.0)
-
-
-def detect_ejections(
-    activity: ArrayLike,
-    fps: float,
-    transient_frames: int = 6,
-    threshold: float = 8.0,
-    relative: float = 0.3,
-) -> np.ndarray:
-    """Ejection frames: the starts of the activity's strongest bursts, followed from one to the next.
-
-    Printers eject at a steady rate, so when the bursts repeat (:func:`burst_period`) each ejection is
-    searched for one period after the last, within +-10 % of it, from the strongest burst on in both
-    directions: a weak ejection is still found, a strong oscillation peak between two is not taken.
-    Otherwise every burst above ``threshold`` robust sigmas (times sqrt(transient_frames), as it sums
-    that many frames) and ``relative`` times the strongest counts, the strongest kept when two are
-    closer than :data:`MIN_EJECTION_PERIOD_S`. (A known rate is :func:`ejections_at_rate`'s.) Returns
-    sorted frame indices, shape (E,), int64.
-    """
-    a = robust_z(activity)
-    z = burst(a, transient_frames)
-    separation = MIN_EJECTION_PERIOD_S * fps
-    period = burst_period(z, max(2, int(separation)))
-    if period is not None:
-        peaks = _follow(z, period, relative, transient_frames)
-    else:
-        height = threshold * np.sqrt(max(transient_frames, 1))  # a sum of that many noise frames reaches sqrt(n) more
-        peaks, found = find_peaks(np.concatenate([[-np.inf], z]), height=height, distance=max(1, int(separation)))
-        # (the leading -inf lets frame 0 be a peak: a recording may start at an ejection)
-        peaks = peaks[found["peak_heights"] >= relative * found["peak_heights"].max()] - 1 if peaks.size else peaks
-    return np.unique([_onset(a, int(p), transient_frames) for p in peaks]).astype(np.int64)
-
-
 def _onset(activity: np.ndarray, peak: int, frames: int) -> int:
     """First frame in the ``frames`` before a burst peak whose activity reaches half their highest: the
     moment the droplet starts to leave, not when the oscillation it leaves behind adds the most."""
     lo = max(peak - frames, 0)
     span = activity[lo : peak + 1]
     return lo + int(np.argmax(span >= 0.5 * span.max()))
-
-
-def _follow(bursts: np.ndarray, period: float, relative: float, frames: int) -> np.ndarray:
-    """The strongest burst, then the strongest within +-10 % of one ``period`` from each found one, both ways,
-    while the expected ejection and its ``frames`` of transient lie in the series and the burst found there
-    is at least half ``relative`` times the typical (median) ejection's so far (a pause in printing)."""
-    reach = max(2, int(round(0.1 * period)))
-    found = [int(np.argmax(bursts))]
-    for step in (period, -period):
-        at = float(found[0])
-        while -reach / 2 <= round(at + step) and round(at + step) + frames <= bursts.size:
-            lo, hi = max(int(round(at + step)) - reach, 0), min(int(round(at + step)) + reach + 1, bursts.size)
-            at = lo + int(np.argmax(bursts[lo:hi]))
-            if bursts[at] < 0.5 * relative * np.median(bursts[found]):
-                break
-            found.append(at)
-    return np.unique(np.asarray(found, np.int64))
 
 
 def find_ejections(
@@ -303,10 +227,11 @@ def find_ejections(
     ejection_hz: float | None = None,
     transient_frames: int = 6,
 ) -> tuple[np.ndarray, str]:
-    """Ejection frames and how they were found: from the printer's file, at its known rate, or detected.
+    """Ejection frames and how they were found: from the printer's file or at its known rate (found from the video
+    otherwise, by :mod:`service.pipeline.ejections`, the detector of every front door).
 
     ``activity`` (N,) is the per-frame activity (:func:`frame_activity` or :func:`series_activity`);
-    it places the phase of a known rate and is where undeclared ejections are detected.
+    it places the phase of a known rate.
     """
     z = np.asarray(activity, dtype=np.float64)
     if ejections_file is not None:
@@ -318,4 +243,4 @@ def find_ejections(
             ), f"every {fps / ejection_hz:.4g} frames, phase from the video"
         except ValueError as exc:
             raise MeniscopeError("--ejection-hz", str(exc)) from None
-    return detect_ejections(z, fps, transient_frames=transient_frames), "detected from the video"
+    raise ValueError("neither an ejection file nor a rate: the video's ejections are service.pipeline.ejections'")

@@ -26,12 +26,13 @@ from typing import Protocol
 import numpy as np
 
 from service.analysis.results import WindowResult
-from service.analysis.segment import MIN_EJECTION_PERIOD_S
 from service.errors import MeniscopeError
 from service.inverse.base import InverseMethod
+from service.pipeline.ejections import EjectionDetector
 from service.pipeline.fitting import FitPool
 from service.pipeline.segmenter import ClosedWindow, StreamingSegmenter
 from service.pipeline.stages import FrameStages
+from service.pipeline.trigger import TriggerCheck, TriggerCounts, TriggerInbox
 from service.pipeline.windows import WindowJob, job_for, window_model_for
 from service.scene import Scene
 from service.server.settings import ServiceSettings
@@ -133,6 +134,7 @@ class PipelineStats:
     fps_in: float = 0.0
     fps_out: float = 0.0
     last_frame_at: float = 0.0  # monotonic time (s) frames last arrived
+    trigger: TriggerCounts = field(default_factory=TriggerCounts)  # the printer's ejections and the video's check
     latest: LatestFrame | None = field(default=None, repr=False)
 
 
@@ -174,13 +176,16 @@ class BatchBudget:
         self._cost = cost if self._cost is None else self._cost + self.smoothing * (cost - self._cost)
 
 
-def segmenter_for(settings: ServiceSettings, fps: float) -> StreamingSegmenter:
-    """The live segmenter ``settings`` ask for at ``fps``: no two ejections within half the expected period
-    (:data:`MIN_EJECTION_PERIOD_S` when no rate is given), windows cut at ``max_window_s``."""
-    period = fps / settings.ejection_hz if settings.ejection_hz else MIN_EJECTION_PERIOD_S * fps
-    return StreamingSegmenter(
-        int(0.5 * period), int(settings.max_window_s * fps), settings.activity_threshold, drop_leading=True
-    )
+def segmenter_for(settings: ServiceSettings, fps: float, trigger: TriggerInbox | None = None) -> StreamingSegmenter:
+    """The live segmenter ``settings`` ask for at ``fps``: ejections from the detector with the live look-ahead, no
+    two within half the expected period (its own refractory time when no rate is given), windows cut at
+    ``max_window_s``; with ``trigger = "printer"``, cut at the ``trigger``'s events, which the detector checks."""
+    refractory = int(0.5 * fps / settings.ejection_hz) if settings.ejection_hz else None
+    detector = EjectionDetector(fps, ratio=settings.ejection_ratio, refractory=refractory)
+    check = None
+    if settings.trigger == "printer" and trigger is not None:
+        check = TriggerCheck(trigger, fps, int(round(settings.trigger_wait_s * fps)))
+    return StreamingSegmenter(int(settings.max_window_s * fps), detector, drop_leading=True, trigger=check)
 
 
 class Pipeline:
@@ -198,12 +203,13 @@ class Pipeline:
         fits: FitPool,
         sink: PipelineSink,
         stats: PipelineStats,
+        trigger: TriggerInbox | None = None,
     ) -> None:
         self.stages = FrameStages(scene, source.format, source.uri, method)
         self.settings, self.source, self.method, self.fits = settings, source, method, fits
         self.sink, self.stats = sink, stats
         fps = source.fps
-        self.segmenter = segmenter_for(settings, fps)
+        self.segmenter = segmenter_for(settings, fps, trigger)
         self._queue: queue.Queue[Acquired] = queue.Queue(settings.queue_batches)
         self._rest: Acquired | None = None  # a read's frames past the last call's cap
         self.budget = BatchBudget(settings.batch_ms / 1e3, settings.batch, settings.read_frames)
@@ -331,7 +337,7 @@ class Pipeline:
         self.budget.record(seconds, len(batch))
         self.sink.on_inference(seconds, len(batch))
         self.stats.frames_inferred += len(batch)
-        self._dispatch(self.segmenter.push(batch.indices, records, records["activity"], acquired.arrival))
+        self._dispatch(self.segmenter.push(batch.indices, records, records["change"], acquired.arrival))
         last = records[-1]
         self.stats.latest = LatestFrame(
             int(batch.indices[-1]),

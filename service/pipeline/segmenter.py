@@ -1,12 +1,12 @@
 """Window assembly: the per-frame records cut into windows at ejections, as frames arrive.
 
 The one segmenter of every front door (same :class:`Window` conventions as
-:mod:`service.analysis.segment`). Live, an ejection is the first frame whose activity rises above
-the threshold, at least ``min_gap`` frames after the previous ejection (half the expected period),
-so it is known the moment its frame is inferred and the window before it closes at once. Offline
-looks further ahead (the printer's file, a known rate, or detection over the whole recording) and
-hands the ejections it found to :meth:`StreamingSegmenter.push` with the frames; the windows are cut
-by the same code. Frames lost on the way (source gaps, frames the service dropped) become NaN
+:mod:`service.analysis.segment`). Live, the ejections come from an
+:class:`service.pipeline.ejections.EjectionDetector` fed each batch's frame change: frames wait in the
+segmenter until the detector has decided them (its look-ahead, a few frames), so a window closes a few
+frames after its ejection. Offline looks further ahead (the printer's file, a known rate, or the same
+detector with a longer look-ahead over the whole recording) and hands the ejections it found to
+:meth:`StreamingSegmenter.push` with the frames; the windows are cut by the same code. Frames lost on the way (source gaps, frames the service dropped) become NaN
 records, which the fit skips; a window that outgrows ``max_frames`` or a gap that long is cut there
 (its end is then not an ejection), so memory stays bounded.
 """
@@ -19,6 +19,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from service.analysis.segment import Window
+from service.pipeline.ejections import EjectionDetector
+from service.pipeline.trigger import TriggerCheck
 
 
 @dataclass(frozen=True)
@@ -36,16 +38,24 @@ class ClosedWindow:
 
 
 class StreamingSegmenter:
-    """Cuts consecutive batches of (frame index, per-frame values, activity, arrival time) into closed windows.
+    """Cuts consecutive batches of (frame index, per-frame values, frame change, arrival time) into closed windows.
 
     ``drop_leading``: the window before the stream's first ejection (when the stream does not start at one) is
     not returned, though it keeps its index: its frames are the end of a window whose ejection was never seen,
     so it has no t = 0 to fit from (the live service starts and restarts anywhere in a window).
     """
 
-    def __init__(self, min_gap: int, max_frames: int, threshold: float, drop_leading: bool = False) -> None:
-        self.min_gap, self.max_frames, self.threshold = max(1, min_gap), max(2, max_frames), threshold
-        self.drop_leading = drop_leading
+    def __init__(
+        self,
+        max_frames: int,
+        detector: EjectionDetector | None = None,
+        drop_leading: bool = False,
+        trigger: TriggerCheck | None = None,
+    ) -> None:
+        self.max_frames, self.detector, self.drop_leading = max(2, max_frames), detector, drop_leading
+        self.trigger = trigger  # with one (and a detector), the printer's ejections cut and the video's check them
+        self._waiting: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []  # (indices, values, arrival) undecided
+        self._found: list[int] = []  # ejections the detector found that are not yet cut
         self._seen_ejection = False
         self.ejections: deque[int] = deque(maxlen=256)  # recent ejection frames, for the live trace
         self._count = 0  # windows closed so far: the next one's index
@@ -54,21 +64,48 @@ class StreamingSegmenter:
         self._at_ejection = False
         self._pieces: list[np.ndarray] = []
         self._length = 0
-        self._above = False  # whether the last frame's activity was above the threshold
-        self._last_ejection: int | None = None
 
     def push(
         self,
         indices: np.ndarray,
         values: np.ndarray,
-        activity: np.ndarray,
+        change: np.ndarray,
         arrival: np.ndarray,
         ejections: np.ndarray | None = None,
     ) -> list[ClosedWindow]:
-        """Add a batch (indices, activity, arrival (N,), increasing; values (N, ...)); the windows it closes.
+        """Add a batch (indices, change, arrival (N,), increasing; values (N, ...)); the windows it closes.
 
         ``ejections``: the ejection frames among ``indices`` when they are known already (offline, which looks
-        further ahead); the activity's rising edges are then not consulted."""
+        further ahead); else the detector's (or the printer's trigger's, which the detector's then check), the
+        batch's frames waiting until they are decided."""
+        if ejections is not None or self.detector is None:
+            return self._cut(indices, values, arrival, np.empty(0, np.int64) if ejections is None else ejections)
+        found = self.detector.push(indices, change)
+        self._waiting.append((np.asarray(indices), np.asarray(values), np.asarray(arrival)))
+        if self.trigger is None:
+            self._found += found
+            return self._release(self.detector.settled)
+        until = self.trigger.update(found, int(indices[-1]), self.detector.settled)
+        self._found = self.trigger.cuts
+        return self._release(until)
+
+    def _release(self, until: int) -> list[ClosedWindow]:
+        """Cut the waiting frames before ``until`` (decided by the detector) at the ejections it found."""
+        if not self._waiting:
+            return []
+        indices, values, arrival = (np.concatenate(parts) for parts in zip(*self._waiting))
+        ready = indices < until
+        self._waiting = [(indices[~ready], values[~ready], arrival[~ready])] if not ready.all() else []
+        if not ready.any():
+            return []
+        cuts = np.asarray(self._found, np.int64)
+        self._found[:] = [f for f in self._found if f >= until]
+        return self._cut(indices[ready], values[ready], arrival[ready], cuts)
+
+    def _cut(
+        self, indices: np.ndarray, values: np.ndarray, arrival: np.ndarray, ejections: np.ndarray
+    ) -> list[ClosedWindow]:
+        """Cut a decided batch at ``ejections``; the windows it closes."""
         closed: list[ClosedWindow] = []
         if self._next is not None and indices[0] - self._next >= self.max_frames:
             closed += self._close(False, float(arrival[0]))  # a gap as long as a window: start afresh
@@ -79,20 +116,12 @@ class StreamingSegmenter:
         values = np.asarray(values)
         x = np.full((dense.size, *values.shape[1:]), np.nan, values.dtype if values.dtype.names else np.float64)
         x[slot] = values
-        z = np.zeros(dense.size)
-        z[slot] = activity
         when = np.full(dense.size, np.inf)
         when[slot] = arrival
         when = np.minimum.accumulate(when[::-1])[::-1]  # a missing frame counts as arriving with the next one
         if self._length == 0:
             self._start = first
-        if ejections is None:
-            above = z > self.threshold
-            rising = np.flatnonzero(above & ~np.concatenate([[self._above], above[:-1]]))
-            self._above = bool(above[-1])
-            cuts = self._ejections(dense, rising)
-        else:
-            cuts = np.flatnonzero(np.isin(dense, ejections)).tolist()
+        cuts = np.flatnonzero(np.isin(dense, ejections)).tolist()
         i = 0
         for cut in [*cuts, dense.size]:
             while i < cut:
@@ -110,18 +139,16 @@ class StreamingSegmenter:
         return closed
 
     def finish(self, closed_at: float) -> list[ClosedWindow]:
-        """The stream ended: the window in progress, closed there (its end is not an ejection)."""
-        return self._close(False, closed_at)
-
-    def _ejections(self, dense: np.ndarray, rising: np.ndarray) -> list[int]:
-        """Positions (in ``dense``) of the rising edges at least ``min_gap`` frames after the previous ejection."""
-        kept = []
-        for pos in rising:
-            frame = int(dense[pos])
-            if self._last_ejection is None or frame - self._last_ejection >= self.min_gap:
-                kept.append(int(pos))
-                self._last_ejection = frame
-        return kept
+        """The stream ended: the frames still waiting cut at what the detector finds in them, then the window in
+        progress, closed there (its end is not an ejection)."""
+        if self.detector is not None:
+            found = self.detector.finish()
+            if self.trigger is None:
+                self._found += found
+            else:
+                self.trigger.update(found, np.iinfo(np.int64).max - 1, np.iinfo(np.int64).max)
+                self._found = self.trigger.cuts
+        return self._release(np.iinfo(np.int64).max) + self._close(False, closed_at)
 
     def _append(self, values: np.ndarray) -> None:
         if len(values):

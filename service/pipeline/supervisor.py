@@ -30,6 +30,7 @@ from service.pipeline.demo import demo_uri
 from service.pipeline.fitting import FitPool
 from service.pipeline.records import NO_HIGHLIGHT
 from service.pipeline.runtime import Pipeline, PipelineSink, PipelineStats
+from service.pipeline.trigger import TriggerInbox
 from service.scene import Scene
 from service.server.settings import ServiceSettings, resolve_source
 from service.sources import FrameSource, open_source
@@ -75,11 +76,19 @@ class Health:
 
 
 class Supervisor:
-    """Runs :class:`Pipeline` for the current settings in a thread of its own until :meth:`stop`."""
+    """Runs :class:`Pipeline` for the current settings in a thread of its own until :meth:`stop`; ``trigger``: the
+    printer's ejection events, which every pipeline it runs reads (with the setting ``trigger = "printer"``)."""
 
-    def __init__(self, settings: ServiceSettings, sink: PipelineSink, stats: PipelineStats | None = None) -> None:
+    def __init__(
+        self,
+        settings: ServiceSettings,
+        sink: PipelineSink,
+        stats: PipelineStats | None = None,
+        trigger: TriggerInbox | None = None,
+    ) -> None:
         self.settings, self.sink = settings, sink
         self.stats = stats or PipelineStats()
+        self.trigger = trigger
         self._health = Health("starting", None, time.time(), 0)
         self._source: FrameSource | None = None
         self._fits: FitPool | None = None
@@ -195,7 +204,7 @@ class Supervisor:
         )
         scene_of_sim = {"scene": settings.scene} if urlsplit(uri).scheme.lower() == "sim" else {}
         with open_source(uri, **scene_of_sim) as source:  # a simulated camera renders the scene of the models
-            pipeline = Pipeline(settings, scene, source, method, fits, self.sink, self.stats)
+            pipeline = Pipeline(settings, scene, source, method, fits, self.sink, self.stats, self.trigger)
             self._source, self._attempts = source, 0  # it ran: a later failure starts the backoff afresh
             self._running_at, self.stats.latest = time.monotonic(), None
             self._set("running", None, settings)

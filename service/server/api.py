@@ -1,6 +1,6 @@
 """REST routes: health and readiness, status, window history, configuration, latest frame, metrics, WebSocket.
 
-Reading needs nothing; changing (PUT /api/v1/config) needs ``Authorization: Bearer <token>`` whenever a
+Reading needs nothing; changing (PUT /api/v1/config, POST /api/v1/ejections) needs ``Authorization: Bearer <token>`` whenever a
 token is set, and a token must be set before anything can be changed on a service that is reachable
 from other machines (bound beyond loopback). Every error answers ``{"detail": ...}`` as documented in
 the OpenAPI schema (422: the list of problems, as for any request that fails validation).
@@ -22,6 +22,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from service.analysis.results import WindowResult
 from service.errors import MeniscopeError
 from service.pipeline.runtime import LatestFrame
+from service.pipeline.trigger import ejection_event
 from service.server.components import Service
 from service.server.settings import Method, ServiceSettings, resolve_source
 from service.sources import probe_source
@@ -196,6 +197,35 @@ def put_config(change: ConfigChange, service: Svc) -> dict[str, Any]:
         raise RequestValidationError([{"loc": ("body", "source"), "msg": str(exc), "type": "value_error"}]) from None
     service.reconfigure(settings)
     return settings.public()
+
+
+class Ejection(BaseModel):
+    """One ejection announced by the printer: its camera frame index or its time since the stream's frame 0."""
+
+    model_config = ConfigDict(extra="forbid")
+    frame: int | None = Field(None, ge=0, le=MAX_ID, description="the camera's frame index of the ejection")
+    time_s: float | None = Field(None, ge=0, allow_inf_nan=False, description="seconds since the stream's frame 0")
+
+
+@router.post(
+    "/api/v1/ejections",
+    tags=["trigger"],
+    status_code=202,
+    dependencies=[Depends(require_token)],
+    responses=_documented(401, 403, 503),
+)
+def post_ejection(event: Ejection, service: Svc) -> dict[str, Any]:
+    """The printer's trigger: one ejection (exactly one of ``frame`` and ``time_s``), sent on to the pipeline
+    process; ``received``: the events this web process has sent on. With the setting ``trigger = "printer"`` the
+    windows are cut at these, and the video's ejections check them (``meniscope_trigger_disagreements_total``);
+    503 while the pipeline process is not running (the event would reach no segmenter)."""
+    try:
+        ejection_event(event.frame, event.time_s)
+    except ValueError as exc:
+        raise RequestValidationError([{"loc": ("body",), "msg": str(exc), "type": "value_error"}]) from None
+    if not service.eject(event.frame, event.time_s):
+        raise HTTPException(503, "the pipeline process is not running: the ejection reached no segmenter")
+    return {"received": service.ejections_sent}
 
 
 @router.get("/api/v1/frames/latest.png", tags=["frames"], response_class=Response, responses=_documented(404))

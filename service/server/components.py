@@ -39,6 +39,13 @@ class Service:
     hub: Hub | None = None
     views: FrameViews | None = None
     registry: CollectorRegistry | None = None  # the pipeline's statistics and health, and the WebSocket counts
+    ejections_sent: int = 0  # the printer's ejection events sent on to the pipeline process
+
+    def eject(self, frame: int | None, time_s: float | None) -> bool:
+        """Send one of the printer's ejection events on to the pipeline process; False when it is not running."""
+        sent = self.pipeline is not None and self.pipeline.eject(frame, time_s)
+        self.ejections_sent += sent
+        return sent
 
     @property
     def stats(self) -> PipelineStats:

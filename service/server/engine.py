@@ -15,10 +15,12 @@ from prometheus_client import generate_latest
 
 from service.pipeline.runtime import LatestFrame, PipelineStats
 from service.pipeline.supervisor import Health, Supervisor
+from service.pipeline.trigger import TriggerInbox
 from service.server.history import History
 from service.server.metrics import HistoryHealth, Metrics
 from service.server.publishers import Fanout, Publishers
 from service.server.settings import ServiceSettings
+from service.server.trigger_zmq import TriggerSubscriber
 from service.server.zmq_publisher import ZmqPublisher
 
 #: The history database, in the data folder.
@@ -41,7 +43,8 @@ class Report:
 
 class Engine:
     """Opens the history, binds ZeroMQ and runs the supervisor for ``settings``, sending WebSocket messages to
-    ``fanout``; :meth:`stop` stops them in order."""
+    ``fanout``; :meth:`stop` stops them in order. The printer's ejection events arrive in :attr:`trigger`: from
+    ``trigger_zmq`` (subscribed to here) and from the web process (:meth:`eject`)."""
 
     def __init__(self, settings: ServiceSettings, fanout: Fanout) -> None:
         s = self.settings = settings
@@ -54,15 +57,25 @@ class Engine:
             raise
         self.metrics = Metrics()
         self.publishers = Publishers(self.history, self.metrics, self.zmq, fanout)
-        self.supervisor = Supervisor(s, self.publishers, self.stats)
+        self.trigger = TriggerInbox(self.stats.trigger)
+        self.supervisor = Supervisor(s, self.publishers, self.stats, self.trigger)
+        self._trigger_zmq: TriggerSubscriber | None = None
 
     def start(self) -> Engine:
         self.publishers.start()
         self.supervisor.start()
+        if self.settings.trigger_zmq:
+            self._trigger_zmq = TriggerSubscriber(self.settings.trigger_zmq, self.trigger)
         return self
 
+    def eject(self, frame: int | None, time_s: float | None) -> None:
+        """One of the printer's ejection events, sent on by the web process (checked there already)."""
+        self.trigger.add(frame, time_s)
+
     def stop(self) -> None:
-        """In order: the pipeline stops, the publishers drain and close ZeroMQ, the history closes."""
+        """In order: the trigger and the pipeline stop, the publishers drain and close ZeroMQ, the history closes."""
+        if self._trigger_zmq is not None:
+            self._trigger_zmq.close()
         self.supervisor.stop()
         self.publishers.stop()
         self.history.close()

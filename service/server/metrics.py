@@ -64,6 +64,21 @@ class _PipelineCollector(Collector):
             ("history_windows_lost", history.lost, "Windows sent but never stored (the history backlog overflowed)."),
         ):
             yield CounterMetricFamily(f"meniscope_{name}", text, value=value)
+        trigger = s.trigger
+        yield CounterMetricFamily(
+            "meniscope_trigger_ejections",
+            "Ejection events received from the printer's trigger.",
+            value=trigger.received,
+        )
+        disagreements = CounterMetricFamily(
+            "meniscope_trigger_disagreements",
+            "Printer ejections the video did not show (side=printer_only) and "
+            "video ejections the printer did not announce (side=video_only), within 2 frames.",
+            labels=["side"],
+        )
+        disagreements.add_metric(["printer_only"], trigger.printer_only)
+        disagreements.add_metric(["video_only"], trigger.video_only)
+        yield disagreements
         for name, value, text in (
             ("source_up", flowing, f"1 while frames arrive from the source (within {SOURCE_SILENT_S:g} s), else 0."),
             ("ready", ready, "1 while the service is ready (model loaded, source running), else 0."),

@@ -118,7 +118,8 @@ def serve_pipeline(settings: ServiceSettings, conn: Connection) -> None:
 
 
 def _commands(conn: Connection, engine: Engine, fanout: PipeFanout, stop: threading.Event) -> None:
-    """What the web process asks: new settings, the number of WebSocket clients, stop (also when it is gone)."""
+    """What the web process asks: new settings, the number of WebSocket clients, a printer's ejection event, stop
+    (also when it is gone)."""
     while True:
         try:
             kind, *args = conn.recv()
@@ -128,6 +129,8 @@ def _commands(conn: Connection, engine: Engine, fanout: PipeFanout, stop: thread
             engine.reconfigure(args[0])
         elif kind == "clients":
             fanout.clients = args[0]
+        elif kind == "ejection":
+            engine.eject(*args)
         elif kind == "stop":
             break
     stop.set()
@@ -276,6 +279,15 @@ class PipelineProcess:
                     settings if self.endpoint is None else settings.model_copy(update={"zmq_publish": self.endpoint}),
                 )
             )
+
+    def eject(self, frame: int | None, time_s: float | None) -> bool:
+        """Send one of the printer's ejection events (checked already) to the pipeline process, whose segmenter
+        cuts at it; False when it is not running (down, restarting), when the event cannot reach a segmenter."""
+        link = self._link
+        if link is None or link.broken or self._down is not None or not self._started.is_set():
+            return False
+        link.send(("ejection", frame, time_s))
+        return not link.broken
 
     def stop(self) -> None:
         """Ask the pipeline process to stop (it stops the pipeline, drains the publishers, closes ZeroMQ and the

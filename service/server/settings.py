@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import ipaddress
 import json
+import logging
 import os
 import tomllib
 from collections.abc import Mapping
@@ -25,6 +26,7 @@ from service import DEFAULT_MODELS, DEFAULT_SCENE
 from service.analysis.results import FitSettings
 from service.errors import MeniscopeError
 
+log = logging.getLogger(__name__)
 Method = Literal["network", "direct", "nearest", "nearest-approx"]
 Positive = Annotated[float, Field(gt=0, allow_inf_nan=False)]
 
@@ -71,8 +73,28 @@ class ServiceSettings(BaseSettings):
     )
     # --- segmentation and fit
     ejection_hz: Positive | None = Field(100.0, description="expected ejection rate: no two within half a period")
-    activity_threshold: Positive = Field(8.0, description="robust sigmas of frame change that mark an ejection")
+    ejection_ratio: Positive = Field(
+        2.0,
+        description="an ejection's burst of frame change above the change of the "
+        "frames before it, as a multiple of their median change",
+    )
+    activity_threshold: Positive | None = Field(
+        None,
+        description="deprecated and ignored (a warning says so): the robust sigmas of frame change of the former "
+        "threshold rule, which the ejection detector replaced; its sensitivity is ejection_ratio",
+    )
     max_window_s: Positive = Field(0.05, description="a window is cut (not fitted as one) beyond this")
+    trigger: Literal["video", "printer"] = Field(
+        "video",
+        description="what cuts the windows: the ejections the video shows, or the printer's trigger "
+        "(POST /api/v1/ejections, trigger_zmq), which the video then checks",
+    )
+    trigger_zmq: str | None = Field(
+        None,
+        description="ZeroMQ endpoint to subscribe to for the printer's ejection "
+        'events (JSON {"frame": N} or {"time_s": T}); empty: none',
+    )
+    trigger_wait_s: Positive = Field(2e-3, description="how long frames wait for a late printer event (trigger)")
     fit: FitSettings = FitSettings()
     fit_workers: Annotated[int, Field(ge=1, le=16)] = Field(1, description="processes fitting windows")
     fit_nice: Annotated[int, Field(ge=0, le=19)] = Field(
@@ -120,6 +142,11 @@ class ServiceSettings(BaseSettings):
 
     @model_validator(mode="after")
     def _checked(self) -> ServiceSettings:
+        if self.activity_threshold is not None:  # config files written before the detector keep working
+            log.warning(
+                "setting activity_threshold is deprecated and ignored: ejections are found by their burst of frame "
+                "change (ejection_ratio, default 2)"
+            )
         if self.method.startswith("nearest") and self.nearest_database is None:
             raise ValueError(f"method {self.method!r} needs nearest_database (a `meniscope dataset` folder)")
         if self.source is not None:

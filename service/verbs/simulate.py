@@ -46,6 +46,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="forward renderer: our ray tracer (default) or Blender Cycles, a second renderer that "
         "stands for a real camera the models were not trained on (about 4 frames/s)",
     )
+    p.add_argument(
+        "--kinds",
+        default=None,
+        help="window kinds, comma-separated, window k of the k-th modulo their number: nominal, settled, "
+        "heavy, light, 4khz, faint, drift, skip, spatter (default: the nominal ranges)",
+    )
     p.add_argument("--blender-samples", type=int, default=32, help="Cycles samples per pixel (default 32)")
     p.set_defaults(func=run)
 
@@ -76,6 +82,14 @@ def run(args: argparse.Namespace) -> int:
         raise MeniscopeError("--ejection-hz", f"must be a positive number, got {args.ejection_hz}")
     if args.seed < 0:
         raise MeniscopeError("--seed", f"must be zero or positive, got {args.seed}")
+    kinds, names = (), ()
+    if args.kinds:
+        from service.window_kinds import kinds_named
+
+        try:
+            kinds, names = kinds_named(args.kinds), tuple(n.strip() for n in args.kinds.split(","))
+        except ValueError as exc:
+            raise MeniscopeError("--kinds", str(exc)) from None
     scene = Scene.load(args.scene)
     bit_depth = args.bit_depth or (8 if args.out.suffix.lower() == ".avi" else 12)
     check_output(args.out, bit_depth)
@@ -103,6 +117,8 @@ def run(args: argparse.Namespace) -> int:
         noise=noise,
         renderer=renderer,
         frame=args.frame,
+        kinds=kinds,
+        kind_names=names,
     )
     rec = truth["recording"]
     print(

@@ -1,0 +1,262 @@
+"""Ejections found from their own signature, as frames stream in: one detector for live and offline.
+
+An ejection (the droplet leaving, the surface bulging out and back) changes the whole meniscus by much
+more than its oscillation does, for the few frames the transient lasts: a burst of frame-to-frame change
+(``change``, :func:`service.analysis.segment.frame_steps`). Frame n starts one when the mean change over
+its ``transient`` frames, less the median change of the ``history`` frames before it (the baseline: noise,
+or the ringing of the window before), exceeds both ``ratio`` times that baseline and ``floor`` times the
+typical burst of the ejections found so far (the median of the last eight; spatter or a strong ringing
+peak is a fraction of one). The ejection is the burst's first frame: the earliest frame, among the
+transient frames before the strongest start, whose change reaches 0.2 of the burst's highest. None is
+taken within ``refractory`` frames of the last (the transient and the ringing it starts). A stream's first
+frame has no frames before it: it starts at an ejection when its first transient is a burst against the frames
+after it, or, where the ejection's own ringing is as strong as its burst, when that transient reaches half the
+first ejection found after it (frames wait for that decision, at most :data:`START_WAIT_S`).
+
+Where ringing is as strong as an ejection's burst (a lightly damped meniscus, 4 kHz modes) the burst does not
+stand ``ratio`` above it; there the recent ejection period (the median interval between the ejections found)
+helps: in the stretch of +-10 % about a multiple of it after the last ejection, the strongest start counts at a
+quarter of the ratio (frames wait for the stretch's end). The rate is learned from the video, not assumed, and a
+skipped ejection or a rate drifting a few per cent keeps it.
+
+What happens after the ejection is not consulted beyond the transient, so a settled meniscus, a heavily
+or lightly damped one and 4 kHz modes look the same to it. Live runs it with ``lookahead`` = the transient
+and two frames (a decision waits that long); offline with more, so that the strongest start within
+``lookahead`` frames wins: the same code either way.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+
+import numpy as np
+from numpy.lib.stride_tricks import sliding_window_view
+
+#: The transient an ejection shows, s: the droplet leaving and the surface's bulge (0.25 ms simulated).
+TRANSIENT_S = 0.3e-3
+#: Frames before a start whose median change is its baseline, s.
+HISTORY_S = 2e-3
+#: No second ejection this soon after one, s (the printer's 250 Hz at most; its ringing is not a repeat).
+REFRACTORY_S = 4e-3
+
+
+#: A stream whose first transient is not plainly a burst against the frames after it (the ejection's ringing can
+#: be as strong) starts at an ejection when its first transient's highest change reaches this share of the first
+#: ejection found after it: decided then, or not at all once the stream has run this long without one (s).
+START_FRACTION = 0.5
+START_WAIT_S = 25e-3
+
+#: A burst starts at its first frame whose change above the baseline reaches this share of its highest: the
+#: bulge's first frame changes less than its fastest (one ejection in 50 at half; at 0.3 an ejection into strong
+#: ringing, its first frames 60 above the ringing and its 6th 220, was placed 5 frames late).
+ONSET_FRACTION = 0.2
+
+
+#: Where the recent ejection period puts the next ejection (within this share of the time since the last, up to
+#: this many periods on), the strongest start of that stretch is one at RELAXED times the ratio: an ejection
+#: into a meniscus still ringing as hard as its burst stands out from that ringing less than ``ratio``.
+EXPECTED_SPREAD = 0.1
+EXPECTED_PERIODS = 3
+RELAXED = 0.25
+
+
+class EjectionDetector:
+    """Ejection frames from consecutive batches of per-frame change; :meth:`push` returns those now decided."""
+
+    def __init__(
+        self,
+        fps: float,
+        lookahead: int | None = None,
+        ratio: float = 2.0,
+        floor: float = 0.3,
+        refractory: int | None = None,
+    ) -> None:
+        self.transient = max(2, int(round(TRANSIENT_S * fps)))
+        self.history = max(8, int(round(HISTORY_S * fps)))
+        self.refractory = refractory if refractory is not None else max(self.transient + 1, int(REFRACTORY_S * fps))
+        self.lookahead = max(self.transient + 2, lookahead if lookahead is not None else 0)
+        self.ratio, self.floor = ratio, floor
+        self._start_wait = int(START_WAIT_S * fps)
+        self._changes = np.empty(0)  # changes of frames [self._first, ...), NaN where missing
+        self._first: int | None = None
+        self._decided = 0  # frames before this index are decided
+        self._last: int | None = None  # the last ejection
+        self._start_checked = False
+        self._origin = 0  # the stream's first frame
+        self._pending: float | None = None  # the first transient's highest change while its ejection is undecided
+        self._bursts: deque[float] = deque(maxlen=8)
+        self._intervals: deque[int] = deque(maxlen=8)  # frames between consecutive ejections found
+
+    @property
+    def latency(self) -> int:
+        """Frames that must follow a frame before :attr:`settled` passes it (whether an ejection starts there or
+        in the transient before is known); more where a strong start in an expected ejection's stretch waits for
+        the stretch's end (a tenth of the period, the ringing of a lightly damped meniscus)."""
+        return self.transient + self.lookahead - 2
+
+    @property
+    def settled(self) -> int:
+        """No ejection found from now on lies before this frame (the stream's first frame before any, and while
+        whether it starts at one is undecided)."""
+        if self._first is None:
+            return np.iinfo(np.int64).min
+        return self._origin if self._pending is not None else self._decided - self.transient + 1
+
+    def push(self, indices: np.ndarray, change: np.ndarray) -> list[int]:
+        """Add frames ``indices`` (N,), increasing, with their change (N,); the ejections decided by them."""
+        indices = np.asarray(indices, np.int64)
+        if indices.size == 0:
+            return []
+        if self._first is None:
+            self._first = self._decided = self._origin = int(indices[0])
+            self._start_checked = False
+        end = self._first + self._changes.size
+        grown = np.full(max(int(indices[-1]) + 1 - end, 0), np.nan)
+        self._changes = np.concatenate([self._changes, grown])
+        keep = indices >= self._first
+        self._changes[indices[keep] - self._first] = np.asarray(change, np.float64)[keep]
+        found = self._start(final=False)
+        if not self._start_checked:
+            return found
+        found += self._decide(self._first + self._changes.size - self.lookahead + 1)
+        if self._pending is not None and self._decided - self._origin > self._start_wait:
+            self._pending = None  # no ejection for long: the stream started inside a window
+        return found
+
+    def finish(self) -> list[int]:
+        """The stream ended: decide the frames still waiting for their look-ahead."""
+        if self._first is None:
+            return []
+        found = self._start(final=True) + self._decide(self._first + self._changes.size - self.transient, final=True)
+        self._pending = None
+        return found
+
+    def _start(self, final: bool) -> list[int]:
+        """Whether the stream starts with an ejection (a recording cut at one), once the ``history`` frames after
+        the first transient are in (or the stream ended): its burst judged against them, since none came before."""
+        if self._start_checked or (self._changes.size < 1 + self.transient + self.history and not final):
+            return []
+        self._start_checked = True
+        burst, after = self._changes[1 : 1 + self.transient], self._changes[1 + self.transient :][: self.history]
+        if not (np.isfinite(burst).any() and np.isfinite(after).sum() >= self.transient):
+            return []
+        level = np.nanmax(burst) - np.nanpercentile(after, 90)
+        if not level > self.ratio * np.nanmedian(after):
+            self._pending = float(np.nanmax(burst))  # decided by the first ejection found after it
+            return []
+        self._last = self._first
+        self._bursts.append(float(level))
+        return [self._first]
+
+    def _decide(self, until: int, final: bool = False) -> list[int]:
+        """Decide frames [self._decided, until) (or fewer, where an expected ejection's stretch is not all in
+        unless ``final``); keep the history the next decisions need."""
+        lo = self._decided
+        if until <= lo:
+            return []
+        c = self._changes
+        at = lambda frame: frame - self._first
+        pad = np.full(self.history, np.nan)
+        ext = np.concatenate([pad, c, np.full(self.lookahead, np.nan)])  # ext[i + history] = c[i]
+        span = np.arange(at(lo), max(at(until) + self.lookahead, c.size))
+        with np.errstate(all="ignore"), _quiet():
+            burst = np.nanmax(sliding_window_view(ext[self.history :], self.transient)[span], axis=1)
+            past = sliding_window_view(ext, self.history)[span]
+            base, top = np.nanmedian(past, axis=1), np.nanpercentile(past, 90, axis=1)
+        level = np.nan_to_num(burst - top, nan=-np.inf)
+        level[np.isfinite(past).sum(axis=1) < self.transient] = -np.inf  # too little history to judge against
+        found = []
+        for i in np.flatnonzero(np.arange(span.size) < at(until) - at(lo)):
+            frame = lo + int(i)
+            if self._last is not None and frame - self._last < self.refractory:
+                continue
+            typical = self.floor * self._typical()
+            if not level[i] > RELAXED * typical:
+                continue
+            if level[i] > self.ratio * base[i] and level[i] > typical:
+                ahead = level[i : i + self.lookahead - self.transient + 1]
+                if ahead.max() > level[i]:  # a stronger start follows within the look-ahead: decide there
+                    continue
+            elif (expected := self._expected(frame)) is not None:  # where the rate puts the next ejection
+                a, b = max(expected[0], lo) - lo, expected[1] - lo
+                b = min(b, span.size - 1) if final else b
+                if b + self.transient > span.size:  # the stretch's last burst is not all in: wait for it
+                    until = frame
+                    break
+                if not (i == a + int(np.argmax(level[a : b + 1])) and level[i] > RELAXED * self.ratio * base[i]):
+                    continue
+            else:
+                continue
+            onset = self._onset(c, at(frame), top[i])
+            if self._last is not None:
+                self._intervals.append(self._first + onset - self._last)
+            self._last = self._first + onset
+            self._bursts.append(float(level[i]))
+            if self._pending is not None:  # the stream's start judged against its first ejection
+                starts = self._last - self._origin >= self.refractory and self._pending >= START_FRACTION * burst[i]
+                if starts:
+                    found.append(self._origin)
+                    self._intervals.append(self._last - self._origin)
+                self._pending = None
+            found.append(self._last)
+        self._decided = until
+        drop = max(0, at(until) - self.history - self.transient)
+        self._changes, self._first = c[drop:], self._first + drop
+        return found
+
+    def _expected(self, frame: int) -> tuple[int, int] | None:
+        """The frames around the multiple of the recent ejection period (the median of the last intervals) after
+        the last ejection that ``frame`` lies in, +-``EXPECTED_SPREAD`` of that time; None where it lies in none
+        (or too few ejections are known)."""
+        if self._last is None or not self._intervals:
+            return None
+        period = float(np.median(self._intervals))
+        k = round((frame - self._last) / period)
+        if not 1 <= k <= EXPECTED_PERIODS:
+            return None
+        centre, spread = self._last + k * period, max(2.0, EXPECTED_SPREAD * k * period)
+        if abs(frame - centre) > spread:
+            return None
+        return int(np.ceil(centre - spread)), int(np.floor(centre + spread))
+
+    def _typical(self) -> float:
+        """The median burst level of the recent ejections (0 before the first)."""
+        return float(np.median(self._bursts)) if self._bursts else 0.0
+
+    def _onset(self, c: np.ndarray, peak: int, top: float) -> int:
+        """Position of the burst's first frame: the earliest of the ``transient`` frames up to ``peak`` whose
+        change above ``top`` (the baseline's 90th percentile) reaches ONSET_FRACTION of the burst's highest."""
+        lo = max(
+            peak - self.transient + 1, 0, (self._last - self._first + self.refractory) if self._last is not None else 0
+        )
+        lo = min(lo, peak)
+        span = np.nan_to_num(c[lo : peak + self.transient] - top, nan=0.0)
+        return lo + int(np.argmax(span >= ONSET_FRACTION * span.max()))
+
+
+class _quiet:
+    """Silences numpy's warnings about all-NaN slices (a gap's frames: their statistics are NaN, as meant)."""
+
+    def __enter__(self) -> None:
+        import warnings
+
+        self._catch = warnings.catch_warnings()
+        self._catch.__enter__()
+        warnings.simplefilter("ignore", RuntimeWarning)
+
+    def __exit__(self, *exc: object) -> None:
+        self._catch.__exit__(*exc)
+
+
+#: Offline looks this far ahead (s): the strongest start within it wins (live waits only the transient).
+OFFLINE_LOOKAHEAD_S = 2e-3
+
+
+def detect_ejections_streamed(change: np.ndarray, fps: float, offline: bool = True, batch: int = 256) -> np.ndarray:
+    """The ejections of a whole series of per-frame change (N,) (NaN where unknown), fed to one
+    :class:`EjectionDetector` ``batch`` frames at a time, with the offline look-ahead or the live one; (E,) int64."""
+    detector = EjectionDetector(fps, lookahead=int(round(OFFLINE_LOOKAHEAD_S * fps)) if offline else None)
+    found: list[int] = []
+    for lo in range(0, len(change), batch):
+        found += detector.push(np.arange(lo, min(lo + batch, len(change))), change[lo : lo + batch])
+    return np.asarray(found + detector.finish(), np.int64)

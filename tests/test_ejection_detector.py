@@ -1,0 +1,141 @@
+"""The one ejection detector: every kind of window, live and offline, found within 2 frames, whatever the batching."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from service import DEFAULT_SCENE
+from service.analysis.segment import frame_steps
+from service.bench.ejections import score
+from service.camera_effects import noise_preset
+from service.pipeline.ejections import EjectionDetector, detect_ejections_streamed
+from service.recordings import open_recording
+from service.scene import Scene
+from service.simulate import simulate
+from service.window_kinds import KINDS, kinds_named
+
+FPS = 19_000.0
+
+
+@pytest.fixture(scope="module")
+def every_kind(tmp_path_factory: pytest.TempPathFactory) -> tuple[np.ndarray, dict]:
+    """Frame change and truth of a rendered recording with one window of each kind, at the noisiest preset."""
+    out = tmp_path_factory.mktemp("kinds") / "kinds.cine"
+    names = ",".join(KINDS)
+    truth = simulate(
+        Scene.load(DEFAULT_SCENE),
+        out,
+        windows=len(KINDS) + 1,
+        seed=3,
+        effects=noise_preset("high", 12),
+        noise="high",
+        kinds=kinds_named(names),
+        kind_names=names.split(","),
+    )
+    with open_recording(out) as rec:
+        return frame_steps(rec.read_grey(0, len(rec))), truth
+
+
+@pytest.mark.parametrize("offline", [False, True])
+def test_every_kind_of_window_has_its_ejection_found_within_two_frames(every_kind: tuple, offline: bool) -> None:
+    change, truth = every_kind
+    found = detect_ejections_streamed(change, FPS, offline=offline)
+    assert score(found, truth["ejections"]) == (len(KINDS), len(KINDS), len(KINDS))
+    assert found[0] == 0  # the recording starts at an ejection: judged against the frames after it
+
+
+def test_the_skipped_ejection_is_not_found_and_the_window_runs_two_periods(every_kind: tuple) -> None:
+    change, truth = every_kind
+    skipped = next(w for w in truth["windows"] if w["kind"] == "skip" and w["end_frame"] - w["start_frame"] > 300)
+    found = detect_ejections_streamed(change, FPS, offline=False)
+    assert not np.any((found > skipped["start_frame"] + 2) & (found < skipped["end_frame"] - 2))
+
+
+def bursts(at: list[int], n: int, rng: np.random.Generator, ringing: float = 0.0) -> np.ndarray:
+    """Frame change: noise about 8, ``ringing`` times a 4 kHz oscillation's change, a 5-frame burst at each of ``at``."""
+    change = rng.normal(8.0, 0.5, n) + ringing * np.abs(np.sin(2 * np.pi * 4000 / FPS * np.arange(n)))
+    for e in at:
+        change[e : e + 5] += rng.uniform(2.5, 4.0, 5) * (8.0 + ringing)
+    return change
+
+
+@settings(max_examples=10, deadline=None)
+@given(
+    batches=st.lists(st.integers(7, 300), min_size=1, max_size=20),
+    seed=st.integers(0, 2**16),
+    ringing=st.floats(0.0, 40.0),
+)
+def test_the_ejections_do_not_depend_on_how_the_frames_are_batched(
+    batches: list[int], seed: int, ringing: float
+) -> None:
+    rng = np.random.default_rng(seed)
+    true = [150, 345, 530, 731, 905]
+    change = bursts(true, 1100, rng, ringing)
+    for lookahead in (None, 38):
+        detector, found, lo = EjectionDetector(FPS, lookahead=lookahead), [], 0
+        for size in batches * (1100 // sum(batches) + 1):
+            found += detector.push(np.arange(lo, min(lo + size, 1100)), change[lo : lo + size])
+            lo += size
+            if lo >= 1100:
+                break
+        found += detector.finish()
+        assert found == detect_ejections_streamed(change, FPS, offline=lookahead is not None).tolist()
+        assert score(found, [0, *true]) == (5, 5, 5)
+
+
+def test_ringing_noise_and_single_frame_specks_are_not_ejections() -> None:
+    rng = np.random.default_rng(1)
+    change = bursts([], 3000, rng, ringing=30.0)
+    change[rng.choice(3000, 20, replace=False)] += 15.0  # specks: a frame's change up a third
+    assert detect_ejections_streamed(change, FPS, offline=False).size == 0
+    assert detect_ejections_streamed(change, FPS, offline=True).size == 0
+
+
+def test_missing_frames_are_neither_ejections_nor_a_crash() -> None:
+    change = bursts([400], 800, np.random.default_rng(2))
+    change[100:160] = np.nan
+    assert detect_ejections_streamed(change, FPS).tolist() == [400]
+
+
+def ringing_after(at: list[int], n: int, rng: np.random.Generator) -> np.ndarray:
+    """Frame change: noise about 8, at each of ``at`` a burst that is the start of its own ringing, decaying over 2 ms."""
+    change = rng.normal(8.0, 0.5, n)
+    for e in at:
+        k = np.arange(n - e)
+        change[e:] += 200.0 * np.exp(-k / 40.0) * np.abs(np.sin(2 * np.pi * 2000 / FPS * k + 0.8))
+    return change
+
+
+@pytest.mark.parametrize("offline", [False, True])
+def test_a_stream_that_starts_at_an_ejection_whose_ringing_is_as_strong_starts_with_it(offline: bool) -> None:
+    change = ringing_after([0, 190, 380, 570], 760, np.random.default_rng(4))
+    change[0] = np.nan  # the first frame has none before it
+    assert detect_ejections_streamed(change, FPS, offline=offline).tolist() == [0, 190, 380, 570]
+
+
+@pytest.mark.parametrize("offline", [False, True])
+def test_a_stream_that_starts_inside_a_window_does_not_start_with_an_ejection(offline: bool) -> None:
+    change = ringing_after([0, 190, 380, 570], 760, np.random.default_rng(4))[120:]  # ringing faded, then one
+    change[0] = np.nan
+    assert detect_ejections_streamed(change, FPS, offline=offline).tolist() == [70, 260, 450]
+
+
+def ringing_on(at: list[int], n: int, rng: np.random.Generator, loud_from: int) -> np.ndarray:
+    """Frame change: noise about 8; from the ``loud_from``-th ejection on, each window rings undamped at 150 with a
+    phase of its own, and its ejection's burst (3 frames) stands less than twice that ringing's median above it."""
+    change = rng.normal(8.0, 0.5, n)
+    for k, (e, end) in enumerate(zip(at, [*at[1:], n])):
+        ring = 150.0 if k >= loud_from else 20.0 * np.exp(-np.arange(end - e) / 10.0)
+        change[e:end] += ring * np.abs(np.sin(2 * np.pi * 1500 / FPS * np.arange(end - e) + rng.uniform(0, np.pi)))
+        change[e : e + 3] += 260.0
+    return change
+
+
+@pytest.mark.parametrize("offline", [False, True])
+def test_ejections_into_ringing_as_strong_as_their_burst_are_found_where_the_rate_puts_them(offline: bool) -> None:
+    true = [190 * k + int(d) for k, d in enumerate([0, 3, -2, 4, 0, -3, 2, 1, -4, 0])]  # a rate drifting 2 %
+    change = ringing_on(true, 2000, np.random.default_rng(5), loud_from=3)
+    assert score(detect_ejections_streamed(change, FPS, offline=offline), true) == (9, 9, 9)
