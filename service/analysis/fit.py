@@ -215,7 +215,8 @@ class _Window:
         cost = float(r @ r)
         bic = self.bic(cost, k)
         half = np.zeros(params.size)
-        variance = kernels.covariance_diagonal(np.ascontiguousarray(j[:, fitted])) * cost / (n - k)
+        with np.errstate(all="ignore"):  # a singular Jacobian's infinite variance: the mode is judged unresolved
+            variance = kernels.covariance_diagonal(np.ascontiguousarray(j[:, fitted])) * cost / (n - k)
         half[fitted] = stdtrit(n - k, 0.5 + self.settings.confidence / 2) * np.sqrt(variance)
         return _OrderFit(
             order, params, half, cost, bic, _unresolved(params, half, self.n[-1] - self.n[0] + 1), drift=drift
