@@ -27,7 +27,7 @@ from service import DEFAULT_MODELS, DEFAULT_SCENE
 from service.analysis.results import FitSettings
 from service.analysis.steady import window_steady_centre
 from service.inverse import window_model as wm
-from service.inverse.manifest import sha256_file
+from service.inverse.manifest import MANIFEST, Manifest, sha256_file, write_manifest
 from service.inverse.methods import open_method
 from service.pipeline.records import FRAME, coefficients_of
 from service.pipeline.stages import FrameStages
@@ -267,7 +267,9 @@ def main(argv: list[str] | None = None) -> None:
         "check_mse_steady": baseline,
     }
     (args.models / wm.RECORD).write_text(json.dumps(record, indent=1) + "\n")
-    print(f"wrote {args.models / wm.FILE} and {wm.RECORD}")
+    # the folder's manifest lists every file with its sha256: the window model's two files too
+    write_manifest(args.models, Manifest.model_validate_json((args.models / MANIFEST).read_text()))
+    print(f"wrote {args.models / wm.FILE}, {wm.RECORD} and the folder's manifest")
 
 
 if __name__ == "__main__":

@@ -32,7 +32,7 @@ class TriggerCounts:
 
 def ejection_event(frame: int | None = None, time_s: float | None = None) -> tuple[str, float]:
     """One ejection event as (unit, value): exactly one of ``frame`` and ``time_s``, non-negative; ValueError
-    otherwise. The web process checks an event with it before sending it on to the pipeline process's inbox."""
+    otherwise. The inbox checks every event with it (the HTTP route's schema already admits only such events)."""
     if (frame is None) == (time_s is None):
         raise ValueError("an ejection event gives exactly one of frame and time_s")
     value = float(frame if frame is not None else time_s)  # type: ignore[arg-type]

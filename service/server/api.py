@@ -17,18 +17,20 @@ from fastapi import APIRouter, Depends, HTTPException, Path, Query, Request, Res
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from prometheus_client import CONTENT_TYPE_LATEST
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, ValidationError
 
 from service.analysis.results import WindowResult
 from service.errors import MeniscopeError
 from service.pipeline.runtime import LatestFrame
-from service.pipeline.trigger import ejection_event
 from service.server.components import Service
 from service.server.settings import Method, ServiceSettings, resolve_source
 from service.sources import probe_source
 
 #: Largest window id (SQLite's integers are signed 64-bit).
 MAX_ID = 2**63 - 1
+#: Largest frame index an ejection may name: the largest integer a JSON number holds exactly (a double), 15,000
+#: years of frames at 19,000 frames/s; beyond it a schema's maximum and the value compared differ in rounding.
+MAX_FRAME = 2**53 - 1
 #: Most windows one history page returns (about 1 kB each).
 MAX_PAGE = 1000
 
@@ -199,12 +201,30 @@ def put_config(change: ConfigChange, service: Svc) -> dict[str, Any]:
     return settings.public()
 
 
-class Ejection(BaseModel):
-    """One ejection announced by the printer: its camera frame index or its time since the stream's frame 0."""
+def _not_bool(value: Any) -> Any:
+    """A number as JSON gives it, never ``true``/``false`` (which pydantic would read as 1 and 0)."""
+    if isinstance(value, bool):
+        raise ValueError("a boolean is not a number")
+    return value
+
+
+_NOT_BOOL = BeforeValidator(_not_bool)
+
+
+class EjectionAtFrame(BaseModel):
+    """One ejection announced by the printer by its camera frame index."""
 
     model_config = ConfigDict(extra="forbid")
-    frame: int | None = Field(None, ge=0, le=MAX_ID, description="the camera's frame index of the ejection")
-    time_s: float | None = Field(None, ge=0, allow_inf_nan=False, description="seconds since the stream's frame 0")
+    frame: Annotated[int, _NOT_BOOL] = Field(ge=0, le=MAX_FRAME, description="the camera's frame index of the ejection")
+
+
+class EjectionAtTime(BaseModel):
+    """One ejection announced by the printer by its time since the stream's frame 0."""
+
+    model_config = ConfigDict(extra="forbid")
+    time_s: Annotated[float, _NOT_BOOL] = Field(
+        ge=0, allow_inf_nan=False, description="seconds since the stream's frame 0"
+    )
 
 
 @router.post(
@@ -214,16 +234,14 @@ class Ejection(BaseModel):
     dependencies=[Depends(require_token)],
     responses=_documented(401, 403, 503),
 )
-def post_ejection(event: Ejection, service: Svc) -> dict[str, Any]:
-    """The printer's trigger: one ejection (exactly one of ``frame`` and ``time_s``), sent on to the pipeline
-    process; ``received``: the events this web process has sent on. With the setting ``trigger = "printer"`` the
-    windows are cut at these, and the video's ejections check them (``meniscope_trigger_disagreements_total``);
-    503 while the pipeline process is not running (the event would reach no segmenter)."""
-    try:
-        ejection_event(event.frame, event.time_s)
-    except ValueError as exc:
-        raise RequestValidationError([{"loc": ("body",), "msg": str(exc), "type": "value_error"}]) from None
-    if not service.eject(event.frame, event.time_s):
+def post_ejection(event: EjectionAtFrame | EjectionAtTime, service: Svc) -> dict[str, Any]:
+    """The printer's trigger: one ejection (exactly one of ``frame`` and ``time_s``, as the schema says), sent on
+    to the pipeline process; ``received``: the events this web process has sent on. With the setting ``trigger =
+    "printer"`` the windows are cut at these, and the video's ejections check them
+    (``meniscope_trigger_disagreements_total``); 503 while the pipeline process is not running (the event would
+    reach no segmenter)."""
+    frame, time_s = getattr(event, "frame", None), getattr(event, "time_s", None)
+    if not service.eject(frame, time_s):
         raise HTTPException(503, "the pipeline process is not running: the ejection reached no segmenter")
     return {"received": service.ejections_sent}
 
