@@ -9,8 +9,10 @@ and frequency their precision). Per model order the matrix pencil gives the star
 strongest gap-free stretch where samples are missing), Levenberg-Marquardt (compiled:
 :mod:`service.analysis.kernels`) refines it under a soft-L1 loss whose scale is a robust noise
 estimate; samples over 6 robust sd off the chosen fit (spikes) are left out and the window is
-fitted again. The order is chosen by BIC (with AICc's small-sample term, a mode added only on a
-gain over 2): it is consistent (with ~190 samples it does not add modes that noise alone explains,
+fitted again; where none is, the chosen fit is refined once more under plain least squares, the
+maximum-likelihood fit under Gaussian noise (soft-L1 weighs down every residual over the noise).
+The order is chosen by BIC (with AICc's small-sample term, a mode added only on a gain over 2),
+on the soft-L1 fits: it is consistent (with ~190 samples it does not add modes that noise alone explains,
 where AIC/AICc would more often), and its log(n) penalty is what makes "settled" mean "no
 oscillation above the noise". Confidence intervals come from the Gauss-Newton covariance at the
 optimum (Student t); a mode whose frequency interval reaches under 0.8 cycles in the window is not
@@ -20,6 +22,7 @@ all of this against peers and the Cramer-Rao bound (docs/benchmarks.md).
 
 from __future__ import annotations
 
+import copy
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Literal
@@ -127,6 +130,17 @@ class _Window:
     def without(self, samples: np.ndarray) -> _Window:
         """This window with the ``samples`` (mask over its finite ones) left out."""
         return _Window(self.n[~samples], self.y[~samples], self.settings)
+
+    def polish(self, chosen: _OrderFit) -> _OrderFit:
+        """``chosen`` refined under plain least squares (its order and drift kept) and judged so: where no sample
+        stood out as a spike, the maximum-likelihood fit under Gaussian noise, with least squares' intervals
+        (soft-L1 weighs down every residual over the noise: the frequency's variance grows, the decay's more)."""
+        gaussian = copy.copy(self)
+        gaussian.robust = False
+        free = np.ones(chosen.params.size, dtype=np.bool_)
+        free[1] = chosen.drift
+        params = _canonical(gaussian._refine(chosen.params, free))
+        return gaussian._judge(chosen.order, params, drift=chosen.drift)
 
     def bic(self, cost: float, k: int) -> float:
         """n ln(cost / n) + k ln n + 2 k (k + 1) / (n - k - 1), with residuals under ``_EXACT`` counted as exact.
@@ -378,6 +392,8 @@ def _fit_window(
             window = window.without(outliers)
             fits = _order_fits(window, x.size, settings)
         chosen, problem = _choose(fits)
+        if window.robust and not outliers.any() and chosen.problem is None:
+            chosen = window.polish(chosen)
         if outliers.any():
             problem = "; ".join(
                 [p for p in [problem] if p]
