@@ -478,10 +478,41 @@ def test_the_compiled_levenberg_marquardt_reaches_scipy_s_optimum(seed, noise, l
     assert residuals(ours) @ residuals(ours) <= residuals(minpack) @ residuals(minpack) * (1 + 1e-6) + 1e-20
 
 
+@settings(max_examples=60, deadline=None)
+@given(
+    k=st.integers(1, 10),
+    extra=st.integers(0, 2000),
+    scales=st.lists(st.floats(-6, 6), min_size=10, max_size=10),
+    seed=st.integers(0, 10_000),
+)
+def test_the_compiled_triangle_is_lapack_s_and_the_covariance_the_normal_matrix_inverse(k, extra, scales, seed):
+    """R of J = QR (rows up to sign, as LAPACK's) and diag((J'J)^-1) from it, for columns 1e-6 to 1e6 apart."""
+    jac = np.random.default_rng(seed).standard_normal((k + extra, k)) * 10.0 ** np.array(scales[:k])
+    r = kernels.triangle(jac)
+    lapack = np.linalg.qr(jac, mode="r")
+    assert np.allclose(np.abs(r), np.abs(lapack), rtol=1e-9, atol=1e-12 * np.abs(lapack).max())
+    assert np.array_equal(r, np.triu(r))
+    if extra >= 3:  # a few rows beyond square: a well-conditioned normal matrix
+        assert kernels.covariance_diagonal(jac) == pytest.approx(np.diag(np.linalg.inv(jac.T @ jac)), rel=1e-8)
+
+
+def test_a_singular_jacobian_has_no_interval():
+    jac = np.random.default_rng(0).standard_normal((190, 6))
+    jac[:, 3] = 2 * jac[:, 2]
+    assert np.all(np.isinf(kernels.covariance_diagonal(jac)))
+
+
 def test_a_pencil_pole_without_amplitude_explains_nothing_even_when_it_would_overflow():
     with np.errstate(all="raise"):
         e = energy(np.array([1e200 + 0j, 0.5 + 0.5j]), np.array([0j, 1 + 0j]), N)
         assert e[0] == 0.0 and e[1] > 0
+
+
+def test_a_search_whose_normal_matrix_is_singular_damps_its_step_not_crashes():
+    """Twelve equal samples and one dip (hypothesis found it): a search step met a singular normal matrix."""
+    r = fit_window(np.r_[np.ones(10), 0.0, 1.0, 1.0], FPS)
+    assert r.status in ("ok", "unresolved", "settled") and r.reason
+    json_clean(r)
 
 
 def test_an_empty_window_is_failed_not_a_crash():
