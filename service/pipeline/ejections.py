@@ -59,6 +59,21 @@ EXPECTED_SPREAD = 0.1
 EXPECTED_PERIODS = 3
 RELAXED = 0.25
 
+#: Novelty (:mod:`service.pipeline.measures`) compares a frame with the frames from just past the transient
+#: (whose bulge would otherwise match its own first frames) to this far back (s): more than the slowest ringing's
+#: period (500 Hz), so that ringing finds its last period's shapes there.
+NOVELTY_SPAN_S = 3e-3
+#: In an expected ejection's stretch, the ejection is the start where the change and the novelty stand out most
+#: together (the product of how far each stands above its baseline, in baselines: the ringing's strongest change
+#: repeats shapes, its newest shapes change little) once that product passes this.
+STRETCH_SCORE = 0.5
+
+
+def novelty_lags(fps: float) -> tuple[int, int]:
+    """The frames (nearest, farthest back) novelty compares each frame with, at ``fps`` frames per second."""
+    near = max(2, int(round(TRANSIENT_S * fps))) + 1
+    return near, max(near, int(round(NOVELTY_SPAN_S * fps)))
+
 
 class EjectionDetector:
     """Ejection frames from consecutive batches of per-frame change; :meth:`push` returns those now decided."""
@@ -78,6 +93,7 @@ class EjectionDetector:
         self.ratio, self.floor = ratio, floor
         self._start_wait = int(START_WAIT_S * fps)
         self._changes = np.empty(0)  # changes of frames [self._first, ...), NaN where missing
+        self._novelty = np.empty(0)  # their novelty, the same frames
         self._first: int | None = None
         self._decided = 0  # frames before this index are decided
         self._last: int | None = None  # the last ejection
@@ -102,8 +118,9 @@ class EjectionDetector:
             return np.iinfo(np.int64).min
         return self._origin if self._pending is not None else self._decided - self.transient + 1
 
-    def push(self, indices: np.ndarray, change: np.ndarray) -> list[int]:
-        """Add frames ``indices`` (N,), increasing, with their change (N,); the ejections decided by them."""
+    def push(self, indices: np.ndarray, change: np.ndarray, novelty: np.ndarray | None = None) -> list[int]:
+        """Add frames ``indices`` (N,), increasing, with their change and novelty (N,) (NaN where unknown, as all
+        of it is without ``novelty``); the ejections decided by them."""
         indices = np.asarray(indices, np.int64)
         if indices.size == 0:
             return []
@@ -113,8 +130,11 @@ class EjectionDetector:
         end = self._first + self._changes.size
         grown = np.full(max(int(indices[-1]) + 1 - end, 0), np.nan)
         self._changes = np.concatenate([self._changes, grown])
+        self._novelty = np.concatenate([self._novelty, grown])
         keep = indices >= self._first
         self._changes[indices[keep] - self._first] = np.asarray(change, np.float64)[keep]
+        if novelty is not None:
+            self._novelty[indices[keep] - self._first] = np.asarray(novelty, np.float64)[keep]
         found = self._start(final=False)
         if not self._start_checked:
             return found
@@ -168,32 +188,39 @@ class EjectionDetector:
         levels, bases = level.tolist(), base.tolist()  # floats: the loop below looks at every frame
         found = []
         typical = self.floor * self._typical()
-        for i in range(max(0, min(span.size, at(until) - at(lo)))):
+        count = max(0, min(span.size, at(until) - at(lo)))
+        stretch_of = self._stretches(lo, count)
+        scored: tuple[int, int, np.ndarray] | None = None  # a stretch's first and last position, its starts' scores
+        for i in range(count):
             frame = lo + i
             if self._last is not None and frame - self._last < self.refractory:
-                continue
-            if not levels[i] > RELAXED * typical:
                 continue
             if levels[i] > self.ratio * bases[i] and levels[i] > typical:
                 ahead = level[i : i + self.lookahead - self.transient + 1]
                 if ahead.max() > level[i]:  # a stronger start follows within the look-ahead: decide there
                     continue
-            elif (expected := self._expected(frame)) is not None:  # where the rate puts the next ejection
-                a, b = max(expected[0], lo) - lo, expected[1] - lo
-                b = min(b, span.size - 1) if final else b
-                if b + self.transient > span.size:  # the stretch's last burst is not all in: wait for it
+                onset = self._onset(c, at(frame), top[i])
+            elif stretch_of[i, 0] >= 0 and levels[i] > 0:  # where the rate puts the next ejection
+                a, b = int(stretch_of[i, 0]), int(stretch_of[i, 1])
+                if lo + b + self.transient > self._first + c.size:  # the stretch's last burst is not all in: wait
+                    if final:  # cut by the stream's end: no telling its strongest start
+                        continue
                     until = frame
                     break
-                if not (i == a + int(np.argmax(level[a : b + 1])) and level[i] > RELAXED * self.ratio * base[i]):
+                if scored is None or scored[:2] != (a, b):
+                    scored = (a, b, self._scores(level[a : b + 1], base[a : b + 1], span[a : b + 1]))
+                score = scored[2]
+                if not (i == a + int(np.argmax(score)) and score[i - a] > STRETCH_SCORE):
                     continue
+                onset = at(frame)
             else:
                 continue
-            onset = self._onset(c, at(frame), top[i])
             if self._last is not None:
                 self._intervals.append(self._first + onset - self._last)
             self._last = self._first + onset
             self._bursts.append(float(level[i]))
             typical = self.floor * self._typical()
+            stretch_of = self._stretches(lo, count)
             if self._pending is not None:  # the stream's start judged against its first ejection
                 starts = self._last - self._origin >= self.refractory and self._pending >= START_FRACTION * burst[i]
                 if starts:
@@ -204,22 +231,38 @@ class EjectionDetector:
         self._decided = until
         drop = max(0, at(until) - self.history - self.transient)
         self._changes, self._first = c[drop:], self._first + drop
+        self._novelty = self._novelty[drop:]
         return found
 
-    def _expected(self, frame: int) -> tuple[int, int] | None:
-        """The frames around the multiple of the recent ejection period (the median of the last intervals) after
-        the last ejection that ``frame`` lies in, +-``EXPECTED_SPREAD`` of that time; None where it lies in none
-        (or too few ejections are known)."""
+    def _stretches(self, lo: int, count: int) -> np.ndarray:
+        """For frames ``lo .. lo + count - 1``: the first and last frame (from ``lo``) of the stretch about a
+        multiple (up to EXPECTED_PERIODS) of the recent ejection period (the median of the last intervals) after
+        the last ejection that each lies in, +-``EXPECTED_SPREAD`` of that time; (count, 2), -1 where none (or
+        too few ejections are known)."""
+        out = np.full((count, 2), -1, np.int64)
         if self._last is None or not self._intervals:
-            return None
+            return out
         period = float(np.median(self._intervals))
-        k = round((frame - self._last) / period)
-        if not 1 <= k <= EXPECTED_PERIODS:
-            return None
-        centre, spread = self._last + k * period, max(2.0, EXPECTED_SPREAD * k * period)
-        if abs(frame - centre) > spread:
-            return None
-        return int(np.ceil(centre - spread)), int(np.floor(centre + spread))
+        for k in range(1, EXPECTED_PERIODS + 1):
+            centre, spread = self._last + k * period, max(2.0, EXPECTED_SPREAD * k * period)
+            a, b = int(np.ceil(centre - spread)) - lo, int(np.floor(centre + spread)) - lo
+            out[max(a, 0) : max(b + 1, 0)] = (max(a, 0), b)
+        return out
+
+    def _scores(self, level: np.ndarray, base: np.ndarray, positions: np.ndarray) -> np.ndarray:
+        """How much the starts at ``positions`` (in the kept frames) stand out in change and novelty together:
+        the product of each one's burst above its baseline's 90th percentile, in baseline medians (0 where either
+        is not above it; ``level`` and ``base`` are the change's, over the transient; the novelty's over its
+        first half, while the bulge grows, so that the start nearest the bulge's first frame scores highest)."""
+        pad = np.full(self.history, np.nan)
+        ext = np.concatenate([pad, self._novelty, np.full(self.lookahead, np.nan)])
+        with np.errstate(all="ignore"), _quiet():
+            rise = max(1, (self.transient + 1) // 2)
+            burst = np.nanmax(sliding_window_view(ext[self.history :], rise)[positions], axis=1)
+            novel_base, novel_top, known = _median_and_p90(sliding_window_view(ext, self.history)[positions])
+            novel = np.where(known >= self.transient, (burst - novel_top) / novel_base, np.nan)
+            change = level / base
+        return np.nan_to_num(np.clip(change, 0, None) * np.clip(novel, 0, None), nan=0.0, posinf=0.0)
 
     def _typical(self) -> float:
         """The median burst level of the recent ejections (0 before the first)."""
@@ -274,11 +317,16 @@ class _quiet:
 OFFLINE_LOOKAHEAD_S = 2e-3
 
 
-def detect_ejections_streamed(change: np.ndarray, fps: float, offline: bool = True, batch: int = 256) -> np.ndarray:
-    """The ejections of a whole series of per-frame change (N,) (NaN where unknown), fed to one
+def detect_ejections_streamed(
+    change: np.ndarray, fps: float, offline: bool = True, batch: int = 256, novelty: np.ndarray | None = None
+) -> np.ndarray:
+    """The ejections of a whole series of per-frame change and novelty (N,) (NaN where unknown), fed to one
     :class:`EjectionDetector` ``batch`` frames at a time, with the offline look-ahead or the live one; (E,) int64."""
     detector = EjectionDetector(fps, lookahead=int(round(OFFLINE_LOOKAHEAD_S * fps)) if offline else None)
     found: list[int] = []
     for lo in range(0, len(change), batch):
-        found += detector.push(np.arange(lo, min(lo + batch, len(change))), change[lo : lo + batch])
+        part = slice(lo, min(lo + batch, len(change)))
+        found += detector.push(
+            np.arange(part.start, part.stop), change[part], None if novelty is None else novelty[part]
+        )
     return np.asarray(found + detector.finish(), np.int64)
