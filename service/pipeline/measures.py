@@ -22,20 +22,31 @@ GRID = 8
 
 
 @njit(cache=True, nogil=True)
-def _sums(frames, previous, zero, cell, total, peak, change, cells):  # type: ignore[no-untyped-def]
-    """Per frame of ``frames`` (N, P): its pixels' sum, maximum and summed absolute difference from the frame
-    before (``previous`` (P,) before frame 0), accumulated from ``zero`` (its type sets the sums'), and the
-    sums over the cells ``cell`` (P,) numbers (``cells`` (N, C), zeroed)."""
+def _sums(frames, previous, zero, band, edges, total, peak, change, cells):  # type: ignore[no-untyped-def]
+    """Per frame of ``frames`` (N, H * W): its pixels' sum, maximum and summed absolute difference from the frame
+    before (``previous`` (H * W,) before frame 0), accumulated from ``zero`` (its type sets the sums'), and its
+    sums over the cells (``cells`` (N, bands * columns)): row y in band ``band[y]``, columns cut at ``edges``
+    (columns + 1,). A band's rows are summed column by column first (a plain loop over each row, as fast as the
+    three sums alone), then cut into its cells."""
+    columns = edges.size - 1
+    width = edges[columns]
+    acc = np.full(width, zero)
     for i in range(frames.shape[0]):
         row = frames[i]
         before = previous if i == 0 else frames[i - 1]
         s, d, m = zero, zero, row[0]
-        for j in range(row.shape[0]):
-            a, b = row[j], before[j]
-            s += a
-            m = max(m, a)
-            d += max(a, b) - min(a, b)  # |a - b| without leaving the unsigned type
-            cells[i, cell[j]] += a
+        for y in range(band.size):
+            for x in range(width):
+                j = y * width + x
+                a, b = row[j], before[j]
+                s += a
+                m = max(m, a)
+                d += max(a, b) - min(a, b)  # |a - b| without leaving the unsigned type
+                acc[x] += a
+            if y + 1 == band.size or band[y + 1] != band[y]:  # the band's last row: its cells
+                for c in range(columns):
+                    cells[i, band[y] * columns + c] = acc[edges[c] : edges[c + 1]].sum()
+                acc[:] = zero
         total[i], peak[i], change[i] = s, m, d
 
 
@@ -73,7 +84,7 @@ class PixelMeasures:
         self._ring: np.ndarray | None = None  # the last ``far`` frames' cell means
         self._filled, self._position = 0, 0
         self._shape: tuple[int, int] | None = None  # the frames' size the cell numbers below are for
-        self._cell, self._counts = np.empty(0, np.int64), np.empty(0)
+        self._band, self._edges, self._counts = np.empty(0, np.int64), np.empty(0, np.int64), np.empty(0)
 
     def update(self, pixels: np.ndarray, indices: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Of frames ``pixels`` (N, H, W) with frame ``indices`` (N,): each one's change (mean absolute difference
@@ -85,10 +96,10 @@ class PixelMeasures:
             flat = flat.astype(np.float64)
         zero = np.uint64(0) if flat.dtype.kind == "u" else np.float64(0.0)
         follows = self._previous is not None and self._last_index == indices[0] - 1
-        cell, counts = self._cells(h, w)
+        band, edges, counts = self._cells(h, w)
         total, change, peak = np.empty(n, zero.dtype), np.empty(n, zero.dtype), np.empty(n, flat.dtype)
         cells = np.zeros((n, counts.size))
-        _sums(flat, self._previous if follows else flat[0], zero, cell, total, peak, change, cells)
+        _sums(flat, self._previous if follows else flat[0], zero, band, edges, total, peak, change, cells)
         size = flat.shape[1]
         steps = change / size
         if not follows:
@@ -108,11 +119,14 @@ class PixelMeasures:
         self._previous, self._last_index = flat[-1].copy(), int(indices[-1])  # the batch buffer may be reused
         return steps, total / size, peak.astype(np.float64), novelty
 
-    def _cells(self, h: int, w: int) -> tuple[np.ndarray, np.ndarray]:
-        """Each pixel's cell number (H * W,) and each cell's pixel count, for frames of ``h`` x ``w``."""
+    def _cells(self, h: int, w: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """For frames of ``h`` x ``w``: each row's band (H,) (row y in band y * GRID // H), the column edges of the
+        cells (column x in cell x * GRID // W) and each cell's pixel count, GRID x GRID cells (fewer where the frame
+        is smaller)."""
         if self._shape != (h, w):
             gy, gx = min(GRID, h), min(GRID, w)
             self._shape = (h, w)
-            self._cell = ((np.arange(h) * gy // h)[:, None] * gx + (np.arange(w) * gx // w)[None, :]).ravel()
-            self._counts = np.bincount(self._cell, minlength=gy * gx).astype(np.float64)
-        return self._cell, self._counts
+            self._band = np.arange(h) * gy // h
+            self._edges = np.searchsorted(np.arange(w) * gx // w, np.arange(gx + 1))
+            self._counts = np.outer(np.bincount(self._band, minlength=gy), np.diff(self._edges)).ravel().astype(float)
+        return self._band, self._edges, self._counts
