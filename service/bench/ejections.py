@@ -89,6 +89,17 @@ def measure(recording: Path) -> dict:
     return {name: score(found, truth["ejections"]) for name, found in runs.items()}
 
 
+def kind_of(recording: Path) -> str:
+    """The row a given recording is scored in: its windows' kind (``simulate --kinds``), 'mixed' for several,
+    else its file name."""
+    import json
+
+    from service.simulate import truth_path
+
+    kinds = {w.get("kind") for w in json.loads(truth_path(recording).read_text()).get("windows", [])}
+    return recording.name if kinds <= {None} else "mixed" if len(kinds) > 1 else str(kinds.pop())
+
+
 def markdown(results: dict) -> str:
     """One row per kind: precision and recall of each detector, summed over seeds and noise levels."""
     names = ("live", "offline")
@@ -118,9 +129,9 @@ def run(args: argparse.Namespace) -> int:
 
     results: dict = {"kinds": {}}
     if args.recordings:
-        for path in args.recordings:
-            results["kinds"].setdefault(path.name, []).append(measure(path))
-        results["setup"] = "recordings: " + ", ".join(str(p) for p in args.recordings)
+        for path in tqdm(args.recordings, desc="bench ejections", unit="recording"):
+            results["kinds"].setdefault(kind_of(path), []).append({"recording": path.name, **measure(path)})
+        results["setup"] = "recordings: " + ", ".join(p.name for p in args.recordings)
         write_results(args.out, results, markdown(results))
         return 0
     scene = Scene.load(args.scene)
