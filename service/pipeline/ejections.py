@@ -14,10 +14,16 @@ after it, or, where the ejection's own ringing is as strong as its burst, when t
 first ejection found after it (frames wait for that decision, at most :data:`START_WAIT_S`).
 
 Where ringing is as strong as an ejection's burst (a lightly damped meniscus, 4 kHz modes) the burst does not
-stand ``ratio`` above it; there the recent ejection period (the median interval between the ejections found)
-helps: in the stretch of +-10 % about a multiple of it after the last ejection, the strongest start counts at a
-quarter of the ratio (frames wait for the stretch's end). The rate is learned from the video, not assumed, and a
-skipped ejection or a rate drifting a few per cent keeps it.
+stand ``ratio`` above it, but the bulge is a shape the ringing has not shown: each frame's ``novelty``
+(:mod:`service.pipeline.measures`: its coarse picture's distance from the nearest of the frames 0.35-3 ms before;
+ringing keeps returning to its last period's shapes) bursts at an ejection. There the recent ejection period (the
+median interval between the ejections found) says where to look: in the stretch of +-10 % about a multiple of it
+after the last ejection, the start where change and novelty stand out most together (the product of each one's
+burst above its baseline's 90th percentile, in baseline medians; the novelty's over the bulge's rise, half the
+transient) is the ejection, once that product passes :data:`STRETCH_SCORE` (frames in the stretch wait for its
+end). The rate is learned from the video, not assumed, and a skipped ejection or a rate drifting a few per cent
+keeps it. The stream's first ejections into such ringing, before two found ones have given the period, are
+missed.
 
 What happens after the ejection is not consulted beyond the transient, so a settled meniscus, a heavily
 or lightly damped one and 4 kHz modes look the same to it. Live runs it with ``lookahead`` = the transient
@@ -52,12 +58,11 @@ START_WAIT_S = 25e-3
 ONSET_FRACTION = 0.2
 
 
-#: Where the recent ejection period puts the next ejection (within this share of the time since the last, up to
-#: this many periods on), the strongest start of that stretch is one at RELAXED times the ratio: an ejection
-#: into a meniscus still ringing as hard as its burst stands out from that ringing less than ``ratio``.
+#: Where the recent ejection period puts the next ejection: within this share of the time since the last, up to
+#: this many periods on (an ejection into a meniscus still ringing as hard as its burst stands out from that
+#: ringing less than ``ratio``; there its novelty decides, :data:`STRETCH_SCORE`).
 EXPECTED_SPREAD = 0.1
 EXPECTED_PERIODS = 3
-RELAXED = 0.25
 
 #: Novelty (:mod:`service.pipeline.measures`) compares a frame with the frames from just past the transient
 #: (whose bulge would otherwise match its own first frames) to this far back (s): more than the slowest ringing's
@@ -106,8 +111,8 @@ class EjectionDetector:
     @property
     def latency(self) -> int:
         """Frames that must follow a frame before :attr:`settled` passes it (whether an ejection starts there or
-        in the transient before is known); more where a strong start in an expected ejection's stretch waits for
-        the stretch's end (a tenth of the period, the ringing of a lightly damped meniscus)."""
+        in the transient before is known); more where a start in an expected ejection's stretch (its change above
+        its baseline's 90th percentile) waits for the stretch's end (a tenth of the period after its middle)."""
         return self.transient + self.lookahead - 2
 
     @property
