@@ -20,8 +20,8 @@ ringing keeps returning to its last period's shapes) bursts at an ejection. Ther
 median interval between the ejections found) says where to look: in the stretch of +-10 % about a multiple of it
 after the last ejection, the start where change and novelty stand out most together (the product of each one's
 burst above its baseline's 90th percentile, in baseline medians; the novelty's over the bulge's rise, half the
-transient) is the ejection, once that product passes :data:`STRETCH_SCORE` (frames in the stretch wait for its
-end). The rate is learned from the video, not assumed, and a skipped ejection or a rate drifting a few per cent
+transient) is the ejection, once that product passes :data:`STRETCH_SCORE` (a start that does waits for the
+stretch's end). The rate is learned from the video, not assumed, and a skipped ejection or a rate drifting a few per cent
 keeps it. The stream's first ejections into such ringing, before two found ones have given the period, are
 missed.
 
@@ -111,8 +111,8 @@ class EjectionDetector:
     @property
     def latency(self) -> int:
         """Frames that must follow a frame before :attr:`settled` passes it (whether an ejection starts there or
-        in the transient before is known); more where a start in an expected ejection's stretch (its change above
-        its baseline's 90th percentile) waits for the stretch's end (a tenth of the period after its middle)."""
+        in the transient before is known); more where a start in an expected ejection's stretch that scores above
+        STRETCH_SCORE waits for the stretch's end (a tenth of the period after its middle)."""
         return self.transient + self.lookahead - 2
 
     @property
@@ -207,15 +207,18 @@ class EjectionDetector:
                 onset = self._onset(c, at(frame), top[i])
             elif stretch_of[i, 0] >= 0 and levels[i] > 0:  # where the rate puts the next ejection
                 a, b = int(stretch_of[i, 0]), int(stretch_of[i, 1])
+                if scored is None or scored[:2] != (a, b):  # the stretch's starts, as far as they are in
+                    z = min(b, span.size - 1) + 1
+                    scored = (a, b, self._scores(level[a:z], base[a:z], span[a:z]))
+                score = scored[2]
+                if not score[i - a] > STRETCH_SCORE:
+                    continue
                 if lo + b + self.transient > self._first + c.size:  # the stretch's last burst is not all in: wait
                     if final:  # cut by the stream's end: no telling its strongest start
                         continue
                     until = frame
                     break
-                if scored is None or scored[:2] != (a, b):
-                    scored = (a, b, self._scores(level[a : b + 1], base[a : b + 1], span[a : b + 1]))
-                score = scored[2]
-                if not (i == a + int(np.argmax(score)) and score[i - a] > STRETCH_SCORE):
+                if i != a + int(np.argmax(score)):
                     continue
                 onset = at(frame)
             else:
