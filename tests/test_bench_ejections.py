@@ -15,6 +15,6 @@ def test_bench_ejections_scores_a_recording_with_its_truth_live_and_offline(demo
     rows = json.loads(out.read_text())["kinds"][demo_cine.name]
     truth = json.loads(demo_cine.with_suffix(".truth.json").read_text())
     scored = len(truth["ejections"]) - 1  # the first, frame 0, has no frames before it
-    assert rows == [{"live": [scored, scored, scored], "offline": [scored, scored, scored]}]
+    assert rows == [{"recording": demo_cine.name, "live": [scored] * 3, "offline": [scored] * 3}]
     table = out.with_suffix(".md").read_text()
     assert f"| {demo_cine.name} | {scored} | 1.000 | 1.000 | 1.000 | 1.000 |" in table

@@ -8,11 +8,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from service import DEFAULT_SCENE
-from service.analysis.segment import frame_steps
-from service.bench.ejections import score
+from service.bench.ejections import frame_measures, score
 from service.camera_effects import noise_preset
 from service.pipeline.ejections import EjectionDetector, detect_ejections_streamed
-from service.recordings import open_recording
 from service.scene import Scene
 from service.simulate import simulate
 from service.window_kinds import KINDS, kinds_named
@@ -21,8 +19,9 @@ FPS = 19_000.0
 
 
 @pytest.fixture(scope="module")
-def every_kind(tmp_path_factory: pytest.TempPathFactory) -> tuple[np.ndarray, dict]:
-    """Frame change and truth of a rendered recording with one window of each kind, at the noisiest preset."""
+def every_kind(tmp_path_factory: pytest.TempPathFactory) -> tuple[np.ndarray, np.ndarray, dict]:
+    """Frame change, novelty and truth of a rendered recording with one window of each kind, at the noisiest
+    preset."""
     out = tmp_path_factory.mktemp("kinds") / "kinds.cine"
     names = ",".join(KINDS)
     truth = simulate(
@@ -35,22 +34,21 @@ def every_kind(tmp_path_factory: pytest.TempPathFactory) -> tuple[np.ndarray, di
         kinds=kinds_named(names),
         kind_names=names.split(","),
     )
-    with open_recording(out) as rec:
-        return frame_steps(rec.read_grey(0, len(rec))), truth
+    return (*frame_measures(out, FPS), truth)
 
 
 @pytest.mark.parametrize("offline", [False, True])
 def test_every_kind_of_window_has_its_ejection_found_within_two_frames(every_kind: tuple, offline: bool) -> None:
-    change, truth = every_kind
-    found = detect_ejections_streamed(change, FPS, offline=offline)
+    change, novelty, truth = every_kind
+    found = detect_ejections_streamed(change, FPS, offline=offline, novelty=novelty)
     assert score(found, truth["ejections"]) == (len(KINDS), len(KINDS), len(KINDS))
     assert found[0] == 0  # the recording starts at an ejection: judged against the frames after it
 
 
 def test_the_skipped_ejection_is_not_found_and_the_window_runs_two_periods(every_kind: tuple) -> None:
-    change, truth = every_kind
+    change, novelty, truth = every_kind
     skipped = next(w for w in truth["windows"] if w["kind"] == "skip" and w["end_frame"] - w["start_frame"] > 300)
-    found = detect_ejections_streamed(change, FPS, offline=False)
+    found = detect_ejections_streamed(change, FPS, offline=False, novelty=novelty)
     assert not np.any((found > skipped["start_frame"] + 2) & (found < skipped["end_frame"] - 2))
 
 
@@ -123,19 +121,26 @@ def test_a_stream_that_starts_inside_a_window_does_not_start_with_an_ejection(of
     assert detect_ejections_streamed(change, FPS, offline=offline).tolist() == [70, 260, 450]
 
 
-def ringing_on(at: list[int], n: int, rng: np.random.Generator, loud_from: int) -> np.ndarray:
-    """Frame change: noise about 8; from the ``loud_from``-th ejection on, each window rings undamped at 150 with a
-    phase of its own, and its ejection's burst (3 frames) stands less than twice that ringing's median above it."""
-    change = rng.normal(8.0, 0.5, n)
+def ringing_on(
+    at: list[int], n: int, rng: np.random.Generator, loud_from: int, novel: float = 60.0
+) -> tuple[np.ndarray, np.ndarray]:
+    """Frame change and novelty: change noise about 8; from the ``loud_from``-th ejection on, each window rings
+    undamped at 150 with a phase of its own, and its ejection's burst (3 frames) stands less than twice that
+    ringing's median above it. Novelty: the ringing repeats its shapes (noise about 3), the ejection's frames stand
+    ``novel`` above that."""
+    change, novelty = rng.normal(8.0, 0.5, n), np.abs(rng.normal(3.0, 1.0, n))
     for k, (e, end) in enumerate(zip(at, [*at[1:], n])):
         ring = 150.0 if k >= loud_from else 20.0 * np.exp(-np.arange(end - e) / 10.0)
         change[e:end] += ring * np.abs(np.sin(2 * np.pi * 1500 / FPS * np.arange(end - e) + rng.uniform(0, np.pi)))
         change[e : e + 3] += 260.0
-    return change
+        novelty[e : e + 3] += novel
+    return change, novelty
 
 
 @pytest.mark.parametrize("offline", [False, True])
 def test_ejections_into_ringing_as_strong_as_their_burst_are_found_where_the_rate_puts_them(offline: bool) -> None:
+    """Where the change does not stand out, the start that stands out most in change and novelty together, about
+    a multiple of the recent ejection period after the last ejection, is the ejection."""
     true = [190 * k + int(d) for k, d in enumerate([0, 3, -2, 4, 0, -3, 2, 1, -4, 0])]  # a rate drifting 2 %
-    change = ringing_on(true, 2000, np.random.default_rng(5), loud_from=3)
-    assert score(detect_ejections_streamed(change, FPS, offline=offline), true) == (9, 9, 9)
+    change, novelty = ringing_on(true, 2000, np.random.default_rng(5), loud_from=3)
+    assert score(detect_ejections_streamed(change, FPS, offline=offline, novelty=novelty), true) == (9, 9, 9)

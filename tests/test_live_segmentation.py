@@ -9,7 +9,7 @@ import pytest
 
 from service.analysis.segment import windows_between
 from service.pipeline.demo import DEMO_AVI, DEMO_TRUTH
-from service.pipeline.ejections import EjectionDetector
+from service.pipeline.ejections import EjectionDetector, novelty_lags
 from service.pipeline.measures import PixelMeasures
 from service.pipeline.segmenter import StreamingSegmenter
 from service.recordings import open_recording
@@ -18,12 +18,20 @@ FPS = 19_000.0
 
 
 def segment(
-    segmenter: StreamingSegmenter, indices: np.ndarray, values: np.ndarray, change: np.ndarray, batch: int
+    segmenter: StreamingSegmenter,
+    indices: np.ndarray,
+    values: np.ndarray,
+    change: np.ndarray,
+    batch: int,
+    novelty: np.ndarray | None = None,
 ) -> list:
     closed = []
     for lo in range(0, len(indices), batch):
         part = slice(lo, lo + batch)
-        closed += segmenter.push(indices[part], values[part], change[part], np.full(len(indices[part]), float(lo)))
+        arrival = np.full(len(indices[part]), float(lo))
+        closed += segmenter.push(
+            indices[part], values[part], change[part], arrival, novelty=None if novelty is None else novelty[part]
+        )
     return closed
 
 
@@ -42,13 +50,13 @@ def test_the_demo_recording_is_cut_at_its_true_ejections_whatever_the_batching(b
         frames = rec.read(0, len(rec))
     frames = np.concatenate([frames, frames])  # as the looping replay delivers them
     indices = np.arange(len(frames))
-    measures = PixelMeasures()
-    change = np.concatenate(
-        [measures.update(frames[i : i + batch], indices[i : i + batch])[0] for i in range(0, len(frames), batch)]
-    )
     truth = json.loads(DEMO_TRUTH.read_text())
-    seg = StreamingSegmenter(950, EjectionDetector(truth["recording"]["fps"], refractory=95))
-    closed = segment(seg, indices, indices.astype(float), change, batch)
+    fps = truth["recording"]["fps"]
+    measures = PixelMeasures(*novelty_lags(fps))
+    parts = [measures.update(frames[i : i + batch], indices[i : i + batch]) for i in range(0, len(frames), batch)]
+    change, novelty = (np.concatenate([part[k] for part in parts]) for k in (0, 3))
+    seg = StreamingSegmenter(950, EjectionDetector(fps, refractory=95))
+    closed = segment(seg, indices, indices.astype(float), change, batch, novelty)
     truth = truth["ejections"]
     expected = truth[1:] + [t + len(frames) // 2 for t in truth]
     # frame 0's ejection has no frame before it to differ from: cuts that early are not checked

@@ -1,4 +1,5 @@
-"""The per-frame pixel measures (change, mean, peak) in one compiled pass: exact, and blind to how frames are batched."""
+"""The per-frame pixel measures (change, mean, peak, novelty) in one compiled pass: exact, and blind to how frames
+are batched."""
 
 from __future__ import annotations
 
@@ -6,15 +7,34 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from service.pipeline.measures import PixelMeasures
+from service.pipeline.measures import GRID, PixelMeasures
 
 
-def reference(frames: np.ndarray, indices: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The measures as numpy states them: float64 means of |frame - frame before|, of the frame, and its maximum."""
+def novelty(frames: np.ndarray, indices: np.ndarray, near: int, far: int) -> np.ndarray:
+    """Each frame's mean absolute distance, over its means in GRID bands of rows by GRID of columns (row y in band
+    y * GRID // H), to the nearest frame ``near`` .. ``far`` frames before it with no frame lost in between; NaN
+    where there is none."""
+    n, h, w = frames.shape
+    rows, cols = (np.split(np.arange(k), np.flatnonzero(np.diff(np.arange(k) * min(GRID, k) // k)) + 1) for k in (h, w))
+    x = frames.astype(np.float64)
+    cells = np.stack([x[:, r][:, :, c].mean(axis=(1, 2)) for r in rows for c in cols], axis=1)
+    out = np.full(n, np.nan)
+    for i in range(n):
+        past = [j for j in range(i - far, i - near + 1) if j >= 0 and indices[i] - indices[j] == i - j]
+        if past:
+            out[i] = min(np.abs(cells[i] - cells[j]).mean() for j in past)
+    return out
+
+
+def reference(
+    frames: np.ndarray, indices: np.ndarray, near: int, far: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The measures as numpy states them: float64 means of |frame - frame before|, of the frame, its maximum, and
+    its novelty."""
     x = frames.reshape(len(frames), -1).astype(np.float64)
     change = np.r_[np.nan, np.abs(np.diff(x, axis=0)).mean(axis=1)]
     change[1:][np.diff(indices) != 1] = np.nan
-    return change, x.mean(axis=1), x.max(axis=1)
+    return change, x.mean(axis=1), x.max(axis=1), novelty(frames, indices, near, far)
 
 
 @settings(max_examples=60, deadline=None)
@@ -26,10 +46,15 @@ def reference(frames: np.ndarray, indices: np.ndarray) -> tuple[np.ndarray, np.n
     batch=st.integers(1, 12),
     gap=st.integers(0, 11),
     seed=st.integers(0, 2**16),
+    near=st.integers(1, 4),
+    span=st.integers(0, 6),
 )
-def test_measures_match_numpy_whatever_the_pixels_and_the_batching(dtype, fill, frames, side, batch, gap, seed):
+def test_measures_match_numpy_whatever_the_pixels_and_the_batching(
+    dtype, fill, frames, side, batch, gap, seed, near, span
+):
     """At full scale (sums past 32 bits are kept in 64), all zero and random, in any type a source hands out, with
-    a lost frame (``gap``) in the stream: the same as numpy's float64 means to the last bit (exact integer sums)."""
+    a lost frame (``gap``) in the stream: the same as numpy's float64 means to the last bit (exact integer sums);
+    novelty (cell means: sums in another order) equal to rounding, never compared across the lost frame."""
     rng = np.random.default_rng(seed)
     top = np.iinfo(dtype).max if np.issubdtype(dtype, np.integer) else 1.0
     low = np.iinfo(dtype).min if np.issubdtype(dtype, np.signedinteger) else 0
@@ -40,14 +65,15 @@ def test_measures_match_numpy_whatever_the_pixels_and_the_batching(dtype, fill, 
         "random": (rng.integers(low, top, shape, endpoint=True) if top != 1.0 else rng.random(shape)).astype(dtype),
     }[fill]
     indices = np.arange(frames) + (np.arange(frames) >= gap)  # frame ``gap`` (if any) lost before it arrived
-    measures = PixelMeasures()
+    measures = PixelMeasures(near, near + span)
     got = [
         np.concatenate(part)
         for part in zip(
             *(measures.update(pixels[i : i + batch], indices[i : i + batch]) for i in range(0, frames, batch))
         )
     ]
-    want = reference(pixels, indices)
+    want = reference(pixels, indices, near, near + span)
+    np.testing.assert_allclose(got.pop(), want[-1], rtol=1e-9, atol=1e-9 * float(top), equal_nan=True)
     for g, w in zip(got, want):
         if dtype == np.float32:  # float sums in another order: equal to rounding
             np.testing.assert_allclose(g, w, rtol=1e-12, equal_nan=True)

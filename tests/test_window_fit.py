@@ -142,6 +142,23 @@ def test_settling_time_is_where_the_envelope_meets_five_percent():
     assert slow.residual_amplitude_mm == pytest.approx(0.02 * np.exp(-50 * N / FPS), rel=0.05)
 
 
+def test_a_settled_window_and_one_still_ringing_at_the_next_ejection_say_so():
+    """Issue 16: a settled window is reported settled, with its residual amplitude and no frequency; a window whose
+    mode still runs at the next ejection says so, with its residual amplitude over the tolerance."""
+    quiet = fit_window(series([], noise=2e-4), FPS, starts_at_ejection=True, ends_at_ejection=True)
+    assert quiet.status == "settled" and quiet.settled and quiet.modes == []
+    assert 0 < quiet.residual_amplitude_mm < 1e-3  # what is left: the noise's size, not zero and not a mode
+    assert "frequency_hz" not in json.dumps(json_clean(quiet))
+    ringing = fit_window(
+        series([(0.02, 30.0, 1500.0, 0.3)], noise=2e-4), FPS, starts_at_ejection=True, ends_at_ejection=True
+    )
+    assert ringing.status == "ok" and not ringing.settled and ringing.settling_time_s is None
+    assert ringing.residual_amplitude_mm == pytest.approx(0.02 * np.exp(-30.0 * N / FPS), rel=0.05)
+    assert "still oscillating at the next ejection" in ringing.reason
+    cut = fit_window(series([(0.02, 30.0, 1500.0, 0.3)], noise=2e-4), FPS, starts_at_ejection=True)
+    assert "still oscillating at the end of the window" in cut.reason  # cut by the recording, not an ejection
+
+
 def test_the_transient_after_an_ejection_is_left_out_and_time_still_counts_from_it():
     y = series([(0.02, 300.0, 1500.0, 0.3)], noise=1e-4)
     y[:5] += 0.1  # the droplet leaving

@@ -121,7 +121,7 @@ def analyse_recording(
         if n < 2:
             raise MeniscopeError(path, f"{n} frame(s): a window analysis needs at least 2")
         if ejections.file is None and ejections.hz is None:  # the live detector, looking further ahead
-            cuts = detect_ejections_streamed(records["change"], fps, offline=True)
+            cuts = detect_ejections_streamed(records["change"], fps, offline=True, novelty=records["novelty"])
         else:
             cuts, _ = find_ejections(frame_activity(records["change"]), fps, ejections.file, ejections.hz)
         segmenter = StreamingSegmenter(n)  # cut at the ejections found: the whole recording looked ahead

@@ -53,24 +53,51 @@ def score(found, true) -> tuple[int, int, int]:  # type: ignore[no-untyped-def]
     return ejection_matches(found[found >= true[0] - TOLERANCE] if true.size else found, true, TOLERANCE)
 
 
+def frame_measures(recording: Path, fps: float) -> tuple:
+    """Each frame's change and novelty (N,) as the pipeline measures them (:mod:`service.pipeline.measures`)."""
+    import numpy as np
+
+    from service.pipeline.ejections import novelty_lags
+    from service.pipeline.measures import PixelMeasures
+    from service.recordings import open_recording
+
+    pixels = PixelMeasures(*novelty_lags(fps))
+    change, novelty = [], []
+    with open_recording(recording) as rec:
+        for lo in range(0, len(rec), 512):
+            frames = rec.read_grey(lo, min(512, len(rec) - lo))
+            c, _, _, v = pixels.update(frames, np.arange(lo, lo + len(frames)))
+            change.append(c)
+            novelty.append(v)
+    return np.concatenate(change), np.concatenate(novelty)
+
+
 def measure(recording: Path) -> dict:
     """Detections of one recording by the detector with the live and the offline look-ahead, scored."""
     import json
 
-    from service.analysis.segment import frame_steps
     from service.pipeline.ejections import detect_ejections_streamed
-    from service.recordings import open_recording
     from service.simulate import truth_path
 
     truth = json.loads(truth_path(recording).read_text())
     fps = float(truth["recording"]["fps"])
-    with open_recording(recording) as rec:
-        change = frame_steps(rec.read_grey(0, len(rec)))
+    change, novelty = frame_measures(recording, fps)
     runs = {
-        "live": detect_ejections_streamed(change, fps, offline=False),
-        "offline": detect_ejections_streamed(change, fps, offline=True),
+        "live": detect_ejections_streamed(change, fps, offline=False, novelty=novelty),
+        "offline": detect_ejections_streamed(change, fps, offline=True, novelty=novelty),
     }
     return {name: score(found, truth["ejections"]) for name, found in runs.items()}
+
+
+def kind_of(recording: Path) -> str:
+    """The row a given recording is scored in: its windows' kind (``simulate --kinds``), 'mixed' for several,
+    else its file name."""
+    import json
+
+    from service.simulate import truth_path
+
+    kinds = {w.get("kind") for w in json.loads(truth_path(recording).read_text()).get("windows", [])}
+    return recording.name if kinds <= {None} else "mixed" if len(kinds) > 1 else str(kinds.pop())
 
 
 def markdown(results: dict) -> str:
@@ -102,9 +129,9 @@ def run(args: argparse.Namespace) -> int:
 
     results: dict = {"kinds": {}}
     if args.recordings:
-        for path in args.recordings:
-            results["kinds"].setdefault(path.name, []).append(measure(path))
-        results["setup"] = "recordings: " + ", ".join(str(p) for p in args.recordings)
+        for path in tqdm(args.recordings, desc="bench ejections", unit="recording"):
+            results["kinds"].setdefault(kind_of(path), []).append({"recording": path.name, **measure(path)})
+        results["setup"] = "recordings: " + ", ".join(p.name for p in args.recordings)
         write_results(args.out, results, markdown(results))
         return 0
     scene = Scene.load(args.scene)

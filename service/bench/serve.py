@@ -209,7 +209,7 @@ def stage_costs(recording: Path, configs: list[tuple[int, int]], frames: int = 3
         lambda: [
             w
             for part, r in zip(parts, records)
-            for w in segmenter.push(part.indices, r, r["change"], np.zeros(len(part)))
+            for w in segmenter.push(part.indices, r, r["change"], np.zeros(len(part)), novelty=r["novelty"])
         ],
         len(batch),
     )

@@ -14,10 +14,16 @@ after it, or, where the ejection's own ringing is as strong as its burst, when t
 first ejection found after it (frames wait for that decision, at most :data:`START_WAIT_S`).
 
 Where ringing is as strong as an ejection's burst (a lightly damped meniscus, 4 kHz modes) the burst does not
-stand ``ratio`` above it; there the recent ejection period (the median interval between the ejections found)
-helps: in the stretch of +-10 % about a multiple of it after the last ejection, the strongest start counts at a
-quarter of the ratio (frames wait for the stretch's end). The rate is learned from the video, not assumed, and a
-skipped ejection or a rate drifting a few per cent keeps it.
+stand ``ratio`` above it, but the bulge is a shape the ringing has not shown: each frame's ``novelty``
+(:mod:`service.pipeline.measures`: its coarse picture's distance from the nearest of the frames 0.35-3 ms before;
+ringing keeps returning to its last period's shapes) bursts at an ejection. There the recent ejection period (the
+median interval between the ejections found) says where to look: in the stretch of +-10 % about a multiple of it
+after the last ejection, the start where change and novelty stand out most together (the product of each one's
+burst above its baseline's 90th percentile, in baseline medians; the novelty's over the bulge's rise, half the
+transient) is the ejection, once that product passes :data:`STRETCH_SCORE` (a start that does waits for the
+stretch's end). The rate is learned from the video, not assumed, and a skipped ejection or a rate drifting a few per cent
+keeps it. The stream's first ejections into such ringing, before two found ones have given the period, are
+missed.
 
 What happens after the ejection is not consulted beyond the transient, so a settled meniscus, a heavily
 or lightly damped one and 4 kHz modes look the same to it. Live runs it with ``lookahead`` = the transient
@@ -52,12 +58,26 @@ START_WAIT_S = 25e-3
 ONSET_FRACTION = 0.2
 
 
-#: Where the recent ejection period puts the next ejection (within this share of the time since the last, up to
-#: this many periods on), the strongest start of that stretch is one at RELAXED times the ratio: an ejection
-#: into a meniscus still ringing as hard as its burst stands out from that ringing less than ``ratio``.
+#: Where the recent ejection period puts the next ejection: within this share of the time since the last, up to
+#: this many periods on (an ejection into a meniscus still ringing as hard as its burst stands out from that
+#: ringing less than ``ratio``; there its novelty decides, :data:`STRETCH_SCORE`).
 EXPECTED_SPREAD = 0.1
 EXPECTED_PERIODS = 3
-RELAXED = 0.25
+
+#: Novelty (:mod:`service.pipeline.measures`) compares a frame with the frames from just past the transient
+#: (whose bulge would otherwise match its own first frames) to this far back (s): more than the slowest ringing's
+#: period (500 Hz), so that ringing finds its last period's shapes there.
+NOVELTY_SPAN_S = 3e-3
+#: In an expected ejection's stretch, the ejection is the start where the change and the novelty stand out most
+#: together (the product of how far each stands above its baseline, in baselines: the ringing's strongest change
+#: repeats shapes, its newest shapes change little) once that product passes this.
+STRETCH_SCORE = 0.5
+
+
+def novelty_lags(fps: float) -> tuple[int, int]:
+    """The frames (nearest, farthest back) novelty compares each frame with, at ``fps`` frames per second."""
+    near = max(2, int(round(TRANSIENT_S * fps))) + 1
+    return near, max(near, int(round(NOVELTY_SPAN_S * fps)))
 
 
 class EjectionDetector:
@@ -78,6 +98,7 @@ class EjectionDetector:
         self.ratio, self.floor = ratio, floor
         self._start_wait = int(START_WAIT_S * fps)
         self._changes = np.empty(0)  # changes of frames [self._first, ...), NaN where missing
+        self._novelty = np.empty(0)  # their novelty, the same frames
         self._first: int | None = None
         self._decided = 0  # frames before this index are decided
         self._last: int | None = None  # the last ejection
@@ -90,8 +111,8 @@ class EjectionDetector:
     @property
     def latency(self) -> int:
         """Frames that must follow a frame before :attr:`settled` passes it (whether an ejection starts there or
-        in the transient before is known); more where a strong start in an expected ejection's stretch waits for
-        the stretch's end (a tenth of the period, the ringing of a lightly damped meniscus)."""
+        in the transient before is known); more where a start in an expected ejection's stretch that scores above
+        STRETCH_SCORE waits for the stretch's end (a tenth of the period after its middle)."""
         return self.transient + self.lookahead - 2
 
     @property
@@ -102,8 +123,9 @@ class EjectionDetector:
             return np.iinfo(np.int64).min
         return self._origin if self._pending is not None else self._decided - self.transient + 1
 
-    def push(self, indices: np.ndarray, change: np.ndarray) -> list[int]:
-        """Add frames ``indices`` (N,), increasing, with their change (N,); the ejections decided by them."""
+    def push(self, indices: np.ndarray, change: np.ndarray, novelty: np.ndarray | None = None) -> list[int]:
+        """Add frames ``indices`` (N,), increasing, with their change and novelty (N,) (NaN where unknown, as all
+        of it is without ``novelty``); the ejections decided by them."""
         indices = np.asarray(indices, np.int64)
         if indices.size == 0:
             return []
@@ -113,8 +135,11 @@ class EjectionDetector:
         end = self._first + self._changes.size
         grown = np.full(max(int(indices[-1]) + 1 - end, 0), np.nan)
         self._changes = np.concatenate([self._changes, grown])
+        self._novelty = np.concatenate([self._novelty, grown])
         keep = indices >= self._first
         self._changes[indices[keep] - self._first] = np.asarray(change, np.float64)[keep]
+        if novelty is not None:
+            self._novelty[indices[keep] - self._first] = np.asarray(novelty, np.float64)[keep]
         found = self._start(final=False)
         if not self._start_checked:
             return found
@@ -168,32 +193,42 @@ class EjectionDetector:
         levels, bases = level.tolist(), base.tolist()  # floats: the loop below looks at every frame
         found = []
         typical = self.floor * self._typical()
-        for i in range(max(0, min(span.size, at(until) - at(lo)))):
+        count = max(0, min(span.size, at(until) - at(lo)))
+        stretch_of = self._stretches(lo, count)
+        scored: tuple[int, int, np.ndarray] | None = None  # a stretch's first and last position, its starts' scores
+        for i in range(count):
             frame = lo + i
             if self._last is not None and frame - self._last < self.refractory:
-                continue
-            if not levels[i] > RELAXED * typical:
                 continue
             if levels[i] > self.ratio * bases[i] and levels[i] > typical:
                 ahead = level[i : i + self.lookahead - self.transient + 1]
                 if ahead.max() > level[i]:  # a stronger start follows within the look-ahead: decide there
                     continue
-            elif (expected := self._expected(frame)) is not None:  # where the rate puts the next ejection
-                a, b = max(expected[0], lo) - lo, expected[1] - lo
-                b = min(b, span.size - 1) if final else b
-                if b + self.transient > span.size:  # the stretch's last burst is not all in: wait for it
+                onset = self._onset(c, at(frame), top[i])
+            elif stretch_of[i, 0] >= 0 and levels[i] > 0:  # where the rate puts the next ejection
+                a, b = int(stretch_of[i, 0]), int(stretch_of[i, 1])
+                if scored is None or scored[:2] != (a, b):  # the stretch's starts, as far as they are in
+                    z = min(b, span.size - 1) + 1
+                    scored = (a, b, self._scores(level[a:z], base[a:z], span[a:z]))
+                score = scored[2]
+                if not score[i - a] > STRETCH_SCORE:
+                    continue
+                if lo + b + self.transient > self._first + c.size:  # the stretch's last burst is not all in: wait
+                    if final:  # cut by the stream's end: no telling its strongest start
+                        continue
                     until = frame
                     break
-                if not (i == a + int(np.argmax(level[a : b + 1])) and level[i] > RELAXED * self.ratio * base[i]):
+                if i != a + int(np.argmax(score)):
                     continue
+                onset = at(frame)
             else:
                 continue
-            onset = self._onset(c, at(frame), top[i])
             if self._last is not None:
                 self._intervals.append(self._first + onset - self._last)
             self._last = self._first + onset
             self._bursts.append(float(level[i]))
             typical = self.floor * self._typical()
+            stretch_of = self._stretches(lo, count)
             if self._pending is not None:  # the stream's start judged against its first ejection
                 starts = self._last - self._origin >= self.refractory and self._pending >= START_FRACTION * burst[i]
                 if starts:
@@ -204,22 +239,38 @@ class EjectionDetector:
         self._decided = until
         drop = max(0, at(until) - self.history - self.transient)
         self._changes, self._first = c[drop:], self._first + drop
+        self._novelty = self._novelty[drop:]
         return found
 
-    def _expected(self, frame: int) -> tuple[int, int] | None:
-        """The frames around the multiple of the recent ejection period (the median of the last intervals) after
-        the last ejection that ``frame`` lies in, +-``EXPECTED_SPREAD`` of that time; None where it lies in none
-        (or too few ejections are known)."""
+    def _stretches(self, lo: int, count: int) -> np.ndarray:
+        """For frames ``lo .. lo + count - 1``: the first and last frame (from ``lo``) of the stretch about a
+        multiple (up to EXPECTED_PERIODS) of the recent ejection period (the median of the last intervals) after
+        the last ejection that each lies in, +-``EXPECTED_SPREAD`` of that time; (count, 2), -1 where none (or
+        too few ejections are known)."""
+        out = np.full((count, 2), -1, np.int64)
         if self._last is None or not self._intervals:
-            return None
+            return out
         period = float(np.median(self._intervals))
-        k = round((frame - self._last) / period)
-        if not 1 <= k <= EXPECTED_PERIODS:
-            return None
-        centre, spread = self._last + k * period, max(2.0, EXPECTED_SPREAD * k * period)
-        if abs(frame - centre) > spread:
-            return None
-        return int(np.ceil(centre - spread)), int(np.floor(centre + spread))
+        for k in range(1, EXPECTED_PERIODS + 1):
+            centre, spread = self._last + k * period, max(2.0, EXPECTED_SPREAD * k * period)
+            a, b = int(np.ceil(centre - spread)) - lo, int(np.floor(centre + spread)) - lo
+            out[max(a, 0) : max(b + 1, 0)] = (max(a, 0), b)
+        return out
+
+    def _scores(self, level: np.ndarray, base: np.ndarray, positions: np.ndarray) -> np.ndarray:
+        """How much the starts at ``positions`` (in the kept frames) stand out in change and novelty together:
+        the product of each one's burst above its baseline's 90th percentile, in baseline medians (0 where either
+        is not above it; ``level`` and ``base`` are the change's, over the transient; the novelty's over its
+        first half, while the bulge grows, so that the start nearest the bulge's first frame scores highest)."""
+        pad = np.full(self.history, np.nan)
+        ext = np.concatenate([pad, self._novelty, np.full(self.lookahead, np.nan)])
+        with np.errstate(all="ignore"), _quiet():
+            rise = max(1, (self.transient + 1) // 2)
+            burst = np.nanmax(sliding_window_view(ext[self.history :], rise)[positions], axis=1)
+            novel_base, novel_top, known = _median_and_p90(sliding_window_view(ext, self.history)[positions])
+            novel = np.where(known >= self.transient, (burst - novel_top) / novel_base, np.nan)
+            change = level / base
+        return np.nan_to_num(np.clip(change, 0, None) * np.clip(novel, 0, None), nan=0.0, posinf=0.0)
 
     def _typical(self) -> float:
         """The median burst level of the recent ejections (0 before the first)."""
@@ -274,11 +325,16 @@ class _quiet:
 OFFLINE_LOOKAHEAD_S = 2e-3
 
 
-def detect_ejections_streamed(change: np.ndarray, fps: float, offline: bool = True, batch: int = 256) -> np.ndarray:
-    """The ejections of a whole series of per-frame change (N,) (NaN where unknown), fed to one
+def detect_ejections_streamed(
+    change: np.ndarray, fps: float, offline: bool = True, batch: int = 256, novelty: np.ndarray | None = None
+) -> np.ndarray:
+    """The ejections of a whole series of per-frame change and novelty (N,) (NaN where unknown), fed to one
     :class:`EjectionDetector` ``batch`` frames at a time, with the offline look-ahead or the live one; (E,) int64."""
     detector = EjectionDetector(fps, lookahead=int(round(OFFLINE_LOOKAHEAD_S * fps)) if offline else None)
     found: list[int] = []
     for lo in range(0, len(change), batch):
-        found += detector.push(np.arange(lo, min(lo + batch, len(change))), change[lo : lo + batch])
+        part = slice(lo, min(lo + batch, len(change)))
+        found += detector.push(
+            np.arange(part.start, part.stop), change[part], None if novelty is None else novelty[part]
+        )
     return np.asarray(found + detector.finish(), np.int64)

@@ -1,9 +1,14 @@
 """What the pixels alone say about each frame, in one pass over them: its change from the frame before, its
-mean brightness and its brightest pixel.
+mean brightness, its brightest pixel, and how new its coarse picture is.
 
-One compiled loop (numba) reads each pixel once for all three (three numpy reductions and OpenCV's difference
+One compiled loop (numba) reads each pixel once for all of them (three numpy reductions and OpenCV's difference
 read them four times: 9.3 us per 96 x 96 16-bit frame against 3.2 here), with exact sums: integer pixels are
 summed in 64-bit integers, so that the results are the same to the last bit as the exact means they replace.
+
+Novelty is the distance (mean absolute difference of the :data:`GRID` x :data:`GRID` cells' means) from the
+frame to the nearest of the frames ``near .. far`` before it: ringing, however strong, keeps returning to the
+shapes of its last period, so its frames stay near earlier ones; an ejection's bulge is a shape the meniscus
+has not shown lately (:mod:`service.pipeline.ejections` uses it where the amount of change does not stand out).
 """
 
 from __future__ import annotations
@@ -11,47 +16,117 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+#: The coarse picture novelty compares: the frame's means over GRID x GRID cells (fewer where the frame is
+#: smaller); 64 numbers keep the comparison with tens of earlier frames at about a microsecond.
+GRID = 8
+
 
 @njit(cache=True, nogil=True)
-def _sums(frames, previous, zero, total, peak, change):  # type: ignore[no-untyped-def]
-    """Per frame of ``frames`` (N, P): its pixels' sum, maximum and summed absolute difference from the frame
-    before (``previous`` (P,) before frame 0), accumulated from ``zero`` (its type sets the sums')."""
+def _sums(frames, previous, zero, band, edges, total, peak, change, cells):  # type: ignore[no-untyped-def]
+    """Per frame of ``frames`` (N, H * W): its pixels' sum, maximum and summed absolute difference from the frame
+    before (``previous`` (H * W,) before frame 0), accumulated from ``zero`` (its type sets the sums'), and its
+    sums over the cells (``cells`` (N, bands * columns)): row y in band ``band[y]``, columns cut at ``edges``
+    (columns + 1,). A band's rows are summed column by column first (a plain loop over each row, as fast as the
+    three sums alone), then cut into its cells."""
+    columns = edges.size - 1
+    width = edges[columns]
+    acc = np.full(width, zero)
     for i in range(frames.shape[0]):
         row = frames[i]
         before = previous if i == 0 else frames[i - 1]
         s, d, m = zero, zero, row[0]
-        for j in range(row.shape[0]):
-            a, b = row[j], before[j]
-            s += a
-            m = max(m, a)
-            d += max(a, b) - min(a, b)  # |a - b| without leaving the unsigned type
+        for y in range(band.size):
+            for x in range(width):
+                j = y * width + x
+                a, b = row[j], before[j]
+                s += a
+                m = max(m, a)
+                d += max(a, b) - min(a, b)  # |a - b| without leaving the unsigned type
+                acc[x] += a
+            if y + 1 == band.size or band[y + 1] != band[y]:  # the band's last row: its cells
+                for c in range(columns):
+                    cells[i, band[y] * columns + c] = acc[edges[c] : edges[c + 1]].sum()
+                acc[:] = zero
         total[i], peak[i], change[i] = s, m, d
 
 
-class PixelMeasures:
-    """Per-frame pixel measures across consecutive batches of one stream (the frame before a batch's first is
-    kept, so that a batch boundary changes nothing)."""
+@njit(cache=True, nogil=True)
+def _novelty(cells, ring, filled, position, near, out):  # type: ignore[no-untyped-def]
+    """Each row of ``cells`` (N, C): its mean absolute distance to the nearest of the frames ``near`` .. ``filled``
+    before it held in ``ring`` (F, C) (the last F frames, the newest at ``position - 1``); NaN with none that
+    far back. Each row then enters the ring; returns the ring's fill and next position."""
+    size, width = ring.shape
+    for i in range(cells.shape[0]):
+        best = np.inf
+        for lag in range(near, filled + 1):
+            past = ring[(position - lag) % size]
+            d = 0.0
+            for k in range(width):
+                d += abs(cells[i, k] - past[k])
+            best = min(best, d)
+        out[i] = best / width if best < np.inf else np.nan
+        ring[position] = cells[i]
+        position = (position + 1) % size
+        filled = min(filled + 1, size)
+    return filled, position
 
-    def __init__(self) -> None:
+
+class PixelMeasures:
+    """Per-frame pixel measures across consecutive batches of one stream (the frame before a batch's first, and
+    the novelty's last frames, are kept, so that a batch boundary changes nothing).
+
+    ``near``, ``far``: the frames novelty compares with (:func:`service.pipeline.ejections.novelty_lags`)."""
+
+    def __init__(self, near: int, far: int) -> None:
         self._previous: np.ndarray | None = None  # last frame of the previous batch, flattened
         self._last_index: int | None = None
+        self._near, self._far = max(1, near), max(near, far, 1)
+        self._ring: np.ndarray | None = None  # the last ``far`` frames' cell means
+        self._filled, self._position = 0, 0
+        self._shape: tuple[int, int] | None = None  # the frames' size the cell numbers below are for
+        self._band, self._edges, self._counts = np.empty(0, np.int64), np.empty(0, np.int64), np.empty(0)
 
-    def update(self, pixels: np.ndarray, indices: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def update(self, pixels: np.ndarray, indices: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Of frames ``pixels`` (N, H, W) with frame ``indices`` (N,): each one's change (mean absolute difference
-        from the frame before, NaN at the stream's first frame and after a gap), mean and maximum, (N,) float64
-        each, in pixel units."""
-        n = len(pixels)
+        from the frame before, NaN at the stream's first frame and after a gap), mean, maximum and novelty (NaN
+        until ``near`` frames are in since the start or a gap), (N,) float64 each, in pixel units."""
+        n, h, w = pixels.shape
         flat = pixels.reshape(n, -1)
         if not np.issubdtype(flat.dtype, np.unsignedinteger):  # an unsigned sum of signed pixels would wrap
             flat = flat.astype(np.float64)
         zero = np.uint64(0) if flat.dtype.kind == "u" else np.float64(0.0)
         follows = self._previous is not None and self._last_index == indices[0] - 1
+        band, edges, counts = self._cells(h, w)
         total, change, peak = np.empty(n, zero.dtype), np.empty(n, zero.dtype), np.empty(n, flat.dtype)
-        _sums(flat, self._previous if follows else flat[0], zero, total, peak, change)
+        cells = np.zeros((n, counts.size))
+        _sums(flat, self._previous if follows else flat[0], zero, band, edges, total, peak, change, cells)
         size = flat.shape[1]
         steps = change / size
         if not follows:
             steps[0] = np.nan
-        steps[1:][np.diff(indices) != 1] = np.nan  # no change across frames lost in between
+        breaks = np.flatnonzero(np.diff(indices) != 1) + 1
+        steps[breaks] = np.nan  # no change across frames lost in between
+        novelty = np.empty(n)
+        cells /= counts
+        if self._ring is None or self._ring.shape[1] != counts.size:
+            self._ring, self._filled, self._position = np.zeros((self._far, counts.size)), 0, 0
+        for lo, hi in zip([0, *breaks], [*breaks, n]):  # a gap starts the comparison afresh
+            if lo > 0 or not follows:
+                self._filled = 0
+            self._filled, self._position = _novelty(
+                cells[lo:hi], self._ring, self._filled, self._position, self._near, novelty[lo:hi]
+            )
         self._previous, self._last_index = flat[-1].copy(), int(indices[-1])  # the batch buffer may be reused
-        return steps, total / size, peak.astype(np.float64)
+        return steps, total / size, peak.astype(np.float64), novelty
+
+    def _cells(self, h: int, w: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """For frames of ``h`` x ``w``: each row's band (H,) (row y in band y * GRID // H), the column edges of the
+        cells (column x in cell x * GRID // W) and each cell's pixel count, GRID x GRID cells (fewer where the frame
+        is smaller)."""
+        if self._shape != (h, w):
+            gy, gx = min(GRID, h), min(GRID, w)
+            self._shape = (h, w)
+            self._band = np.arange(h) * gy // h
+            self._edges = np.searchsorted(np.arange(w) * gx // w, np.arange(gx + 1))
+            self._counts = np.outer(np.bincount(self._band, minlength=gy), np.diff(self._edges)).ravel().astype(float)
+        return self._band, self._edges, self._counts

@@ -337,7 +337,9 @@ class Pipeline:
         self.budget.record(seconds, len(batch))
         self.sink.on_inference(seconds, len(batch))
         self.stats.frames_inferred += len(batch)
-        self._dispatch(self.segmenter.push(batch.indices, records, records["change"], acquired.arrival))
+        self._dispatch(
+            self.segmenter.push(batch.indices, records, records["change"], acquired.arrival, novelty=records["novelty"])
+        )
         last = records[-1]
         self.stats.latest = LatestFrame(
             int(batch.indices[-1]),

@@ -72,15 +72,17 @@ class StreamingSegmenter:
         change: np.ndarray,
         arrival: np.ndarray,
         ejections: np.ndarray | None = None,
+        novelty: np.ndarray | None = None,
     ) -> list[ClosedWindow]:
-        """Add a batch (indices, change, arrival (N,), increasing; values (N, ...)); the windows it closes.
+        """Add a batch (indices, change, arrival and novelty (N,), increasing; values (N, ...)); the windows it
+        closes (the detector judges without novelty where it is None).
 
         ``ejections``: the ejection frames among ``indices`` when they are known already (offline, which looks
         further ahead); else the detector's (or the printer's trigger's, which the detector's then check), the
         batch's frames waiting until they are decided."""
         if ejections is not None or self.detector is None:
             return self._cut(indices, values, arrival, np.empty(0, np.int64) if ejections is None else ejections)
-        found = self.detector.push(indices, change)
+        found = self.detector.push(indices, change, novelty)
         self._waiting.append((np.asarray(indices), np.asarray(values), np.asarray(arrival)))
         if self.trigger is None:
             self._found += found

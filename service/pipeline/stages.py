@@ -13,6 +13,7 @@ import numpy as np
 
 from service.inverse.base import InverseMethod
 from service.pipeline.activity import ActivityTracker
+from service.pipeline.ejections import novelty_lags
 from service.pipeline.measures import PixelMeasures
 from service.pipeline.records import COEFFICIENTS, FRAME
 from service.scene import Scene
@@ -30,7 +31,7 @@ class FrameStages:
         self._roi = (slice(None), slice(y, y + h), slice(x, x + w))
         self._roi_is_frame = (height, width) == (h, w)
         self.method = method
-        self.pixels = PixelMeasures()
+        self.pixels = PixelMeasures(*novelty_lags(stream.fps))
         self.activity = ActivityTracker()
 
     def roi(self, batch: FrameBatch) -> FrameBatch:
@@ -42,9 +43,9 @@ class FrameStages:
 
     def measure(self, batch: FrameBatch) -> np.ndarray:
         """Records (N,) of a batch of ROI frames with what the pixels alone say (change from the frame before,
-        activity, mean brightness); the inverse's fields NaN until :meth:`infer`."""
+        activity, mean brightness, novelty); the inverse's fields NaN until :meth:`infer`."""
         records = np.full(len(batch), np.nan, FRAME)
-        change, brightness, peak = self.pixels.update(batch.pixels, batch.indices)
+        change, brightness, peak, records["novelty"] = self.pixels.update(batch.pixels, batch.indices)
         records["change"], records["activity"] = change, self.activity.score(change)
         records["brightness"] = brightness
         records["highlight"] = (peak - brightness) / self._full_scale
