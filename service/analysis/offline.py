@@ -5,7 +5,8 @@ activity (ejection detection) and the per-frame inverse method. The window-level
 method then replaces each window's per-frame values by the neighbour candidates its damped
 sinusoid passes through. With ``refine``, each window's motion is then refined on its frames through the
 renderer (:mod:`service.inverse.synthesis`), starting from the per-frame values, and replaces them. Every
-window's steady D(0, t) (:mod:`service.analysis.steady`) is fitted by :func:`service.analysis.fit.fit_windows`.
+window's steady D(0, t) (:mod:`service.analysis.steady`) is fitted on the runner's processes
+(:class:`~service.pipeline.windows.JobRunner`); with the per-frame methods alone, as soon as the window closes.
 """
 
 from __future__ import annotations
