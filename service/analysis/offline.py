@@ -5,7 +5,8 @@ activity (ejection detection) and the per-frame inverse method. The window-level
 method then replaces each window's per-frame values by the neighbour candidates its damped
 sinusoid passes through. With ``refine``, each window's motion is then refined on its frames through the
 renderer (:mod:`service.inverse.synthesis`), starting from the per-frame values, and replaces them. Every
-window's steady D(0, t) (:mod:`service.analysis.steady`) is fitted by :func:`service.analysis.fit.fit_windows`.
+window's steady D(0, t) (:mod:`service.analysis.steady`) is fitted on the runner's processes
+(:class:`~service.pipeline.windows.JobRunner`); with the per-frame methods alone, as soon as the window closes.
 """
 
 from __future__ import annotations
@@ -30,12 +31,13 @@ from service.inverse import regularised, synthesis
 from service.inverse.base import InverseMethod, InverseOutput
 from service.inverse.methods import open_method
 from service.inverse.nearest import NearestDatabase
+from service.inverse.window_model import WindowModel
 from service.physics import WindowMotion, centre_displacement
-from service.pipeline.ejections import detect_ejections_streamed
+from service.pipeline.ejections import OFFLINE_LOOKAHEAD_S, EjectionDetector
 from service.pipeline.records import COEFFICIENTS, FRAME, coefficients_of
 from service.pipeline.segmenter import StreamingSegmenter
 from service.pipeline.stages import FrameStages
-from service.pipeline.windows import JobRunner, job_for, window_model_for
+from service.pipeline.windows import JobRunner, WindowJob, job_for, window_model_for
 from service.recordings import open_recording
 from service.recordings.digest import blake3_file
 from service.recordings.roi import roi_frames
@@ -101,11 +103,18 @@ def analyse_recording(
     inverse, db = opened or open_method(method, scene, models, database)
     db = db if method == "regularised" else None
     transient, radius = settings.transient_frames(fps), scene.nozzle.radius_mm
+    detecting = ejections.file is None and ejections.hz is None
+    # the windows cut as the frames come, at the ejections the live detector finds looking further ahead; with the
+    # default method each is fitted as soon as it closes, beside the inference of the frames after it
+    segmenter = StreamingSegmenter(
+        frames, EjectionDetector(fps, lookahead=int(round(OFFLINE_LOOKAHEAD_S * fps))) if detecting else None
+    )
+    streamed = db is None and not refine  # the window-level methods need every window's frames first
+    model = window_model_for(settings, models, method)
     with JobRunner(settings, scheduler, workers) as runner, ThreadPoolExecutor(1) as hasher:
         digest = hasher.submit(blake3_file, path)  # the hash lets go of the interpreter lock: read while it hashes
-        # one pass over the frames (each read once: reading was a fifth of the CPU); the ejections, found over the
-        # whole recording's changes, are known at its end, when the windows' fits start on both cores
-        parts, found = [], []
+        # one pass over the frames (each read once: reading was a fifth of the CPU)
+        parts, found, closed, jobs = [], [], [], []
         with tqdm(total=frames, unit="frame", desc=f"{inverse.name} {path.name}", disable=not progress) as bar:
             for stages, batch, part in _ahead(_measured(path, scene, inverse)):
                 if db is None:
@@ -115,18 +124,29 @@ def analyse_recording(
                     _set_coefficients(part, db.coeffs[index[:, 0]], db.centre[index[:, 0]])
                     found.append(index)
                 parts.append(part)
+                if detecting:
+                    closed += segmenter.push(
+                        batch.indices, part, part["change"], np.zeros(len(part)), novelty=part["novelty"]
+                    )
+                if streamed:
+                    jobs += _send(runner, [(c.window, c.values) for c in closed], radius, transient, model, fps)
+                    closed = []
                 bar.update(len(batch))
         records = np.concatenate(parts) if parts else np.empty(0, FRAME)
         n = len(records)
         if n < 2:
             raise MeniscopeError(path, f"{n} frame(s): a window analysis needs at least 2")
-        if ejections.file is None and ejections.hz is None:  # the live detector, looking further ahead
-            cuts = detect_ejections_streamed(records["change"], fps, offline=True, novelty=records["novelty"])
-        else:
+        if not detecting:  # the printer's ejections, or its rate's, placed on the whole recording's changes
             cuts, _ = find_ejections(frame_activity(records["change"]), fps, ejections.file, ejections.hz)
-        segmenter = StreamingSegmenter(n)  # cut at the ejections found: the whole recording looked ahead
-        closed = segmenter.push(np.arange(n), records, records["change"], np.zeros(n), cuts)
-        windows = [c.window for c in closed + segmenter.finish(np.nan)]
+            closed += segmenter.push(np.arange(n), records, records["change"], np.zeros(n), cuts)
+        closed += segmenter.finish(np.nan)
+        if streamed:
+            jobs += _send(runner, [(c.window, c.values) for c in closed], radius, transient, model, fps)
+            windows = [job.window for job in jobs]
+        else:
+            windows = [c.window for c in closed]
+        if detecting:
+            cuts = np.array([w.start for w in windows if w.starts_at_ejection], np.int64)
         if db is not None:
             _set_coefficients(records, *_regularise(db, np.concatenate(found), windows, fps, settings, progress))
         motions = {}
@@ -135,9 +155,9 @@ def analyse_recording(
                 path, scene, coefficients_of(records), windows, fps, settings, runner, progress
             )
             _set_coefficients(records, coefficients, centre)
-        model = window_model_for(settings, models, method)
-        jobs = [job_for(w, records[w.start : w.end], radius, transient, model=model) for w in windows]
-        results = runner.run(jobs, fps, progress)
+        if not streamed:
+            jobs = _send(runner, [(w, records[w.start : w.end]) for w in windows], radius, transient, model, fps)
+        results = runner.results(progress)
         source = Source(path=str(path), frames=n, fps=fps, width=width, height=height, blake3=digest.result())
     results = [
         _with_pixel_intervals(r, *motions[r.index], fps, settings.confidence) if r.index in motions else r
@@ -182,6 +202,20 @@ def _ahead(items: Iterator[_T], depth: int = 2) -> Iterator[_T]:
         while (item := pending.popleft().result()) is not _END:
             pending.append(thread.submit(next, items, _END))
             yield item
+
+
+def _send(
+    runner: JobRunner,
+    windows: list[tuple[Window, np.ndarray]],
+    radius_mm: float,
+    transient: int,
+    model: WindowModel | None,
+    fps: float,
+) -> list[WindowJob]:
+    """The jobs of ``windows`` (each with its frames' records: :func:`job_for`), sent to ``runner`` to be fitted."""
+    jobs = [job_for(window, records, radius_mm, transient, model=model) for window, records in windows]
+    runner.send(jobs, fps)
+    return jobs
 
 
 def _set_coefficients(records: np.ndarray, coefficients: np.ndarray, centre: np.ndarray) -> None:

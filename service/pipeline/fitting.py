@@ -166,12 +166,14 @@ class FitPool:
 
     def join(self, timeout: float) -> None:
         """Wait up to ``timeout`` s in all for the workers to exit after :meth:`close` (their last results
-        delivered while this process still listens; one that does not exit is terminated)."""
+        delivered while this process still listens; one that does not exit is terminated, and waited for, so that
+        no worker outlives the pool: a later reaping counted its CPU to whatever ran then)."""
         deadline = time.monotonic() + timeout
         for worker in self._all:
             worker.process.join(max(0.0, deadline - time.monotonic()))
             if worker.process.is_alive():
                 worker.process.terminate()
+                worker.process.join(5.0)  # reaped here, not during whatever this process runs next
 
     def close(self) -> None:
         """Stop the workers: each finishes the fit it is on (its result still delivered) and exits; windows still

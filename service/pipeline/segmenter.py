@@ -4,9 +4,9 @@ The one segmenter of every front door (same :class:`Window` conventions as
 :mod:`service.analysis.segment`). Live, the ejections come from an
 :class:`service.pipeline.ejections.EjectionDetector` fed each batch's frame change: frames wait in the
 segmenter until the detector has decided them (its look-ahead, a few frames), so a window closes a few
-frames after its ejection. Offline looks further ahead (the printer's file, a known rate, or the same
-detector with a longer look-ahead over the whole recording) and hands the ejections it found to
-:meth:`StreamingSegmenter.push` with the frames; the windows are cut by the same code. Frames lost on the way (source gaps, frames the service dropped) become NaN
+frames after its ejection. Offline feeds the same detector with a longer look-ahead, or hands the ejections
+the printer's file or a known rate placed to :meth:`StreamingSegmenter.push` with the frames; the windows are cut
+by the same code. Frames lost on the way (source gaps, frames the service dropped) become NaN
 records, which the fit skips; a window that outgrows ``max_frames`` or a gap that long is cut there
 (its end is then not an ejection), so memory stays bounded.
 """

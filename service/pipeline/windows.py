@@ -113,17 +113,24 @@ def unfitted_result(job: WindowJob, reason: str, status: Status = "failed") -> W
 
 #: Seconds to wait for a Dask scheduler to answer.
 CONNECT_TIMEOUT_S = 10.0
+#: Window jobs per task: sent one a task, each window's hand-off (pickling, the pipe both ways, a future) cost the
+#: parent and the worker a good part of its fit (docs/benchmarks.md); a few a task keep the workers' last tasks even.
+CHUNK = 8
 
 
 class JobRunner:
     """Runs window jobs as independent tasks: in a local process pool of ``workers`` (default: one per core), or on
     the Dask cluster whose scheduler listens at ``scheduler`` (``tcp://host:8786``; the ``scale`` extra).
 
-    Started before the frames are read, so that its workers load the compiled fit while inference runs."""
+    Started before the frames are read, so that its workers load the compiled fit while inference runs; jobs
+    :meth:`send` as windows close start :data:`CHUNK` at a time, so that fits run beside the frames' inference."""
 
     def __init__(self, settings: FitSettings, scheduler: str | None = None, workers: int | None = None) -> None:
         self.settings, self.scheduler = settings, scheduler
         self._client = self._pool = None
+        self._waiting: list[WindowJob] = []  # sent, not yet started: fewer than a chunk
+        self._started: list[tuple[int, Future]] = []  # (jobs, future of their results) per task
+        self._fps = math.nan  # of the jobs queued
         if scheduler is not None:
             self._client = _dask_client(scheduler)
         else:
@@ -141,21 +148,35 @@ class JobRunner:
             for _ in range(count):  # the pool starts its processes as work comes: start them all now
                 self._pool.submit(int)
 
-    def submit(self, job: WindowJob, fps: float) -> Future:
-        """Start ``job``'s fit; the future's result is the window's (a failed one, saying why, if the fit raised)."""
+    def send(self, jobs: list[WindowJob], fps: float) -> None:
+        """Queue ``jobs``' fits: they start as one task per :data:`CHUNK` jobs queued (see :meth:`results`)."""
+        self._waiting += jobs
+        while len(self._waiting) >= CHUNK:
+            self._start(self._waiting[:CHUNK], fps)
+            del self._waiting[:CHUNK]
+        self._fps = fps
+
+    def results(self, progress: bool = False) -> list[WindowResult]:
+        """Each job's result, in the order sent (a failed one, saying why, where its fit raised), once the jobs still
+        queued have started too; with a progress bar over windows."""
+        if self._waiting:
+            self._start(self._waiting, self._fps)
+            self._waiting = []
+        started, self._started = self._started, []
+        return gather(started, progress)
+
+    def _start(self, jobs: list[WindowJob], fps: float) -> None:
         if self._client is not None:
-            return self._client.submit(_fit_or_fail, job, fps, self.settings, pure=False)
-        return self._pool.submit(_fit_or_fail, job, fps, self.settings)
+            future = self._client.submit(_fit_all, jobs, fps, self.settings, pure=False)
+        else:
+            future = self._pool.submit(_fit_all, jobs, fps, self.settings)
+        self._started.append((len(jobs), future))
 
     def call(self, task: Callable[..., Any], *args: Any) -> Future:
         """Start any other window-level ``task(*args)`` (a picklable function of self-contained arguments)."""
         if self._client is not None:
             return self._client.submit(task, *args, pure=False)
         return self._pool.submit(task, *args)
-
-    def run(self, jobs: list[WindowJob], fps: float, progress: bool = False) -> list[WindowResult]:
-        """Each job's result, in the jobs' order."""
-        return gather([self.submit(job, fps) for job in jobs], progress)
 
     def close(self) -> None:
         if self._client is not None:
@@ -170,19 +191,29 @@ class JobRunner:
         self.close()
 
 
-def gather(futures: list[Future], progress: bool = False) -> list[WindowResult]:
-    """The futures' results in their order, with a progress bar over windows."""
+def gather(started: list[tuple[int, Future]], progress: bool = False) -> list[WindowResult]:
+    """The results of tasks (their number of jobs, the future of their results) in order, with a progress bar over
+    windows."""
     from tqdm import tqdm
 
-    return [future.result() for future in tqdm(futures, desc="fit", unit="window", disable=not progress)]
+    results: list[WindowResult] = []
+    with tqdm(total=sum(n for n, _ in started), desc="fit", unit="window", disable=not progress) as bar:
+        for n, future in started:
+            results += future.result()
+            bar.update(n)
+    return results
 
 
-def _fit_or_fail(job: WindowJob, fps: float, settings: FitSettings) -> WindowResult:
-    """:func:`fit_job`, or the failed result naming what it raised (one window's fit never stops an analysis)."""
-    try:
-        return fit_job(job, fps, settings)
-    except Exception as exc:
-        return unfitted_result(job, f"the fit raised {type(exc).__name__}: {exc}")
+def _fit_all(jobs: list[WindowJob], fps: float, settings: FitSettings) -> list[WindowResult]:
+    """Each job's :func:`fit_job`, or the failed result naming what it raised (one window's fit never stops an
+    analysis)."""
+    results = []
+    for job in jobs:
+        try:
+            results.append(fit_job(job, fps, settings))
+        except Exception as exc:
+            results.append(unfitted_result(job, f"the fit raised {type(exc).__name__}: {exc}"))
+    return results
 
 
 def _warm() -> None:

@@ -11,8 +11,9 @@ from pathlib import Path
 
 from service.errors import MeniscopeError
 
-#: Bytes per read: large enough that per-call overheads vanish, small enough for the cache.
-BLOCK = 1 << 22
+#: Bytes per read: large enough that per-call overheads vanish, small enough to stay in the core's cache between the
+#: read and the hash (4 MiB reads cost the hashing thread a sixth more CPU: docs/benchmarks.md).
+BLOCK = 1 << 18
 
 
 def blake3_file(path: Path) -> str:

@@ -1,0 +1,59 @@
+"""The offline runner of window fits: jobs sent as windows close, several a task, come back in the order sent, each
+as the window fit alone makes it, and a fit that raises fails its own window only."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from service.analysis.results import FitSettings
+from service.analysis.segment import Window
+from service.physics import damped_mode
+from service.pipeline.windows import CHUNK, JobRunner, WindowJob, fit_job
+
+FPS = 19000.0
+
+
+def job(index: int, frames: int = 190, brightness: int | None = None) -> WindowJob:
+    """A window of one damped mode (its frequency set by ``index``) with the frames' brightness oscillating with it;
+    ``brightness``: that many brightness values instead (a length the fit refuses)."""
+    t = np.arange(frames) / FPS
+    series = damped_mode(t, 0.01, 300.0, 1200.0 + 10.0 * index, 0.3)
+    light = 1000.0 + 2e4 * damped_mode(np.arange(brightness or frames) / FPS, 0.01, 300.0, 1200.0 + 10.0 * index, 0.3)
+    start = 200 * index
+    return WindowJob(Window(index, start, start + frames, True, True), series, light, highlight=0.5)
+
+
+@pytest.fixture(scope="module")
+def runner() -> JobRunner:
+    with JobRunner(FitSettings(), workers=2) as r:
+        yield r
+
+
+@settings(max_examples=5, deadline=None)
+@given(sends=st.lists(st.integers(0, 2 * CHUNK + 1), min_size=1, max_size=4))
+def test_results_come_back_in_the_order_sent_whatever_the_chunks(runner: JobRunner, sends: list[int]) -> None:
+    jobs = [job(i) for i in range(sum(sends))]
+    sent = 0
+    for count in sends:  # windows closing a few at a time, as a pass over the frames sends them
+        runner.send(jobs[sent : sent + count], FPS)
+        sent += count
+    results = runner.results()
+    assert [r.index for r in results] == [j.window.index for j in jobs]
+    assert runner.results() == []  # each result is handed back once
+
+
+def test_a_window_fitted_by_the_runner_is_the_window_fitted_alone(runner: JobRunner) -> None:
+    jobs = [job(i) for i in range(CHUNK + 3)]
+    runner.send(jobs, FPS)
+    assert runner.results() == [fit_job(j, FPS, FitSettings()) for j in jobs]
+
+
+def test_a_fit_that_raises_fails_its_own_window_and_no_other(runner: JobRunner) -> None:
+    jobs = [job(0), job(1, brightness=50), job(2)]
+    runner.send(jobs, FPS)
+    first, broken, last = runner.results()
+    assert broken.status == "failed" and "the fit raised ValueError" in (broken.reason or "")
+    assert first.status == "ok" and last.status == "ok"
