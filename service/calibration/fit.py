@@ -339,8 +339,9 @@ def calibrate(
     base = with_spheres(P.write(guess, P.read(guess)), np.zeros((0, 4)))
     scene, corner, score = locate(synth, base, footage)
     first, finest = schedule[0], schedule[-1]
-    bar = tqdm(
-        total=2 * len(start_alphas) + 2 + carry * (len(schedule) - 1),
+    profiled = PROFILED if profiled is None else profiled
+    bar = tqdm(  # each start twice (coarse fit, finest score), the second ROI look, the finer stages, the profiles
+        total=2 * (len(start_alphas) + 1) + 1 + carry * (len(schedule) - 1) + len(profiled),
         desc="calibrate",
         unit="stage",
         disable=not progress,
@@ -398,7 +399,6 @@ def calibrate(
         if best is None or res.cost < best[0]:
             best = (res.cost, scene, motion, _uncertainty(problem, x, res))
     _, scene, motion, sigma = best
-    bar.close()
     settled, sub, corr = settle_roi(synth, scene, footage, corner)
     if corr > 0:
         corner, score = sub, corr
@@ -406,10 +406,11 @@ def calibrate(
             scene = settled
             motion = motion_only(synth, scene, crop(footage.frames, scene), finest.sigmas)
     lab, last = crop(footage.frames, scene), finest.sigmas
-    profiles = {
-        name: profile(synth, scene, lab, motion, last, name, offsets)
-        for name, offsets in (PROFILED if profiled is None else profiled).items()
-    }
+    profiles = {}
+    for name, offsets in profiled.items():
+        profiles[name] = profile(synth, scene, lab, motion, last, name, offsets)
+        bar.update()
+    bar.close()
     lab_stack = crop(footage.stack, scene)
     moving = _moving(synth, scene)
     noise = fit_noise(lab_stack, ~moving, scene.sensor.offset, footage.full_scale)
