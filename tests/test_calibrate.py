@@ -68,6 +68,7 @@ def test_a_known_mismatch_is_recovered(lab: Path) -> None:
     # the truth lies in the interval the report gives (on 40 px the frames tell the azimuth to a few degrees)
     assert azimuth.interval[0] <= azimuth.best <= azimuth.interval[1]
     assert azimuth.interval[0] <= 185.0 <= azimuth.interval[1]
+    assert azimuth.bracket[0] <= azimuth.interval[0] <= azimuth.interval[1] <= azimuth.bracket[1]
     assert found.camera.roi == (5, 3)
     assert found.light.azimuth_deg == pytest.approx(185.0, abs=1.5)
     assert found.camera.exposure == pytest.approx(1.5, rel=0.15)

@@ -74,14 +74,6 @@ UNIDENTIFIABLE: dict[str, str] = {
 }
 
 
-#: Fitted, but what the video says about them is weak whatever their statistical sigma: reported as not identified.
-WEAK: dict[str, str] = {
-    "light.angle_deg": "a near-mirror's highlight is the sun's image through the curved surface, its size the sun's "
-    "angle over the curvature, and the curvature is each frame's free motion: the fit trades "
-    "one for the other (on Blender recordings -63 % to +25 % of the truth)",
-}
-
-
 def read(scene: Scene, params: tuple[Parameter, ...] = PARAMETERS) -> np.ndarray:
     """The fitted coordinates of ``params`` in ``scene`` (a scene without a sensor block reads an ideal one)."""
     data = _with_sensor(scene.as_dict())

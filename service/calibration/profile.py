@@ -18,13 +18,14 @@ from service.calibration.fit import Problem, refine_motion
 from service.calibration.synthesis import Synthesis
 from service.scene import Scene
 
-#: Offsets from the calibrated value, in the fitted coordinate (log10 for the angle: x0.5 to x2; the squared
-#: width for the blur: 0.7 px becomes 0 to 1.0 px), profiled.
+#: Offsets from the calibrated value, in the fitted coordinate, profiled: the inner pair just inside the precision
+#: the report needs (a bracket between them is what can be claimed: x0.83 to x1.2 for the angle, +-0.75 deg, about
+#: +-0.1 px of blur at 0.7 px as its squared width), the outer pair to see how far the cost stays flat.
 PROFILED: dict[str, tuple[float, ...]] = {
-    "light.angle_deg": (-0.3, -0.15, 0.15, 0.3),
-    "light.azimuth_deg": (-2.0, -1.0, 1.0, 2.0),
-    "light.elevation_deg": (-2.0, -1.0, 1.0, 2.0),
-    "sensor.blur_sigma_px": (-0.5, -0.25, 0.25, 0.5),
+    "light.angle_deg": (-0.3, -0.08, 0.08, 0.3),
+    "light.azimuth_deg": (-2.0, -0.75, 0.75, 2.0),
+    "light.elevation_deg": (-2.0, -0.75, 0.75, 2.0),
+    "sensor.blur_sigma_px": (-0.5, -0.15, 0.15, 0.5),
 }
 #: Standard errors (over frames) of the summed cost difference that tell a value apart from the best.
 Z = 2.0
@@ -32,15 +33,17 @@ Z = 2.0
 
 @dataclass(frozen=True)
 class Profile:
-    """Cost along one parameter: ``values`` (file units, ascending), each frame's cost there (V, K), the best value
-    and the interval of values not told apart from it; ``open_low``/``open_high``: the interval reaches the profile's
-    end (the parameter may lie further out)."""
+    """Cost along one parameter: ``values`` (file units, ascending), each frame's cost there (V, K), the best value,
+    the interval of profiled values not told apart from it and its ``bracket``: the nearest values told apart on
+    either side (the interval's true ends lie between, so the bracket is what the profile's spacing can claim);
+    ``open_low``/``open_high``: the interval reaches the profile's end (the parameter may lie further out)."""
 
     name: str
     values: np.ndarray
     frame_costs: np.ndarray
     best: float
     interval: tuple[float, float]
+    bracket: tuple[float, float]
     open_low: bool
     open_high: bool
 
@@ -51,6 +54,7 @@ class Profile:
             "cost": [float(c) for c in self.frame_costs.sum(axis=1)],
             "best": float(self.best),
             "interval": [float(v) for v in self.interval],
+            "bracket": [float(v) for v in self.bracket],
             "open_low": self.open_low,
             "open_high": self.open_high,
         }
@@ -98,6 +102,7 @@ def profile(
         frame_costs=costs,
         best=float(values[np.argmin(costs.sum(axis=1))]),
         interval=(float(values[kept.min()]), float(values[kept.max()])),
+        bracket=(float(values[max(kept.min() - 1, 0)]), float(values[min(kept.max() + 1, len(values) - 1)])),
         open_low=bool(kept.min() == 0 and coords[0] > lo[index]),
         open_high=bool(kept.max() == len(coords) - 1 and coords[-1] < hi[index]),
     )

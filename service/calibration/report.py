@@ -57,9 +57,9 @@ def document(cal: Calibration, footage: Footage) -> dict[str, Any]:
         allowed = tol * abs(value) if kind == "rel" else tol
         prof = cal.profiles.get(p.name)
         pinned = prof is None or (
-            not (prof.open_low or prof.open_high) and (prof.interval[1] - prof.interval[0]) / 2 <= allowed
+            not (prof.open_low or prof.open_high) and (prof.bracket[1] - prof.bracket[0]) / 2 <= allowed
         )
-        identified = math.isfinite(sigma) and sigma <= allowed and pinned and p.name not in P.WEAK
+        identified = math.isfinite(sigma) and sigma <= allowed and pinned
         rows.append(
             {
                 "name": p.name,
@@ -69,7 +69,6 @@ def document(cal: Calibration, footage: Footage) -> dict[str, Any]:
                 "identified": bool(identified),
                 "precision_needed": tol,
                 "precision_kind": kind,
-                "note": P.WEAK.get(p.name),
                 "profile": None if prof is None else prof.as_dict(),
             }
         )
@@ -111,9 +110,10 @@ def document(cal: Calibration, footage: Footage) -> dict[str, Any]:
         "versus_truth": None if truth is None else score(cal.scene, truth),
         "uncertainty_note": "1 sigma from the final stage's Gauss-Newton covariance with the motion marginalised; "
         "blurred pixels are correlated, so read these as lower bounds. A profiled parameter's 'interval' is the "
-        "range of values whose finest-level cost (each frame's motion refitted, the rest of the scene held) the "
-        "frames cannot tell from the best at 2 standard errors; 'open' ends may reach further; it counts as "
-        "identified only when that half-interval is within the precision needed",
+        "range of profiled values whose finest-level cost (each frame's motion refitted, the rest of the scene held) "
+        "the frames cannot tell from the best at 2 standard errors, its 'bracket' the nearest values told apart "
+        "either side; 'open' ends may reach further; it counts as identified only when neither end is open and "
+        "the bracket's half-width is within the precision needed",
     }
 
 
