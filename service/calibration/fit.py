@@ -14,6 +14,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy.optimize import least_squares
@@ -29,6 +30,9 @@ from service.calibration.synthesis import Synthesis, pyramid
 from service.errors import MeniscopeError
 from service.physics import CoefficientRanges
 from service.scene import Scene
+
+if TYPE_CHECKING:
+    from service.calibration.profile import Profile
 
 #: Bounds of the per-frame coefficients: the training ranges widened to hold an ejection's bulge.
 MOTION_LOW = np.array([-0.08, -0.4, -0.06, -0.03])
@@ -53,6 +57,8 @@ class Stage:
 SCHEDULE = (Stage((6.0, 3.0), 1, 10), Stage((3.0, 1.5), 1, 10), Stage((1.5, 0.7), 2, 8))
 #: Fluid roughness (GGX alpha) of the extra starts: a near-mirror and a rough metal.
 START_ALPHAS = (0.004, 0.1)
+#: Starts carried through the finer stages, best first by their finest-level cost after the coarse stage.
+CARRY = 1
 
 
 @dataclass
@@ -72,6 +78,7 @@ class Calibration:
     seconds: float
     builds: int
     starts: list[dict] = field(default_factory=list)
+    profiles: dict[str, Profile] = field(default_factory=dict)  # the finest level's cost along weak parameters
 
 
 #: Columns of (d, p, a, b) tied across a window's frames by default: d and p (see :class:`Motion`).
@@ -212,32 +219,35 @@ def motion_only(
     least squares (scene fixed, so no renderer is built), the best kept per frame. Highlights make the motion
     landscape rugged; several starts per frame are cheap here and spare the joint fit a bad start."""
     problem = Problem(synth, scene, lab, sigmas)  # untied: each frame its own motion
-    k, q = problem.target.shape
-    mot = problem.motion
-    sparsity = mot.sparsity(q, 0)
-    fixed = P.read(scene)
     best, best_cost = None, None
     for start in Library(synth, scene, sigmas, size=1500).nearest(lab, starts):
-        x0 = np.clip(mot.pack(start), mot.low, mot.high)
-        fun = lambda u, x0=x0: problem.residuals(np.concatenate([fixed, x0 + u * mot.scale]))
-        res = least_squares(
-            fun,
-            np.zeros_like(x0),
-            bounds=((mot.low - x0) / mot.scale, (mot.high - x0) / mot.scale),
-            jac_sparsity=sparsity,
-            diff_step=DIFF_STEP,
-            max_nfev=max_evaluations,
-            method="trf",
-            tr_solver="lsmr",
-        )
-        motion = mot.expand(x0 + res.x * mot.scale)
-        cost = (res.fun.reshape(k, q) ** 2).sum(axis=1)
+        motion, cost = refine_motion(problem, start, max_evaluations)
         if best is None:
             best, best_cost = motion, cost
         else:
             better = cost < best_cost
             best[better], best_cost[better] = motion[better], cost[better]
     return best
+
+
+def refine_motion(problem: Problem, start: np.ndarray, max_evaluations: int = 15) -> tuple[np.ndarray, np.ndarray]:
+    """Each frame's motion (K, 4) refined by least squares from ``start`` (K, 4) with ``problem``'s base scene held
+    (no renderer is built), and each frame's squared residual (K,) there."""
+    k, q = problem.target.shape
+    mot = problem.motion
+    fixed = problem.x0
+    x0 = np.clip(mot.pack(start), mot.low, mot.high)
+    res = least_squares(
+        lambda u: problem.residuals(np.concatenate([fixed, x0 + u * mot.scale])),
+        np.zeros_like(x0),
+        bounds=((mot.low - x0) / mot.scale, (mot.high - x0) / mot.scale),
+        jac_sparsity=mot.sparsity(q, 0),
+        diff_step=DIFF_STEP,
+        max_nfev=max_evaluations,
+        method="trf",
+        tr_solver="lsmr",
+    )
+    return mot.expand(x0 + res.x * mot.scale), (res.fun.reshape(k, q) ** 2).sum(axis=1)
 
 
 def library_motion(synth: Synthesis, scene: Scene, lab: np.ndarray, sigmas: tuple[float, ...]) -> np.ndarray:
@@ -313,8 +323,14 @@ def calibrate(
     schedule: tuple[Stage, ...] = SCHEDULE,
     start_alphas: tuple[float, ...] = START_ALPHAS,
     progress: bool = True,
+    carry: int = CARRY,
+    profiled: dict[str, tuple[float, ...]] | None = None,
 ) -> Calibration:
-    """Fit ``guess`` to ``footage``: ROI, scene parameters, per-frame motion, noise, artifact spheres."""
+    """Fit ``guess`` to ``footage``: ROI, scene parameters, per-frame motion, noise, artifact spheres. Every start
+    is fitted on the coarse stage and scored on the finest level; the best ``carry`` go through the finer stages.
+    ``profiled``: parameters whose cost is profiled at the end, with their offsets (default :data:`.profile.PROFILED`)."""
+    from service.calibration.profile import PROFILED, profile  # it builds on this module's Problem
+
     began = time.perf_counter()
     synth = Synthesis(supersample=schedule[0].supersample)
     # an explicit (ideal) sensor block to fit, and no artifact spheres: the guess's are not where the lab's are
@@ -322,51 +338,79 @@ def calibrate(
     # at the end from the static image
     base = with_spheres(P.write(guess, P.read(guess)), np.zeros((0, 4)))
     scene, corner, score = locate(synth, base, footage)
-    first = schedule[0]
-    bar = tqdm(total=len(start_alphas) + 1 + len(schedule), desc="calibrate", unit="stage", disable=not progress)
+    first, finest = schedule[0], schedule[-1]
+    profiled = PROFILED if profiled is None else profiled
+    bar = tqdm(  # each start twice (coarse fit, finest score), the second ROI look, the finer stages, the profiles
+        total=2 * (len(start_alphas) + 1) + 1 + carry * (len(schedule) - 1) + len(profiled),
+        desc="calibrate",
+        unit="stage",
+        disable=not progress,
+    )
     # several starts on the coarsest stage: the guess's roughness and the extra ones
-    starts, best = [], None
+    candidates = []
     for alpha in (None, *start_alphas):
         start = scene if alpha is None else P.write(scene, _set(P.read(scene), "fluid.roughness", math.log10(alpha)))
         lab = crop(footage.frames, start)
         motion = motion_only(synth, start, lab, first.sigmas)
         problem = Problem(synth, start, lab, first.sigmas, footage.windows)
         x, res = problem.solve(motion, first.max_evaluations)
-        starts.append({"fluid.roughness": start.fluid.roughness, "cost": float(res.cost)})
-        if best is None or res.cost < best[0]:
-            best = (res.cost, problem.unpack(x))
+        candidates.append((*problem.unpack(x), {"fluid.roughness": start.fluid.roughness, "cost": float(res.cost)}))
         bar.update()
-    scene, motion = best[1]
+    # the coarse blur cannot tell a near-mirror from a rough metal (on Blender's near-mirror the three starts end
+    # within 2.4 % of each other): each start's scene is scored on the finest level, its motion refitted there
+    synth.quality["supersample"] = finest.supersample
+    for cand in candidates:
+        cand_scene, lab = cand[0], crop(footage.frames, cand[0])
+        fine = Problem(synth, cand_scene, lab, finest.sigmas)
+        cand[2]["fine_cost"] = float(
+            0.5 * fine.frame_costs(cand_scene, motion_only(synth, cand_scene, lab, finest.sigmas)).sum()
+        )
+        bar.update()
+    starts = [c[2] for c in candidates]
+    ranked = sorted(candidates, key=lambda c: c[2]["fine_cost"])[:carry]
+    synth.quality["supersample"] = first.supersample
     residual_before = rms_finest(
         synth,
         base,
-        library_motion(synth, scene, crop(footage.frames, scene), first.sigmas),
-        crop(footage.frames, scene),
+        library_motion(synth, ranked[0][0], crop(footage.frames, ranked[0][0]), first.sigmas),
+        crop(footage.frames, ranked[0][0]),
     )
-    again, corner_again, score_again = locate(synth, scene, footage)  # with the scene as fitted so far
+    again, corner_again, score_again = locate(synth, ranked[0][0], footage)  # with the scene as fitted so far
     if score_again > score:  # the better likeness decides: a fit on a wrong crop can mislead the second look
-        scene, corner, score = again, corner_again, score_again
+        corner, score = corner_again, score_again
     bar.update()
-    sigma: dict[str, float] = {}
-    for stage in schedule[1:]:
-        synth.quality["supersample"] = stage.supersample
-        lab = crop(footage.frames, scene)
-        problem = Problem(synth, scene, lab, stage.sigmas, footage.windows)
-        fresh = motion_only(synth, scene, lab, stage.sigmas)
-        keep = problem.frame_costs(scene, motion) <= problem.frame_costs(scene, fresh)
-        motion = np.where(keep[:, None], motion, fresh)
-        x, res = problem.solve(motion, stage.max_evaluations)
-        scene, motion = problem.unpack(x)
-        sigma = _uncertainty(problem, x, res)
-        bar.update()
-    bar.close()
+    # the best `carry` starts each through the finer stages (alpha and the light's angle trade there), the
+    # lowest finest-level cost wins
+    best = None
+    for cand_scene, motion, info in ranked:
+        scene = _with_roi(cand_scene, corner)
+        for stage in schedule[1:]:
+            synth.quality["supersample"] = stage.supersample
+            lab = crop(footage.frames, scene)
+            problem = Problem(synth, scene, lab, stage.sigmas, footage.windows)
+            fresh = motion_only(synth, scene, lab, stage.sigmas)
+            keep = problem.frame_costs(scene, motion) <= problem.frame_costs(scene, fresh)
+            motion = np.where(keep[:, None], motion, fresh)
+            x, res = problem.solve(motion, stage.max_evaluations)
+            scene, motion = problem.unpack(x)
+            bar.update()
+        info["final_cost"] = float(res.cost)
+        info["final_roughness"] = scene.fluid.roughness
+        if best is None or res.cost < best[0]:
+            best = (res.cost, scene, motion, _uncertainty(problem, x, res))
+    _, scene, motion, sigma = best
     settled, sub, corr = settle_roi(synth, scene, footage, corner)
     if corr > 0:
         corner, score = sub, corr
         if settled.camera.roi != scene.camera.roi:  # the frames' motion again, on the crop where the nozzle is
-            scene, lab = settled, crop(footage.frames, settled)
-            last = schedule[-1].sigmas
-            motion = motion_only(synth, scene, lab, last)
+            scene = settled
+            motion = motion_only(synth, scene, crop(footage.frames, scene), finest.sigmas)
+    lab, last = crop(footage.frames, scene), finest.sigmas
+    profiles = {}
+    for name, offsets in profiled.items():
+        profiles[name] = profile(synth, scene, lab, motion, last, name, offsets)
+        bar.update()
+    bar.close()
     lab_stack = crop(footage.stack, scene)
     moving = _moving(synth, scene)
     noise = fit_noise(lab_stack, ~moving, scene.sensor.offset, footage.full_scale)
@@ -388,6 +432,7 @@ def calibrate(
         seconds=time.perf_counter() - began,
         builds=synth.builds,
         starts=starts,
+        profiles=profiles,
     )
 
 
@@ -413,8 +458,9 @@ def _uncertainty(problem: Problem, x: np.ndarray, res: object) -> dict[str, floa
     s2 = 2.0 * res.cost / max(m - n, 1)
     cov = np.linalg.pinv(jac.T @ jac) * s2
     spread = np.sqrt(np.maximum(np.diag(cov)[: problem.n_scene], 0.0)) * SCENE_SCALE  # fitted coordinates
+    # the file's units: half the span of one sigma either way (a log or squared coordinate is not linear)
     return {
-        p.name: float(p.from_fit(xi) * math.log(10) * si) if p.log else float(si)
+        p.name: abs(p.from_fit(xi + si) - p.from_fit(xi - si)) / 2
         for p, xi, si in zip(P.PARAMETERS, x[: problem.n_scene], spread)
     }
 

@@ -17,13 +17,16 @@ from service.scene import Scene
 
 @dataclass(frozen=True)
 class Parameter:
-    """One fitted scene value: ``path`` into the scene's JSON, bounds in the file's units, log10 fitting or not;
-    ``span``: the half-width around the guess searched for unbounded angles (degrees), else None."""
+    """One fitted scene value: ``path`` into the scene's JSON, bounds in the file's units, fitted as its log10, its
+    square or itself; ``span``: the half-width around the guess searched for unbounded angles (degrees), else None."""
 
     path: tuple[str, str]
     low: float
     high: float
     log: bool = False
+    #: fitted as its square: a blur's width enters the image as its variance, whose slope at 0 is not 0 (the
+    #: width's is, so a fit that reached 0 blur stayed there: the PSF collapsed on every Blender recording)
+    squared: bool = False
     span: float | None = None
     #: needs a new renderer when it changes (the sensor's values do not)
     rebuild: bool = True
@@ -37,13 +40,13 @@ class Parameter:
         lo, hi = self.low, self.high
         if self.span is not None:
             lo, hi = max(lo, guess - self.span), min(hi, guess + self.span)
-        return (math.log10(lo), math.log10(hi)) if self.log else (lo, hi)
+        return (self.to_fit(lo), self.to_fit(hi))
 
     def to_fit(self, value: float) -> float:
-        return math.log10(value) if self.log else value
+        return math.log10(value) if self.log else value * value if self.squared else value
 
     def from_fit(self, x: float) -> float:
-        return 10.0**x if self.log else x
+        return 10.0**x if self.log else math.sqrt(max(x, 0.0)) if self.squared else x
 
 
 PARAMETERS: tuple[Parameter, ...] = (
@@ -54,7 +57,7 @@ PARAMETERS: tuple[Parameter, ...] = (
     Parameter(("light", "angle_deg"), 0.2, 40.0, log=True),
     Parameter(("camera", "exposure"), 1e-3, 1e3, log=True),
     Parameter(("camera", "elevation_deg"), -89.0, 89.0, span=5.0),
-    Parameter(("sensor", "blur_sigma_px"), 0.0, 3.0, rebuild=False),
+    Parameter(("sensor", "blur_sigma_px"), 0.0, 3.0, squared=True, rebuild=False),
     Parameter(("sensor", "offset"), -0.2, 0.5, rebuild=False),
 )
 
@@ -68,14 +71,6 @@ UNIDENTIFIABLE: dict[str, str] = {
     "camera.distance_mm": "with fov_deg only their ratio (the scale in px/mm) is seen; kept",
     "artifacts.material.roughness": "a defect is 1-3 px across: its glint's spread over the sphere is below "
     "the blur; kept",
-}
-
-
-#: Fitted, but what the video says about them is weak whatever their statistical sigma: reported as not identified.
-WEAK: dict[str, str] = {
-    "light.angle_deg": "a near-mirror's highlight is the sun's image through the curved surface, its size the sun's "
-    "angle over the curvature, and the curvature is each frame's free motion: the fit trades "
-    "one for the other (on Blender recordings -63 % to +25 % of the truth)",
 }
 
 

@@ -54,9 +54,12 @@ def document(cal: Calibration, footage: Footage) -> dict[str, Any]:
     for p in P.PARAMETERS:
         value, sigma = _value(after, p.name), cal.sigma.get(p.name, math.inf)
         tol, kind = PRECISION[p.name]
-        identified = (
-            math.isfinite(sigma) and sigma <= (tol * abs(value) if kind == "rel" else tol) and p.name not in P.WEAK
+        allowed = tol * abs(value) if kind == "rel" else tol
+        prof = cal.profiles.get(p.name)
+        pinned = prof is None or (
+            not (prof.open_low or prof.open_high) and (prof.bracket[1] - prof.bracket[0]) / 2 <= allowed
         )
+        identified = math.isfinite(sigma) and sigma <= allowed and pinned
         rows.append(
             {
                 "name": p.name,
@@ -66,7 +69,7 @@ def document(cal: Calibration, footage: Footage) -> dict[str, Any]:
                 "identified": bool(identified),
                 "precision_needed": tol,
                 "precision_kind": kind,
-                "note": P.WEAK.get(p.name),
+                "profile": None if prof is None else prof.as_dict(),
             }
         )
     top = footage.full_scale
@@ -106,7 +109,11 @@ def document(cal: Calibration, footage: Footage) -> dict[str, Any]:
         "renderer_builds": cal.builds,
         "versus_truth": None if truth is None else score(cal.scene, truth),
         "uncertainty_note": "1 sigma from the final stage's Gauss-Newton covariance with the motion marginalised; "
-        "blurred pixels are correlated, so read these as lower bounds",
+        "blurred pixels are correlated, so read these as lower bounds. A profiled parameter's 'interval' is the "
+        "range of profiled values whose finest-level cost (each frame's motion refitted, the rest of the scene held) "
+        "the frames cannot tell from the best at 2 standard errors, its 'bracket' the nearest values told apart "
+        "either side; 'open' ends may reach further; it counts as identified only when neither end is open and "
+        "the bracket's half-width is within the precision needed",
     }
 
 

@@ -70,7 +70,7 @@ class Synthesis:
         """A renderer of ``scene`` (its sensor block aside), built or reused."""
         data = scene.as_dict()
         data.pop("sensor", None)
-        key = repr(sorted(data.items()))
+        key = repr((sorted(data.items()), sorted(self.quality.items())))  # a new quality needs its own build
         if key not in self._cache:
             self._cache[key] = Renderer(Scene.from_dict(data), threads=None, **self.quality)
             self.builds += 1

@@ -1,0 +1,108 @@
+"""What the video says about a parameter the fit may trade away: the finest level's cost along it, every frame's
+motion refitted at each value, and the range of values the frames cannot tell from the best.
+
+A Gauss-Newton sigma is local and assumes independent pixels; blurred pixels are not, and a near-mirror's
+cost is far from quadratic. The frames are closer to independent samples: at each profiled value every
+frame's cost is compared with its cost at the best value, and a value is told apart only when the summed
+difference exceeds ``Z`` standard errors of that sum over the frames (a paired test).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from service.calibration import parameters as P
+from service.calibration.fit import Problem, refine_motion
+from service.calibration.synthesis import Synthesis
+from service.scene import Scene
+
+#: Offsets from the calibrated value, in the fitted coordinate, profiled: the inner pair just inside the precision
+#: the report needs (a bracket between them is what can be claimed: x0.83 to x1.2 for the angle, +-0.75 deg, about
+#: +-0.1 px of blur at 0.7 px as its squared width), the outer pair to see how far the cost stays flat.
+PROFILED: dict[str, tuple[float, ...]] = {
+    "light.angle_deg": (-0.3, -0.08, 0.08, 0.3),
+    "light.azimuth_deg": (-2.0, -0.75, 0.75, 2.0),
+    "light.elevation_deg": (-2.0, -0.75, 0.75, 2.0),
+    "sensor.blur_sigma_px": (-0.5, -0.15, 0.15, 0.5),
+}
+#: Standard errors (over frames) of the summed cost difference that tell a value apart from the best.
+Z = 2.0
+
+
+@dataclass(frozen=True)
+class Profile:
+    """Cost along one parameter: ``values`` (file units, ascending), each frame's cost there (V, K), the best value,
+    the interval of profiled values not told apart from it and its ``bracket``: the nearest values told apart on
+    either side (the interval's true ends lie between, so the bracket is what the profile's spacing can claim);
+    ``open_low``/``open_high``: the interval reaches the profile's end (the parameter may lie further out)."""
+
+    name: str
+    values: np.ndarray
+    frame_costs: np.ndarray
+    best: float
+    interval: tuple[float, float]
+    bracket: tuple[float, float]
+    open_low: bool
+    open_high: bool
+
+    def as_dict(self) -> dict:
+        """JSON-safe summary for the report."""
+        return {
+            "values": [float(v) for v in self.values],
+            "cost": [float(c) for c in self.frame_costs.sum(axis=1)],
+            "best": float(self.best),
+            "interval": [float(v) for v in self.interval],
+            "bracket": [float(v) for v in self.bracket],
+            "open_low": self.open_low,
+            "open_high": self.open_high,
+        }
+
+
+def indistinct(frame_costs: np.ndarray, z: float = Z) -> np.ndarray:
+    """Which rows of per-value, per-frame costs (V, K) the frames cannot tell from the lowest total: the summed paired
+    difference at most ``z`` standard errors (``sqrt(K)`` times the differences' spread over frames)."""
+    best = int(np.argmin(frame_costs.sum(axis=1)))
+    diff = frame_costs - frame_costs[best]
+    k = frame_costs.shape[1]
+    spread = diff.std(axis=1, ddof=1) if k > 1 else np.zeros(len(diff))
+    return diff.sum(axis=1) <= z * np.sqrt(k) * spread
+
+
+def profile(
+    synth: Synthesis,
+    scene: Scene,
+    lab: np.ndarray,
+    motion: np.ndarray,
+    sigmas: tuple[float, ...],
+    name: str,
+    offsets: tuple[float, ...],
+    max_evaluations: int = 10,
+) -> Profile:
+    """The cost of ``lab`` (K, h, w) on ``sigmas`` along parameter ``name`` at the calibrated value and ``offsets``
+    from it (fitted coordinate, clipped to the bounds), each frame's motion refitted from ``motion`` (K, 4)."""
+    index = [p.name for p in P.PARAMETERS].index(name)
+    param = P.PARAMETERS[index]
+    x = P.read(scene)
+    lo, hi = P.bounds(scene)
+    coords = np.unique(np.clip(x[index] + np.array((0.0, *offsets)), lo[index], hi[index]).round(6))
+    costs = []
+    for c in coords:
+        shifted = x.copy()
+        shifted[index] = c
+        candidate = P.write(scene, shifted)
+        costs.append(refine_motion(Problem(synth, candidate, lab, sigmas), motion, max_evaluations)[1])
+    costs = np.array(costs)
+    values = np.array([param.from_fit(c) for c in coords])
+    kept = np.flatnonzero(indistinct(costs))
+    return Profile(
+        name=name,
+        values=values,
+        frame_costs=costs,
+        best=float(values[np.argmin(costs.sum(axis=1))]),
+        interval=(float(values[kept.min()]), float(values[kept.max()])),
+        bracket=(float(values[max(kept.min() - 1, 0)]), float(values[min(kept.max() + 1, len(values) - 1)])),
+        open_low=bool(kept.min() == 0 and coords[0] > lo[index]),
+        open_high=bool(kept.max() == len(coords) - 1 and coords[-1] < hi[index]),
+    )
