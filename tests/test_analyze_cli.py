@@ -158,4 +158,5 @@ def test_bench_analysis_scores_every_method_against_the_truth(recording: Path, t
     assert done.returncode == 0, done.stderr
     figures = json.loads(out.read_text())["methods"]["direct"]["lab"]
     assert figures["recall"] == figures["precision"] == 1.0 and figures["frames_per_s"] > 0
+    assert 0 <= figures["offset_mm_coverage"] <= 1  # the share of windows whose interval holds the truth
     assert "| direct | lab |" in out.with_suffix(".md").read_text()

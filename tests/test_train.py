@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from service.errors import MeniscopeError
+from service.inverse import window_model as wm
 from service.inverse.manifest import MANIFEST, load_manifest
 from service.inverse.network import NetworkMethod
 from service.recordings import open_recording
@@ -48,6 +49,16 @@ def test_train_exports_both_methods_with_a_manifest_and_plots(trained: tuple[Pat
     for entry in (*manifest.methods.values(), manifest.autoencoder):
         assert entry.parity_max_abs <= PARITY_MM
     assert manifest.autoencoder.file == "autoencoder.onnx" and "autoencoder" not in manifest.methods
+
+
+def test_train_builds_the_window_model_of_its_network_too(trained: tuple[Path, Path, Path], scene: Scene) -> None:
+    """The default method (the network and the window model) comes out of one ``train``: the window model reads
+    this folder's network, and the manifest lists its files."""
+    _, _, models = trained
+    manifest = load_manifest(models, scene)
+    assert {wm.FILE, wm.RECORD} <= set(manifest.files)
+    model = wm.WindowModel.of_folder(models)
+    assert model.intervals is None  # --quick leaves the calibration out: the fit's own intervals stay
 
 
 def test_validate_shows_lab_frames_beside_their_vae_reconstructions(

@@ -66,6 +66,19 @@ def test_two_modes_are_recovered_dominant_first_with_intervals_that_hold_the_tru
     assert 0 < first.damping_ratio < 1 and first.quality_factor == pytest.approx(0.5 / first.damping_ratio)
 
 
+def test_the_fit_s_own_amplitude_and_offset_intervals_hold_the_truth_about_as_often_as_they_say():
+    """On the fit's own terms (white noise, the right model, poles from the series) the 95 % intervals of the
+    amplitude and offset hold the truth in most windows (40 seeds: at least 85 %, allowing for the delta method)."""
+    held = {"amplitude": 0, "offset": 0}
+    for seed in range(40):
+        r = fit_window(series([(0.01, 300.0, 1500.0, 0.3)], offset=0.02, noise=5e-4, seed=seed), FPS)
+        assert r.intervals == "fit" and r.modes
+        lo, hi = r.modes[0].amplitude_ci_mm
+        held["amplitude"] += lo <= 0.01 <= hi
+        held["offset"] += r.offset_ci_mm[0] <= 0.02 <= r.offset_ci_mm[1]
+    assert min(held.values()) >= 34, held
+
+
 def test_the_model_order_is_the_one_the_data_needs():
     assert len(fit_window(series([(0.02, 400.0, 1500.0, 0.3)], noise=2e-4), FPS).modes) == 1
     assert (

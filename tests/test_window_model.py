@@ -13,14 +13,16 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from service import DEFAULT_MODELS
-from service.analysis.results import FitSettings
+from service.analysis.results import FitSettings, ModeEstimate, WindowResult
 from service.analysis.segment import Window
 from service.errors import MeniscopeError
 from service.inverse import window_model as wm
 from service.inverse.manifest import sha256_file
 from service.pipeline.records import FRAME
 from service.pipeline.windows import job_for, window_model_for
+from service.validation.score import QUANTITIES
 from training.window import WindowNet, export
+from training.window_intervals import calibrate
 
 
 def _records(m: int, rng: np.random.Generator) -> np.ndarray:
@@ -111,3 +113,117 @@ def test_the_settings_choose_the_shipped_window_model_for_analyze_and_serve_alik
         pytest.skip(f"no {wm.FILE} in {DEFAULT_MODELS}")
     model = window_model_for(FitSettings(series_model="window"), DEFAULT_MODELS, "network")
     assert model is not None and model.path == DEFAULT_MODELS / wm.FILE
+
+
+def _result(amplitude: float, half: float, offset: float) -> WindowResult:
+    """A one-mode window with the fit's own intervals of +-``half`` (relative) about its estimates."""
+    return WindowResult(
+        index=0,
+        start_frame=0,
+        end_frame=190,
+        status="ok",
+        modes=[
+            ModeEstimate(
+                frequency_hz=1500.0,
+                decay_rate_per_s=300.0,
+                amplitude_mm=amplitude,
+                phase_rad=0.0,
+                frequency_ci_hz=(1500.0 * (1 - half), 1500.0 * (1 + half)),
+                decay_rate_ci_per_s=(300.0 * (1 - half), 300.0 * (1 + half)),
+                amplitude_ci_mm=(amplitude * (1 - half), amplitude * (1 + half)),
+            )
+        ],
+        offset_mm=offset,
+        offset_ci_mm=(offset - half * 1e-3, offset + half * 1e-3),
+        intervals="fit",
+    )
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    amplitude=st.floats(0.0, 0.05),
+    half=st.floats(0.0, 2.0),
+    offset=st.floats(-0.1, 0.1),
+    factor=st.floats(0.0, 1e3),
+    floor=st.floats(0.0, 1.0),
+    log=st.booleans(),
+)
+def test_calibrated_intervals_are_finite_hold_the_estimate_and_keep_amplitudes_non_negative(
+    amplitude: float, half: float, offset: float, factor: float, floor: float, log: bool
+) -> None:
+    intervals = wm.Intervals(
+        dict.fromkeys(wm.QUANTITIES, factor),
+        dict.fromkeys(wm.QUANTITIES, floor),
+        {q: log and q != "offset" for q in wm.QUANTITIES},
+        100,
+        0.95,
+    )
+    out = intervals.apply(_result(amplitude, half, offset))
+    mode = out.modes[0]
+    assert out.intervals == "calibrated"
+    for interval, estimate in (
+        (mode.frequency_ci_hz, mode.frequency_hz),
+        (mode.decay_rate_ci_per_s, mode.decay_rate_per_s),
+        (mode.amplitude_ci_mm, mode.amplitude_mm),
+        (out.offset_ci_mm, out.offset_mm),
+    ):
+        if interval is None:
+            continue
+        lo, hi = interval
+        assert np.isfinite([lo, hi]).all() and lo <= estimate <= hi
+    assert mode.amplitude_ci_mm is not None or (log and amplitude == 0)  # no ratio to a zero estimate
+    if mode.amplitude_ci_mm is not None:
+        assert mode.amplitude_ci_mm[0] >= 0 and mode.decay_rate_ci_per_s[0] >= 0
+    json.loads(out.model_dump_json())  # plain JSON
+
+
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 2**16), spread=st.floats(0.01, 1.0), bias=st.floats(0.0, 0.5))
+def test_conformal_factors_hold_the_truth_in_95_percent_of_the_calibration_windows(
+    seed: int, spread: float, bias: float
+) -> None:
+    """Whatever the fit's errors (its own half-widths too narrow, a bias it cannot see), the calibrated intervals
+    hold the truth in at least 95 % of the windows they were calibrated on, and in about as many new ones."""
+    rng = np.random.default_rng(seed)
+
+    def pairs(n: int) -> dict[str, np.ndarray]:
+        true = rng.uniform(0.5, 2.0, n)
+        est = true * (1 + bias + spread * rng.standard_normal(n))
+        half = np.abs(est) * spread * rng.uniform(0.01, 0.3, n)
+        return {
+            f"{key}_{part}": value
+            for key in QUANTITIES
+            for part, value in (("est", est), ("true", true), ("lo", est - half), ("hi", est + half))
+        }
+
+    def coverage(p: dict[str, np.ndarray], intervals: wm.Intervals) -> float:
+        est, true, lo, hi = (p[f"amplitude_{part}"] for part in ("est", "true", "lo", "hi"))
+        low, high = intervals.bounds("amplitude", est, np.maximum(hi - est, est - lo))
+        return float(np.mean((low <= true) & (true <= high)))
+
+    calibration = pairs(400)
+    intervals = calibrate(calibration, 0.95)
+    assert intervals.windows == 400
+    assert coverage(calibration, intervals) >= 0.95
+    assert 0.90 <= coverage(pairs(4000), intervals) <= 0.99
+
+
+def test_the_calibration_travels_with_the_job_and_calibrates_the_fit(graph, tmp_path: Path) -> None:
+    _, path = graph
+    for name in (wm.FILE, wm.NETWORK):
+        shutil.copy(path.with_name(name), tmp_path / name)
+    record = json.loads(path.with_name(wm.RECORD).read_text())
+    factors = wm.Intervals(
+        dict.fromkeys(wm.QUANTITIES, 3.0),
+        dict.fromkeys(wm.QUANTITIES, 0.1),
+        dict.fromkeys(wm.QUANTITIES, False),
+        240,
+        0.95,
+    )
+    (tmp_path / wm.RECORD).write_text(json.dumps(record | {"intervals": factors.as_record()}))
+    model = wm.WindowModel.of_folder(tmp_path)
+    assert model.intervals == factors
+    r = _records(190, np.random.default_rng(3))
+    job = job_for(Window(0, 0, 190, True, True), r, 0.25, 6, model=model)
+    assert job.intervals == factors
+    assert wm.WindowModel(path).intervals is None  # a model without a calibration keeps the fit's intervals

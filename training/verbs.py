@@ -15,10 +15,17 @@ import functools
 import os
 from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from service.errors import MeniscopeError
 from service.verbs import add_scene_option
 
+if TYPE_CHECKING:
+    from service.scene import Scene
+
+#: ``train``'s window model: windows per noise preset it is trained on (as many again calibrate its intervals), and
+#: its epochs (docs/window_model.md).
+WINDOW_WINDOWS, WINDOW_EPOCHS = 100, 80
 #: Top-level modules of the train extra -> the extra (the scale extra's Dask is checked where --scheduler is read).
 EXTRA_OF = {"torch": "train", "onnx": "train"}
 
@@ -121,6 +128,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "pooled 3x3; 48 pools 2x2, slower and sees finer highlights); must divide the ROI",
     )
     p.add_argument("--quick", action="store_true", help="a run of seconds for tests; its models are not useful")
+    p.add_argument(
+        "--window-windows",
+        type=int,
+        help="windows per noise preset the window model is trained on (default 100; --quick 2; 0: no window "
+        "model), rendered by our renderer from the scene; as many again calibrate its intervals",
+    )
     p.set_defaults(func=run_train)
 
     p = subparsers.add_parser(
@@ -172,12 +185,33 @@ def run_train(args: argparse.Namespace) -> int:
         config = replace(config, net=replace(config.net, input_px=args.input_px))
     manifest = train_models(scene, args.lab_video, args.out, config, dataset=args.dataset, holdout_video=args.holdout)
     print(f"{args.out}: {', '.join(sorted(manifest.methods))} exported in {manifest.training.seconds:.0f} s")
+    _train_window_model(args, scene)
     for name, by_data in manifest.validation.items():
         for data, s in by_data.items():
             rmse = ", ".join(f"{k} {v:.3g}" for k, v in s.rmse.items())
             r = "n/a" if s.centre_correlation is None else f"{s.centre_correlation:.3f}"
             print(f"  {name} on {data} ({s.frames} frames): RMSE {rmse}; D(0, t) correlation {r}")
     return 0
+
+
+def _train_window_model(args: argparse.Namespace, scene: Scene) -> None:
+    """The window model of the network just trained (:func:`training.window.build`), its windows rendered in a
+    temporary folder: what the default method needs beside the network."""
+    import tempfile
+    import time
+
+    from training.window import build
+
+    windows = args.window_windows if args.window_windows is not None else (2 if args.quick else WINDOW_WINDOWS)
+    if windows < 0:
+        raise MeniscopeError("--window-windows", f"must be zero or positive, got {windows}")
+    if windows == 0:
+        return
+    started = time.perf_counter()
+    epochs, calibration = (2, 0) if args.quick else (WINDOW_EPOCHS, windows)
+    with tempfile.TemporaryDirectory(prefix="meniscope-window-") as scratch:
+        build(args.out, scene, Path(scratch), windows, epochs, args.seed, calibration)
+    print(f"{args.out}: window model trained in {time.perf_counter() - started:.0f} s")
 
 
 @_needs_extras

@@ -61,16 +61,18 @@ TRAINING_RANGES = WindowRanges(A1=(0.0, 0.025), A2=(0.0, 0.012), g1=(100.0, 5000
 TRAINING_NOISE = ("low", "lab", "high")
 
 
-def render_training(folder: Path, scene: Scene, windows: int, seed: int) -> list[Path]:
+def render_training(
+    folder: Path, scene: Scene, windows: int, seed: int, ranges: WindowRanges = TRAINING_RANGES, name: str = "window"
+) -> list[Path]:
     """Recordings of ``windows`` windows each at every :data:`TRAINING_NOISE` preset (12-bit, our renderer, motion
-    from :data:`TRAINING_RANGES`), written to ``folder`` (kept: reused when there) with their truth."""
+    from ``ranges``), written to ``folder`` (kept: reused when there) with their truth."""
     from service.camera_effects import noise_preset
     from service.simulate import simulate, truth_path
 
     folder.mkdir(parents=True, exist_ok=True)
     paths = []
     for k, noise in enumerate(TRAINING_NOISE):
-        path = folder / f"window-{noise}-{seed + k}.cine"
+        path = folder / f"{name}-{noise}-{seed + k}.cine"
         if not truth_path(path).exists():
             simulate(
                 scene,
@@ -79,7 +81,7 @@ def render_training(folder: Path, scene: Scene, windows: int, seed: int) -> list
                 seed=seed + k,
                 effects=noise_preset(noise, 12),
                 noise=noise,
-                ranges=TRAINING_RANGES,
+                ranges=ranges,
             )
         paths.append(path)
     return paths
@@ -228,6 +230,58 @@ def export(net: WindowNet, path: Path) -> None:
     onnx.save(model, str(path))
 
 
+#: Seeds of the calibration windows lie this far above the training windows' (other motions, other noise).
+CALIBRATION_SEEDS = 100
+
+
+def build(
+    models: Path,
+    scene: Scene,
+    data: Path,
+    windows: int,
+    epochs: int,
+    seed: int,
+    calibration: int,
+    recordings: tuple[Path, ...] = (),
+) -> dict:
+    """The window model of ``models``' network: ``windows`` training windows per noise preset rendered into ``data``
+    (with ``recordings``), trained, exported beside the network with its record, and its intervals calibrated on
+    ``calibration`` other windows per preset at the simulator's nominal motion (none: the fit's own intervals stay);
+    the folder's manifest rewritten. Returns the record."""
+    from training.window_intervals import calibrate_folder
+
+    recordings = tuple(recordings) + (tuple(render_training(data, scene, windows, seed)) if windows else ())
+    if not recordings:
+        raise ValueError("no training recordings: render some windows or name recordings")
+    examples = concat([cached_examples(r, scene, models) for r in tqdm(recordings, desc="replay")])
+    order = np.random.default_rng(seed).permutation(len(examples.features))
+    held = order[: max(1, len(order) // 10)]
+    rest = order[len(held) :]
+    net, history = train(examples.select(rest), examples.select(held), epochs, seed)
+    baseline = float((examples.targets[held] ** 2)[examples.scored[held]].mean())
+    print(f"{len(rest)} windows trained on, {len(held)} checked: scored MSE {min(history):.4g} (steady {baseline:.4g})")
+    export(net, models / wm.FILE)
+    record = {
+        "network_sha256": sha256_file(models / wm.NETWORK),
+        "recordings": [str(r) for r in recordings],
+        "windows_trained": int(len(rest)),
+        "windows_checked": int(len(held)),
+        "epochs": epochs,
+        "seed": seed,
+        "check_mse": float(min(history)),
+        "check_mse_steady": baseline,
+    }
+    (models / wm.RECORD).write_text(json.dumps(record, indent=1) + "\n")
+    # the folder's manifest lists every file with its sha256: the window model's two files too
+    write_manifest(models, Manifest.model_validate_json((models / MANIFEST).read_text()))
+    if calibration:
+        held_out = render_training(data, scene, calibration, seed + CALIBRATION_SEEDS, WindowRanges(), "calibrate")
+        intervals = calibrate_folder(models, held_out, scene)
+        record["intervals"] = intervals.as_record()
+        print(f"intervals calibrated on {intervals.windows} windows: factors {intervals.factor}")
+    return record
+
+
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(prog="python -m training.window", description=__doc__.splitlines()[0])
     p.add_argument("recordings", nargs="*", type=Path, help="simulated recordings (with .truth.json) to train on")
@@ -238,37 +292,31 @@ def main(argv: list[str] | None = None) -> None:
         metavar="N",
         help="also render N training windows per noise preset (low, lab, high) into --data first",
     )
-    p.add_argument("--data", type=Path, default=Path("data/window"), help="folder of the rendered training windows")
+    p.add_argument(
+        "--calibrate",
+        type=int,
+        default=80,
+        metavar="N",
+        help="calibrate the intervals on N held-out windows per noise preset rendered into --data (0: not)",
+    )
+    p.add_argument("--data", type=Path, default=Path("data/window"), help="folder of the rendered windows")
     p.add_argument("--models", type=Path, default=DEFAULT_MODELS, help="model folder: its network, and the output")
     p.add_argument("--epochs", type=int, default=300)
     p.add_argument("--seed", type=int, default=0)
     args = p.parse_args(argv)
     torch.set_num_threads(1)
-    scene = Scene.load(DEFAULT_SCENE)
-    recordings = args.recordings + (render_training(args.data, scene, args.render, args.seed) if args.render else [])
-    if not recordings:
+    if not args.recordings and not args.render:
         p.error("no recordings: name some or --render N")
-    data = concat([cached_examples(r, scene, args.models) for r in tqdm(recordings, desc="replay")])
-    order = np.random.default_rng(args.seed).permutation(len(data.features))
-    held = order[: max(1, len(order) // 10)]
-    rest = order[len(held) :]
-    net, history = train(data.select(rest), data.select(held), args.epochs, args.seed)
-    baseline = float((data.targets[held] ** 2)[data.scored[held]].mean())
-    print(f"{len(rest)} windows trained on, {len(held)} checked: scored MSE {min(history):.4g} (steady {baseline:.4g})")
-    export(net, args.models / wm.FILE)
-    record = {
-        "network_sha256": sha256_file(args.models / wm.NETWORK),
-        "recordings": [str(r) for r in recordings],
-        "windows_trained": int(len(rest)),
-        "windows_checked": int(len(held)),
-        "epochs": args.epochs,
-        "seed": args.seed,
-        "check_mse": float(min(history)),
-        "check_mse_steady": baseline,
-    }
-    (args.models / wm.RECORD).write_text(json.dumps(record, indent=1) + "\n")
-    # the folder's manifest lists every file with its sha256: the window model's two files too
-    write_manifest(args.models, Manifest.model_validate_json((args.models / MANIFEST).read_text()))
+    build(
+        args.models,
+        Scene.load(DEFAULT_SCENE),
+        args.data,
+        args.render,
+        args.epochs,
+        args.seed,
+        args.calibrate,
+        tuple(args.recordings),
+    )
     print(f"wrote {args.models / wm.FILE}, {wm.RECORD} and the folder's manifest")
 
 

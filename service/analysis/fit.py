@@ -510,8 +510,11 @@ def _result(
     model, _ = kernels.columns(window.n, fit.params)
     ss_res = float(np.sum((window.y - model) ** 2))
     ss_tot = float(np.sum((window.y - window.y.mean()) ** 2))
+    offset = centre + spread * fit.params[0]
     numbers = dict(
-        offset_mm=centre + spread * fit.params[0],
+        offset_mm=offset,
+        offset_ci_mm=(offset - spread * fit.half_width[0], offset + spread * fit.half_width[0]),
+        intervals="fit",
         drift_mm_per_s=spread * fit.params[1] * fps,
         r2=1.0 - ss_res / ss_tot if ss_tot > 0 else float("nan"),  # nan: all samples left equal (null, reason says)
         noise_mm=spread * robust_sigma(window.y - model),
@@ -526,6 +529,10 @@ def _result(
     hz, per_s = fps / (2 * np.pi), fps
     f, decay, amp = w * hz, g * per_s, spread * np.hypot(a, b)
     f_half, g_half = halves[:, 2] * hz, halves[:, 3] * per_s
+    # the amplitude's by the delta method on hypot(a, b) (a and b taken as independent: the diagonal is what the
+    # fit keeps); at a = b = 0 its gradient is undefined, and the larger of their intervals stands in
+    r, spread_ab = np.hypot(a, b), np.hypot(a * halves[:, 0], b * halves[:, 1])
+    a_half = spread * np.where(r > 0, spread_ab / np.where(r > 0, r, 1.0), np.maximum(halves[:, 0], halves[:, 1]))
     zeta, q = damping_ratio(f, decay), quality_factor(f, decay)
     estimates = [
         dict(
@@ -535,6 +542,7 @@ def _result(
             phase_rad=float(np.arctan2(-b[k], a[k])),
             frequency_ci_hz=(max(f[k] - f_half[k], 0.0), min(f[k] + f_half[k], fps / 2)),
             decay_rate_ci_per_s=(max(decay[k] - g_half[k], 0.0), decay[k] + g_half[k]),
+            amplitude_ci_mm=(max(amp[k] - a_half[k], 0.0), amp[k] + a_half[k]),
             damping_ratio=zeta[k],
             quality_factor=q[k],
         )

@@ -70,15 +70,18 @@ class ModeEstimate(_Frozen):
     phase_rad: Finite
     frequency_ci_hz: Interval | None = None
     decay_rate_ci_per_s: Interval | None = None
+    #: The amplitude's interval at FitSettings.confidence (as the other two: see WindowResult.intervals).
+    amplitude_ci_mm: Interval | None = None
     #: zeta = g / sqrt(g^2 + (2 pi f)^2) of the equivalent damped oscillator.
     damping_ratio: Annotated[float, Field(ge=0, le=1, allow_inf_nan=False)] | None = None
     #: Q = 1 / (2 zeta); null for an undamped mode (Q infinite).
     quality_factor: NonNegative | None = None
 
 
-_MODE_OPTIONAL = ("frequency_ci_hz", "decay_rate_ci_per_s", "damping_ratio", "quality_factor")
+_MODE_OPTIONAL = ("frequency_ci_hz", "decay_rate_ci_per_s", "amplitude_ci_mm", "damping_ratio", "quality_factor")
 _WINDOW_OPTIONAL = (
     "offset_mm",
+    "offset_ci_mm",
     "drift_mm_per_s",
     "settling_time_s",
     "residual_amplitude_mm",
@@ -104,6 +107,12 @@ class WindowResult(_Frozen):
     reason: str | None = None
     modes: list[ModeEstimate] = []
     offset_mm: Finite | None = None
+    #: The offset's interval at FitSettings.confidence.
+    offset_ci_mm: Interval | None = None
+    #: Where the intervals (the modes' and the offset's) come from: the fit's covariance alone ("fit": noise only,
+    #: blind to the bias of the series it was given), or that scaled by the window model's calibration on held-out
+    #: windows of the renderer ("calibrated", :mod:`service.inverse.window_model`); null without intervals.
+    intervals: Literal["fit", "calibrated"] | None = None
     drift_mm_per_s: Finite | None = None
     settling_time_s: NonNegative | None = None
     settled: bool = False

@@ -4,7 +4,7 @@ recordings, scored against their truth (the accuracy figures of the analysis iss
 Per method and noise level: frames/s end to end from the file (inversion, segmentation, fits;
 the method's one-time setup, such as indexing a database, apart), segmentation precision and
 recall (+-2 frames), median and 90th-percentile relative errors of the dominant frequency, decay
-rate and amplitude, offset error (mm), per-frame RMSE of D(0, t) and of the coefficients, D(0, t)
+rate and amplitude, offset error (mm), the share of windows whose intervals hold the truth, per-frame RMSE of D(0, t) and of the coefficients, D(0, t)
 correlation, and the peak memory of the process that ran the method. Recordings are every ``*.cine``/``*.avi`` with a ``.truth.json`` in ``--recordings``.
 """
 
@@ -45,6 +45,10 @@ COLUMNS = (
     ("amplitude_p90", "p90", ".1%"),
     ("offset_mm_median", "offset err. median (um)", "um"),
     ("offset_mm_p90", "p90", "um"),
+    ("frequency_coverage", "freq. CI coverage", ".0%"),
+    ("decay_coverage", "decay CI cov.", ".0%"),
+    ("amplitude_coverage", "ampl. CI cov.", ".0%"),
+    ("offset_mm_coverage", "offset CI cov.", ".0%"),
     ("centre_rmse_mm", "D(0,t) RMSE (um)", "um"),
     ("centre_correlation", "D(0,t) corr.", ".3f"),
     ("a_mm_rmse", "a RMSE (um)", "um"),

@@ -6,15 +6,22 @@ shape of the series (a damped oscillation), its brightness and how the per-frame
 a small 1-D convolutional network (``training/window.py``), run here by onnxruntime, maps a window's per-frame
 d, p, a, b and brightness to the correction of its steady D(0, t) (:mod:`service.analysis.steady`), which the
 window fit then takes as before. Its graph is ``window.onnx`` beside the per-frame network it was trained on.
+
+The fit's intervals see only the noise of the series it is given, not the bias the model leaves in it (or the
+poles' error on a scene unlike the renderer's): :class:`Intervals`, calibrated on held-out windows of the renderer
+by split conformal prediction and stored in ``window.json``, widens each window's intervals to hold the truth in
+95 % of such windows.
 """
 
 from __future__ import annotations
 
 import json
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from service.analysis.results import Interval, WindowResult
 from service.errors import MeniscopeError
 from service.inverse.manifest import sha256_file
 
@@ -58,6 +65,96 @@ def window_features(coefficients: np.ndarray, brightness: np.ndarray, steady: np
     return out
 
 
+#: The quantities whose intervals are calibrated: the modes' frequency, decay rate and amplitude, and the offset.
+QUANTITIES = ("frequency", "decay", "amplitude", "offset")
+
+
+#: Largest log-half-width an interval takes (a factor of 5e8 either way): finite for JSON where the fit's own is
+#: many times its estimate.
+_MAX_LOG_HALF = 20.0
+
+
+@dataclass(frozen=True)
+class Intervals:
+    """Conformal intervals. A window's error scale for quantity q is s = hypot(h, floor[q] |x|) (h: the fit's own
+    half-width, x: the estimate; the offset's floor is in mm, not relative), and its interval x +- factor[q] s; or,
+    where ``log[q]`` (errors that are ratios: an amplitude shrunk to a third needs room up to three times itself,
+    not down below zero), s = hypot(h / x, floor[q]) and the interval x exp(+-factor[q] s). The floor makes room
+    for the error the fit cannot see (the series' bias); the factor is the (1 - alpha)(1 + 1/n) quantile of the
+    error in units of s (|truth - x| / s, or |log(truth / x)| / s) over n held-out windows
+    (``training.window_intervals``), so that the intervals hold the truth in >= 1 - alpha of windows like them."""
+
+    factor: dict[str, float]
+    floor: dict[str, float]
+    log: dict[str, bool]
+    windows: int
+    confidence: float
+
+    @classmethod
+    def from_record(cls, record: dict) -> Intervals | None:
+        """The calibration stored in a window model's record, or None where it has none."""
+        stored = record.get("intervals")
+        if stored is None:
+            return None
+        return cls(stored["factor"], stored["floor"], stored["log"], stored["windows"], stored["confidence"])
+
+    def as_record(self) -> dict:
+        return {
+            "factor": self.factor,
+            "floor": self.floor,
+            "log": self.log,
+            "windows": self.windows,
+            "confidence": self.confidence,
+        }
+
+    def scale(self, quantity: str, estimate: np.ndarray, fit_half: np.ndarray) -> np.ndarray:
+        """The error scale s of ``quantity`` (log units, or those of the quantity)."""
+        if self.log[quantity]:
+            with np.errstate(divide="ignore", invalid="ignore"):
+                return np.hypot(np.where(estimate > 0, fit_half / np.abs(estimate), np.inf), self.floor[quantity])
+        magnitude = 1.0 if quantity == "offset" else np.abs(estimate)
+        return np.hypot(fit_half, self.floor[quantity] * magnitude)
+
+    def error(self, quantity: str, estimate: np.ndarray, truth: np.ndarray) -> np.ndarray:
+        """How far the truth lies from the estimate, in the units of :meth:`scale`."""
+        if self.log[quantity]:
+            with np.errstate(divide="ignore", invalid="ignore"):
+                return np.abs(np.log(truth / estimate))
+        return np.abs(truth - estimate)
+
+    def bounds(self, quantity: str, estimate: np.ndarray, fit_half: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The calibrated interval of ``quantity`` from the estimates and the fit's half-widths (same shapes)."""
+        half = self.factor[quantity] * self.scale(quantity, estimate, fit_half)
+        if self.log[quantity]:
+            half = np.minimum(half, _MAX_LOG_HALF)
+            return estimate * np.exp(-half), estimate * np.exp(half)
+        low = estimate - half
+        return (low if quantity == "offset" else np.maximum(low, 0.0)), estimate + half
+
+    def _interval(self, quantity: str, estimate: float, fit: Interval | None) -> Interval | None:
+        if fit is None or (self.log[quantity] and estimate <= 0):  # unbounded by the fit, or no ratio to it
+            return None
+        lo, hi = self.bounds(quantity, np.float64(estimate), np.float64(max(fit[1] - estimate, estimate - fit[0])))
+        return (float(lo), float(hi))
+
+    def apply(self, result: WindowResult) -> WindowResult:
+        """``result`` with its modes' and offset's intervals calibrated (:attr:`WindowResult.intervals`)."""
+        if result.offset_mm is None:
+            return result
+        modes = [
+            m.model_copy(
+                update={
+                    "frequency_ci_hz": self._interval("frequency", m.frequency_hz, m.frequency_ci_hz),
+                    "decay_rate_ci_per_s": self._interval("decay", m.decay_rate_per_s, m.decay_rate_ci_per_s),
+                    "amplitude_ci_mm": self._interval("amplitude", m.amplitude_mm, m.amplitude_ci_mm),
+                }
+            )
+            for m in result.modes
+        ]
+        offset = self._interval("offset", result.offset_mm, result.offset_ci_mm)
+        return result.model_copy(update={"modes": modes, "offset_ci_mm": offset, "intervals": "calibrated"})
+
+
 class WindowModel:
     """The window model of a model folder, run on one CPU thread (it serves one window at a time)."""
 
@@ -72,7 +169,8 @@ class WindowModel:
         network = path.with_name(NETWORK)
         if not record.is_file() or not network.is_file():
             raise MeniscopeError(path, f"needs {RECORD} and {NETWORK} beside it (`python -m training.window`)")
-        trained_on = json.loads(record.read_text()).get("network_sha256")
+        stored = json.loads(record.read_text())
+        trained_on = stored.get("network_sha256")
         if trained_on != sha256_file(network):
             raise MeniscopeError(
                 path,
@@ -80,6 +178,8 @@ class WindowModel:
                 "(train it again: `python -m training.window`)",
             )
         self.path = path
+        #: The calibration of the windows' intervals (None for a model trained before it: the fit's own stay).
+        self.intervals = Intervals.from_record(stored)
         self._session = ort.InferenceSession(str(path), session_options(1), providers=["CPUExecutionProvider"])
 
     @classmethod

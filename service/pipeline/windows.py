@@ -19,7 +19,7 @@ import numpy as np
 from service.analysis.results import FitSettings, Status, WindowResult
 from service.analysis.segment import Window
 from service.analysis.steady import window_steady_centre
-from service.inverse.window_model import WindowModel
+from service.inverse.window_model import Intervals, WindowModel
 from service.pipeline.records import NO_HIGHLIGHT, coefficients_of
 
 
@@ -28,13 +28,14 @@ class WindowJob:
     """One window's fit to be done: the series it takes (the steady D(0, t), mm per frame, NaN where frames are
     missing), its frames' mean brightness (where the fit takes its poles from the frames), their median highlight
     (:data:`~service.pipeline.records.FRAME`'s, fraction of full scale; NaN where unknown) and when (monotonic s)
-    the frame that closed it was read (NaN offline)."""
+    the frame that closed it was read (NaN offline); the window model's calibration of its intervals, if any."""
 
     window: Window
     series: np.ndarray
     brightness: np.ndarray | None = None
     highlight: float = math.nan
     closed_at: float = math.nan
+    intervals: Intervals | None = None
 
 
 def job_for(
@@ -46,7 +47,8 @@ def job_for(
     model: WindowModel | None = None,
 ) -> WindowJob:
     """The job of ``window`` from its frames' records: its steady D(0, t) (:mod:`service.analysis.steady`), with
-    ``model``'s correction where there is one (:func:`window_model_for`), and brightness."""
+    ``model``'s correction and its intervals' calibration where there is one (:func:`window_model_for`), and
+    brightness."""
     coefficients = coefficients_of(records)
     series = window_steady_centre(coefficients, radius_mm, transient, window.starts_at_ejection)
     if model is not None:
@@ -59,6 +61,7 @@ def job_for(
         np.ascontiguousarray(records["brightness"]),
         float(np.median(highlight)) if len(highlight) else math.nan,
         closed_at,
+        None if model is None else model.intervals,
     )
 
 
@@ -70,8 +73,9 @@ def window_model_for(settings: FitSettings, models: Path, method: str) -> Window
 
 
 def fit_job(job: WindowJob, fps: float, settings: FitSettings) -> WindowResult:
-    """The window fit (:func:`service.analysis.fit.fit_window`) of one job; ``unresolved`` without a fit where its
-    frames show no highlight (a dark or unlit camera would otherwise pass for a settled meniscus)."""
+    """The window fit (:func:`service.analysis.fit.fit_window`) of one job, its intervals calibrated where the job
+    carries a calibration; ``unresolved`` without a fit where its frames show no highlight (a dark or unlit camera
+    would otherwise pass for a settled meniscus)."""
     from service.analysis.fit import fit_window
 
     w = job.window
@@ -83,7 +87,7 @@ def fit_job(job: WindowJob, fps: float, settings: FitSettings) -> WindowResult:
             "the meniscus",
             "unresolved",
         )
-    return fit_window(
+    result = fit_window(
         job.series,
         fps,
         settings,
@@ -93,6 +97,7 @@ def fit_job(job: WindowJob, fps: float, settings: FitSettings) -> WindowResult:
         ends_at_ejection=w.ends_at_ejection,
         brightness=job.brightness,
     )
+    return result if job.intervals is None else job.intervals.apply(result)
 
 
 def unfitted_result(job: WindowJob, reason: str, status: Status = "failed") -> WindowResult:

@@ -30,27 +30,60 @@ def ejection_matches(found: np.ndarray, true: np.ndarray, tolerance: int = 2) ->
     return hits, int(found.size), int(true.size)
 
 
-def window_errors(report: Report, truth: dict[str, Any]) -> dict[str, np.ndarray]:
-    """Per true window (W,): relative errors of the dominant frequency, decay and amplitude, offset error (mm).
+#: The scored quantities: the dominant mode's frequency, decay rate and amplitude (relative errors) and the offset.
+QUANTITIES = ("frequency", "decay", "amplitude", "offset_mm")
 
-    A report window is matched to the true window whose start it lies within 2 frames of; unmatched
-    or mode-less windows give NaN.
-    """
-    keys = ("frequency", "decay", "amplitude", "offset_mm")
-    out = {k: np.full(len(truth["windows"]), np.nan) for k in keys}
+
+def window_pairs(report: Report, truth: dict[str, Any]) -> dict[str, np.ndarray]:
+    """Per true window (W,) and quantity: the estimate, the truth and the ends of the estimate's interval (each
+    (W,), NaN where there is none). A report window is matched to the true window whose start it lies within 2
+    frames of; unmatched or mode-less windows give NaN."""
+    out = {
+        f"{k}_{part}": np.full(len(truth["windows"]), np.nan)
+        for k in QUANTITIES
+        for part in ("est", "true", "lo", "hi")
+    }
     starts = {w.start_frame: w for w in report.windows}
+
+    def put(key: str, i: int, est: float, true: float, interval: tuple[float, float] | None) -> None:
+        out[f"{key}_est"][i], out[f"{key}_true"][i] = est, true
+        if interval is not None:
+            out[f"{key}_lo"][i], out[f"{key}_hi"][i] = interval
+
     for i, tw in enumerate(truth["windows"]):
         match = [starts[s] for s in range(tw["start_frame"] - 2, tw["start_frame"] + 3) if s in starts]
         if not match:
             continue
         w, true = match[0], tw["truth"]
         if w.offset_mm is not None:
-            out["offset_mm"][i] = abs(w.offset_mm - tw["offset_mm"])
+            put("offset_mm", i, w.offset_mm, tw["offset_mm"], w.offset_ci_mm)
         if w.modes:
             m = w.modes[0]
-            out["frequency"][i] = abs(m.frequency_hz - true["f1"]) / true["f1"]
-            out["decay"][i] = abs(m.decay_rate_per_s - true["g1"]) / true["g1"]
-            out["amplitude"][i] = abs(m.amplitude_mm - true["A1"]) / true["A1"]
+            put("frequency", i, m.frequency_hz, true["f1"], m.frequency_ci_hz)
+            put("decay", i, m.decay_rate_per_s, true["g1"], m.decay_rate_ci_per_s)
+            put("amplitude", i, m.amplitude_mm, true["A1"], m.amplitude_ci_mm)
+    return out
+
+
+def window_errors(report: Report, truth: dict[str, Any]) -> dict[str, np.ndarray]:
+    """Per true window (W,): relative errors of the dominant frequency, decay and amplitude, offset error (mm)
+    (matched as :func:`window_pairs`; NaN where unmatched or without a mode)."""
+    pairs = window_pairs(report, truth)
+    out = {}
+    for key in QUANTITIES:
+        error = np.abs(pairs[f"{key}_est"] - pairs[f"{key}_true"])
+        out[key] = error if key == "offset_mm" else error / pairs[f"{key}_true"]
+    return out
+
+
+def window_coverage(report: Report, truth: dict[str, Any]) -> dict[str, np.ndarray]:
+    """Per true window (W,) and quantity: 1.0 where the estimate's interval holds the truth, 0.0 where it does not,
+    NaN where there is no estimate or no interval."""
+    pairs = window_pairs(report, truth)
+    out = {}
+    for key in QUANTITIES:
+        lo, hi, true = (pairs[f"{key}_{part}"] for part in ("lo", "hi", "true"))
+        out[key] = np.where(np.isfinite(lo) & np.isfinite(hi), ((lo <= true) & (true <= hi)).astype(float), np.nan)
     return out
 
 
@@ -70,6 +103,9 @@ def summary(report: Report, truth: dict[str, Any], per_frame: InverseOutput | No
         finite = values[np.isfinite(values)]
         out[f"{key}_median"] = float(np.median(finite)) if finite.size else None
         out[f"{key}_p90"] = float(np.percentile(finite, 90)) if finite.size else None
+    for key, held in window_coverage(report, truth).items():  # the share of intervals that hold the truth
+        finite = held[np.isfinite(held)]
+        out[f"{key}_coverage"] = float(np.mean(finite)) if finite.size else None
     if per_frame is not None:
         true_coeffs = truth_coefficients(truth)
         true_centre = truth_centre(truth)
