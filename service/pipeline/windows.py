@@ -119,11 +119,16 @@ class JobRunner:
     """Runs window jobs as independent tasks: in a local process pool of ``workers`` (default: one per core), or on
     the Dask cluster whose scheduler listens at ``scheduler`` (``tcp://host:8786``; the ``scale`` extra).
 
+    ``threads``: the threads a task may run (a renderer's), its share of the cores: the pool's processes share the
+    machine's; a Dask worker thread is one core (as Dask's nanny gives BLAS and OpenMP one thread), the workers
+    being how a cluster grows. More, and the tasks' threads fight for the cores they share.
+
     Started before the frames are read, so that its workers load the compiled fit while inference runs."""
 
     def __init__(self, settings: FitSettings, scheduler: str | None = None, workers: int | None = None) -> None:
         self.settings, self.scheduler = settings, scheduler
         self._client = self._pool = None
+        self.threads = 1
         if scheduler is not None:
             self._client = _dask_client(scheduler)
         else:
@@ -132,6 +137,7 @@ class JobRunner:
             from concurrent.futures import ProcessPoolExecutor
 
             count = workers or os.cpu_count() or 1
+            self.threads = max(1, (os.cpu_count() or 1) // count)
             _warm()  # here, once: the forked workers inherit the compiled fit instead of each loading it again
             # fork: a worker starts in milliseconds with everything imported (spawned ones took seconds of the two
             # cores the frames need). Safe here although the caller may run inference threads: a worker only fits
