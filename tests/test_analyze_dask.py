@@ -4,7 +4,6 @@ writes, its fits run on the cluster's workers, and a scheduler that cannot be re
 from __future__ import annotations
 
 import json
-import os
 import socket
 import sys
 from dataclasses import replace
@@ -95,7 +94,7 @@ def test_a_window_refined_on_a_dask_worker_is_the_bits_the_local_pool_gives(
 def test_a_task_s_threads_are_its_share_of_the_cores() -> None:
     """A local pool's processes share the machine's cores between them (one each at the default of one process per
     core, never none); a Dask worker thread is one core, the cluster's workers being how it grows."""
-    cores = os.cpu_count() or 1
+    cores = windows.usable_cores()
     for workers, threads in ((1, cores), (cores, 1), (2 * cores, 1)):
         with windows.JobRunner(FitSettings(), workers=workers) as runner:
             assert runner.threads == threads

@@ -81,6 +81,15 @@ def _process_cpu_s() -> float:
     return time.process_time()
 
 
+def _progress(run: dict) -> None:
+    """One line as each run ends (a long benchmark that is cut short still says what it measured)."""
+    print(
+        f"bench refine: {run['name']}: {run['windows']} windows in {run['seconds']:.1f} s, "
+        f"{run['cpu_s_per_window']:.1f} CPU s/window, load {run['load']:.1f}",
+        flush=True,
+    )
+
+
 def differences(first: list[dict], other: list[dict]) -> list[str]:
     """Where ``other``'s windows differ from ``first``'s: one line per differing field (window index, field, both
     values), so that a report that is not the same says how."""
@@ -112,12 +121,11 @@ def markdown(results: dict) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    import os
-
     from service import DEFAULT_MODELS
     from service.bench.results import write_results
     from service.errors import MeniscopeError
     from service.inverse.methods import open_method
+    from service.pipeline.windows import usable_cores
     from service.scene import Scene
 
     try:
@@ -132,9 +140,10 @@ def run(args: argparse.Namespace) -> int:
         ) from None
     scene = Scene.load(args.scene)
     opened = open_method("network", scene, DEFAULT_MODELS)
-    cores = os.cpu_count() or 1
+    cores = usable_cores()
     print(f"bench refine: local pool of {cores} ...", flush=True)
     runs = [{"name": f"local pool, {cores} processes", **measure(args.recording, scene, opened, None, cores)}]
+    _progress(runs[-1])
     for n in sizes:
         print(f"bench refine: Dask, {n} worker(s) ...", flush=True)
         with LocalCluster(
@@ -146,6 +155,7 @@ def run(args: argparse.Namespace) -> int:
                     **measure(args.recording, scene, opened, cluster.scheduler_address, None),
                 }
             )
+        _progress(runs[-1])
     for r in runs:
         r["differences"] = differences(runs[0]["report"], r["report"])
         r["same_report"] = not r["differences"]

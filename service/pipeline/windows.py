@@ -116,7 +116,8 @@ CONNECT_TIMEOUT_S = 10.0
 
 
 class JobRunner:
-    """Runs window jobs as independent tasks: in a local process pool of ``workers`` (default: one per core), or on
+    """Runs window jobs as independent tasks: in a local process pool of ``workers`` (default: one per core it may
+    use, :func:`usable_cores`), or on
     the Dask cluster whose scheduler listens at ``scheduler`` (``tcp://host:8786``; the ``scale`` extra).
 
     ``threads``: the threads a task may run (a renderer's), its share of the cores: the pool's processes share the
@@ -133,11 +134,10 @@ class JobRunner:
             self._client = _dask_client(scheduler)
         else:
             import multiprocessing
-            import os
             from concurrent.futures import ProcessPoolExecutor
 
-            count = workers or os.cpu_count() or 1
-            self.threads = max(1, (os.cpu_count() or 1) // count)
+            count = workers or usable_cores()
+            self.threads = max(1, usable_cores() // count)
             _warm()  # here, once: the forked workers inherit the compiled fit instead of each loading it again
             # fork: a worker starts in milliseconds with everything imported (spawned ones took seconds of the two
             # cores the frames need). Safe here although the caller may run inference threads: a worker only fits
@@ -174,6 +174,13 @@ class JobRunner:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def usable_cores() -> int:
+    """The cores this process may run on: its CPU affinity (a container's or ``taskset``'s share), not the machine's."""
+    import os
+
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
 
 
 def gather(futures: list[Future], progress: bool = False) -> list[WindowResult]:
