@@ -117,8 +117,8 @@ CONNECT_TIMEOUT_S = 10.0
 
 class JobRunner:
     """Runs window jobs as independent tasks: in a local process pool of ``workers`` (default: one per core it may
-    use, :func:`usable_cores`), or on
-    the Dask cluster whose scheduler listens at ``scheduler`` (``tcp://host:8786``; the ``scale`` extra).
+    use, :func:`usable_cores`), or on the Dask cluster whose scheduler listens at ``scheduler``
+    (``tcp://host:8786``; the ``scale`` extra).
 
     ``threads``: the threads a task may run (a renderer's), its share of the cores: the pool's processes share the
     machine's; a Dask worker thread is one core (as Dask's nanny gives BLAS and OpenMP one thread), the workers
