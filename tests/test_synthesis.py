@@ -9,6 +9,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from threadpoolctl import threadpool_limits
 
 from service import DEFAULT_SCENE
 from service.analysis.fit import fit_window
@@ -134,3 +135,20 @@ def test_a_refined_window_reports_the_pixel_fit_s_intervals_for_each_mode_and_nu
     unknown = _with_pixel_intervals(result, TRUE, errors, FPS, 0.95)
     assert unknown.modes[1].frequency_ci_hz == (0.0, FPS / 2) and unknown.modes[1].decay_rate_ci_per_s is None
     assert "mode 2 decay_rate_ci_per_s not finite" in unknown.reason
+
+
+def test_a_refined_window_is_the_same_bits_whatever_blas_threads_its_process_has(renderer):
+    """Each runner's processes have their own BLAS threads (a forked pool's one per core, Dask's workers one): a
+    long dot product summed in per-thread pieces differs in its last bits, and the search's path and the pixel
+    fit's standard errors with it. A window refined where BLAS has one thread and where it has two is the same."""
+    frames, t = (
+        frames_of(renderer, TRUE, CameraEffects(bit_depth=12, blur_sigma_px=0.7, full_well_e=16000.0))[:40],
+        T[:40],
+    )
+    start = WindowMotion(**{**TRUE.as_dict(), "A1": 0.012, "g1": 600.0})
+    found = []
+    for threads in (1, 2):
+        with threadpool_limits(threads, user_api="blas"):
+            refined = refine_window(renderer, frames, t, start)
+            found.append((refined, standard_errors(renderer, frames, t, refined).tobytes()))
+    assert found[0] == found[1]

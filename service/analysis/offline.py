@@ -274,7 +274,9 @@ def _refine(
             t = (np.arange(lo, w.end) - w.start) / fps
             start = synthesis.start_motion(coefficients[lo : w.end], t, fps)
             spans.append((w.index, lo, w.end))
-            futures.append(runner.call(refine_task, scene, roi_frames(rec, scene, lo, w.end - lo), t, start))
+            futures.append(
+                runner.call(refine_task, scene, roi_frames(rec, scene, lo, w.end - lo), t, start, runner.threads)
+            )
     motions = {}
     for (index, lo, end), future in zip(
         spans, tqdm(futures, desc="refine by synthesis", unit="window", disable=not progress)
@@ -284,17 +286,19 @@ def _refine(
     return coefficients, centre_displacement(*coefficients.T, scene.nozzle.radius_mm), motions
 
 
-#: One renderer per scene in each process that refines windows (building one costs more than a window's refinement).
-_RENDERERS: dict[str, Renderer] = {}
+#: One renderer per scene and thread count in each process that refines windows (building one costs more than a
+#: window's refinement).
+_RENDERERS: dict[tuple[str, int], Renderer] = {}
 
 
 def refine_task(
-    scene: Scene, frames: np.ndarray, t: np.ndarray, start: WindowMotion
+    scene: Scene, frames: np.ndarray, t: np.ndarray, start: WindowMotion, threads: int = 1
 ) -> tuple[np.ndarray, WindowMotion, np.ndarray]:
-    """One window's refinement by synthesis (a task that runs wherever the runner sends it): the refined motion's
-    coefficients at times ``t`` (m, 4), the motion, and the pixel fit's standard errors."""
-    key = scene.model_dump_json()
-    renderer = _RENDERERS.get(key) or _RENDERERS.setdefault(key, Renderer(scene))
+    """One window's refinement by synthesis (a task that runs wherever the runner sends it, rendering on ``threads``,
+    :attr:`JobRunner.threads`; the result does not depend on them): the refined motion's coefficients at times
+    ``t`` (m, 4), the motion, and the pixel fit's standard errors."""
+    key = scene.model_dump_json(), threads
+    renderer = _RENDERERS.get(key) or _RENDERERS.setdefault(key, Renderer(scene, threads=threads))
     refined = synthesis.refine_window(renderer, frames, t, start)
     return (
         refined.motion.coefficients(t).to_array(),

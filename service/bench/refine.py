@@ -1,5 +1,6 @@
 """``meniscope bench refine``: windows/s of ``meniscope analyze --refine`` (seconds per window) with its windows on
-the local process pool and on local Dask clusters of 1, 2, ... worker processes, side by side on one recording.
+the local process pool and on local Dask clusters of 1, 2, ... worker processes, side by side on one recording,
+and the CPU seconds each spent per window (this process and its workers: the figure a loaded machine leaves fair).
 
 How a plant re-analyses an archive: the refinement of each window is an independent task, so windows/s should
 grow with the workers until the cores run out; the REPORTs must be the same whichever ran them.
@@ -25,13 +26,16 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def measure(recording: Path, scene, opened, scheduler: str | None, workers: int | None) -> dict:  # type: ignore[no-untyped-def]
-    """One refined analysis: wall seconds, windows refined per second, and the report's windows (to compare)."""
+    """One refined analysis: wall seconds, windows refined per second, CPU seconds per window (this process and the
+    workers: a local pool's processes, the cluster's at ``scheduler``), the load average at its end and the report's
+    windows (to compare)."""
+    import os
     import time
 
     from service import DEFAULT_MODELS
     from service.analysis.offline import analyse_recording
 
-    t0 = time.perf_counter()
+    cpu0, t0 = _cpu_s(scheduler), time.perf_counter()
     analysis = analyse_recording(
         recording,
         scene,
@@ -43,14 +47,47 @@ def measure(recording: Path, scene, opened, scheduler: str | None, workers: int 
         scheduler=scheduler,
         workers=workers,
     )
-    seconds = time.perf_counter() - t0
+    seconds, cpu = time.perf_counter() - t0, _cpu_s(scheduler) - cpu0
     windows = analysis.report.windows
     return {
         "seconds": seconds,
         "windows": len(windows),
         "windows_per_s": len(windows) / seconds,
+        "cpu_s_per_window": cpu / len(windows),
+        "load": os.getloadavg()[0],
         "report": [w.model_dump(mode="json") for w in windows],
     }
+
+
+def _cpu_s(scheduler: str | None) -> float:
+    """CPU seconds (user and system) so far of this process and its workers: the children it has waited for (a
+    local pool's processes, joined when the analysis ends) or, with ``scheduler``, the cluster's worker processes."""
+    import resource
+
+    own, children = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+    total = own.ru_utime + own.ru_stime + children.ru_utime + children.ru_stime
+    if scheduler is None:
+        return total
+    from distributed import Client
+
+    with Client(scheduler, set_as_default=False) as client:
+        return total + sum(client.run(_process_cpu_s).values())
+
+
+def _process_cpu_s() -> float:
+    """CPU seconds of the process it runs in, all its threads."""
+    import time
+
+    return time.process_time()
+
+
+def _progress(run: dict) -> None:
+    """One line as each run ends (a long benchmark that is cut short still says what it measured)."""
+    print(
+        f"bench refine: {run['name']}: {run['windows']} windows in {run['seconds']:.1f} s, "
+        f"{run['cpu_s_per_window']:.1f} CPU s/window, load {run['load']:.1f}",
+        flush=True,
+    )
 
 
 def differences(first: list[dict], other: list[dict]) -> list[str]:
@@ -69,14 +106,14 @@ def differences(first: list[dict], other: list[dict]) -> list[str]:
 def markdown(results: dict) -> str:
     """One row per way of running."""
     lines = [
-        "| windows run on | windows | seconds | windows/s | x local pool | same REPORT |",
-        "|---|---:|---:|---:|---:|---|",
+        "| windows run on | windows | seconds | windows/s | x local pool | CPU s/window | load (1 min) | same REPORT |",
+        "|---|---:|---:|---:|---:|---:|---:|---|",
     ]
     base = results["runs"][0]["windows_per_s"]
     for r in results["runs"]:
         lines.append(
             f"| {r['name']} | {r['windows']} | {r['seconds']:.1f} | {r['windows_per_s']:.2f} | "
-            f"{r['windows_per_s'] / base:.2f} | {'yes' if r['same_report'] else 'NO'} |"
+            f"{r['windows_per_s'] / base:.2f} | {r['cpu_s_per_window']:.1f} | {r['load']:.1f} | {'yes' if r['same_report'] else 'NO'} |"
         )
     notes = [f"- {r['name']}: {line}" for r in results["runs"] for line in r["differences"][:10]]
     text = "\n".join(lines) + f"\n\n{results['recording']}, {results['cores']} cores\n"
@@ -84,12 +121,11 @@ def markdown(results: dict) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    import os
-
     from service import DEFAULT_MODELS
     from service.bench.results import write_results
     from service.errors import MeniscopeError
     from service.inverse.methods import open_method
+    from service.pipeline.windows import usable_cores
     from service.scene import Scene
 
     try:
@@ -104,9 +140,10 @@ def run(args: argparse.Namespace) -> int:
         ) from None
     scene = Scene.load(args.scene)
     opened = open_method("network", scene, DEFAULT_MODELS)
-    cores = os.cpu_count() or 1
+    cores = usable_cores()
     print(f"bench refine: local pool of {cores} ...", flush=True)
     runs = [{"name": f"local pool, {cores} processes", **measure(args.recording, scene, opened, None, cores)}]
+    _progress(runs[-1])
     for n in sizes:
         print(f"bench refine: Dask, {n} worker(s) ...", flush=True)
         with LocalCluster(
@@ -118,6 +155,7 @@ def run(args: argparse.Namespace) -> int:
                     **measure(args.recording, scene, opened, cluster.scheduler_address, None),
                 }
             )
+        _progress(runs[-1])
     for r in runs:
         r["differences"] = differences(runs[0]["report"], r["report"])
         r["same_report"] = not r["differences"]

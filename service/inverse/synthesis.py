@@ -26,6 +26,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy.ndimage import gaussian_filter
 from scipy.optimize import least_squares
+from threadpoolctl import ThreadpoolController
 
 from service.analysis.fit import fit_window
 from service.analysis.results import FitSettings
@@ -62,6 +63,10 @@ _TYPICAL_MODE_1 = (0.015, 500.0, 1500.0, 0.0)
 MIN_FRAMES = 24
 #: Evaluations LM may spend per window (each one render of the window, each Jacobian four more).
 _EVALUATIONS = 100
+#: The search runs its BLAS on one thread wherever it runs: a BLAS on several threads sums a long dot product (the
+#: gain and offset of each evaluation, the pixel fit's J'J) in per-thread pieces, so its last bits, the search's
+#: path and the REPORT depended on the threads of the process (a forked pool's one per core, Dask's workers one).
+_BLAS = ThreadpoolController()
 
 
 @dataclass(frozen=True)
@@ -309,6 +314,7 @@ def _levenberg_marquardt(problem: _Problem, motion: WindowMotion, blur: float) -
     return _canonical(params), abs(float(params[10])), float(np.mean(found.fun**2))
 
 
+@_BLAS.wrap(limits=1, user_api="blas")
 def refine_window(renderer: Renderer, frames: np.ndarray, t: np.ndarray, start: WindowMotion) -> Refined:
     """Refine ``start`` on a window's ROI frames (m, H, W) at times ``t`` (m,) s since the window start. Two
     starts: ``start`` and :func:`frames_start` of it; each one's :func:`_variants` are rendered once and
@@ -331,6 +337,7 @@ def refine_window(renderer: Renderer, frames: np.ndarray, t: np.ndarray, start: 
     return Refined(motion, blur, float(np.sqrt(start_cost)), float(np.sqrt(cost)), problem.renders)
 
 
+@_BLAS.wrap(limits=1, user_api="blas")
 def standard_errors(renderer: Renderer, frames: np.ndarray, t: np.ndarray, refined: Refined) -> np.ndarray:
     """Standard errors of a refined window's motion (WindowMotion's order, d ... phi2) and blur (px), shape (11,),
     from the pixel fit at its optimum: s^2 (J'J)^-1, s^2 the residual variance per pixel. The pixels'

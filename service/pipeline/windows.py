@@ -124,8 +124,13 @@ CHUNK = 8
 
 
 class JobRunner:
-    """Runs window jobs as independent tasks: in a local process pool of ``workers`` (default: one per core), or on
-    the Dask cluster whose scheduler listens at ``scheduler`` (``tcp://host:8786``; the ``scale`` extra).
+    """Runs window jobs as independent tasks: in a local process pool of ``workers`` (default: one per core it may
+    use, :func:`usable_cores`), or on the Dask cluster whose scheduler listens at ``scheduler``
+    (``tcp://host:8786``; the ``scale`` extra).
+
+    ``threads``: the threads a task may run (a renderer's), its share of the cores: the pool's processes share the
+    machine's; a Dask worker thread is one core (as Dask's nanny gives BLAS and OpenMP one thread), the workers
+    being how a cluster grows. More, and the tasks' threads fight for the cores they share.
 
     Started before the frames are read, so that its workers load the compiled fit while inference runs; jobs
     :meth:`send` as windows close start :data:`CHUNK` at a time, so that fits run beside the frames' inference."""
@@ -136,14 +141,15 @@ class JobRunner:
         self._waiting: list[WindowJob] = []  # sent, not yet started: fewer than a chunk
         self._started: list[tuple[int, Future]] = []  # (jobs, future of their results) per task
         self._fps = math.nan  # of the jobs queued
+        self.threads = 1
         if scheduler is not None:
             self._client = _dask_client(scheduler)
         else:
             import multiprocessing
-            import os
             from concurrent.futures import ProcessPoolExecutor
 
-            count = workers or os.cpu_count() or 1
+            count = workers or usable_cores()
+            self.threads = max(1, usable_cores() // count)
             _warm()  # here, once: the forked workers inherit the compiled fit instead of each loading it again
             # fork: a worker starts in milliseconds with everything imported (spawned ones took seconds of the two
             # cores the frames need). Safe here although the caller may run inference threads: a worker only fits
@@ -194,6 +200,13 @@ class JobRunner:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
+
+
+def usable_cores() -> int:
+    """The cores this process may run on: its CPU affinity (a container's or ``taskset``'s share), not the machine's."""
+    import os
+
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
 
 
 def gather(started: list[tuple[int, Future]], progress: bool = False) -> list[WindowResult]:
