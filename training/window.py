@@ -240,11 +240,12 @@ def main(argv: list[str] | None = None) -> None:
     )
     p.add_argument("--data", type=Path, default=Path("data/window"), help="folder of the rendered training windows")
     p.add_argument("--models", type=Path, default=DEFAULT_MODELS, help="model folder: its network, and the output")
+    p.add_argument("--scene", type=Path, default=DEFAULT_SCENE, help="scene of the models and the rendered windows")
     p.add_argument("--epochs", type=int, default=300)
     p.add_argument("--seed", type=int, default=0)
     args = p.parse_args(argv)
     torch.set_num_threads(1)
-    scene = Scene.load(DEFAULT_SCENE)
+    scene = Scene.load(args.scene)
     recordings = args.recordings + (render_training(args.data, scene, args.render, args.seed) if args.render else [])
     if not recordings:
         p.error("no recordings: name some or --render N")
