@@ -45,6 +45,7 @@ from training.export import export_onnx, parity
 from training.normalise import Normalise, downsample_factor
 from training.regressor import Head, LatentRegressor, targets
 from training.vae import VAE, Encoder, NetConfig, Reconstruction, vae_loss
+from training.warmstart import load_warm_start
 
 #: What each exported method is, for the manifest.
 DESCRIPTIONS = {
@@ -76,11 +77,26 @@ class TrainConfig:
     regressor_lr: float = 3e-3
     direct_epochs: int = 12
     direct_lr: float = 2e-3
+    init: str | None = None  # model folder the weights start from (``--init``); None: random
 
     @classmethod
     def quick(cls) -> TrainConfig:
         """A run of seconds for tests and smoke checks; the models it makes are not useful."""
         return cls(samples=1536, lab_frames=1024, vae_epochs=2, regressor_epochs=4, direct_epochs=2)
+
+    @classmethod
+    def fine_tune(cls, init: Path) -> TrainConfig:
+        """Starting from ``init``'s weights: a fifth of the renders, a quarter of the epochs, smaller steps."""
+        return cls(
+            samples=10_000,
+            vae_epochs=3,
+            vae_lr=5e-4,
+            regressor_epochs=15,
+            regressor_lr=1e-3,
+            direct_epochs=3,
+            direct_lr=5e-4,
+            init=str(init),
+        )
 
 
 def seed_everything(seed: int, threads: int) -> torch.Generator:
@@ -155,10 +171,14 @@ def fit(
     return history
 
 
-def train_vae(lab: torch.Tensor, config: TrainConfig, generator: torch.Generator) -> tuple[VAE, History]:
-    """The VAE on normalised lab frames (N, 1, h, w); loss: negative ELBO per frame (Sec. 3.2 (b))."""
+def train_vae(
+    lab: torch.Tensor, config: TrainConfig, generator: torch.Generator, start: VAE | None = None
+) -> tuple[VAE, History]:
+    """The VAE on normalised lab frames (N, 1, h, w); loss: negative ELBO per frame (Sec. 3.2 (b)).
+
+    ``start``: a VAE to train further (a warm start), else a new one."""
     train_idx, val_idx = split(len(lab), config.val_fraction, generator)
-    vae = VAE(config.net, lab.shape[2], lab.shape[3])
+    vae = start if start is not None else VAE(config.net, lab.shape[2], lab.shape[3])
 
     def loss(idx: torch.Tensor) -> torch.Tensor:
         x = lab[train_idx[idx]]  # (B, 1, h, w)
@@ -191,14 +211,18 @@ def train_regressor(
     val_idx: torch.Tensor,
     config: TrainConfig,
     generator: torch.Generator,
+    start: Head | None = None,
 ) -> tuple[Head, History]:
     """The head on encoder means of normalised renders (N, 1, h, w); targets ``y`` (N, 5), :data:`TARGETS`.
 
-    The encoder is frozen (Sec. 3.2 (b)), so the means are computed once.
+    The encoder is frozen (Sec. 3.2 (b)), so the means are computed once. ``start``: a head to train further
+    (its target scale kept), else a new one scaled to these targets.
     """
     encoder.eval().requires_grad_(False)
     mu = in_chunks(lambda x: encoder(x)[0], renders, "encode renders")  # (N, latent)
-    head = Head(config.net.latent, config.net.hidden, *target_scale(y[train_idx].numpy()))
+    head = (
+        start if start is not None else Head(config.net.latent, config.net.hidden, *target_scale(y[train_idx].numpy()))
+    )
     history = fit(
         head,
         lambda idx: standardised_mse(head, head(mu[train_idx[idx]]), y[train_idx[idx]]),
@@ -221,10 +245,13 @@ def train_direct(
     val_idx: torch.Tensor,
     config: TrainConfig,
     generator: torch.Generator,
+    start: DirectCNN | None = None,
 ) -> tuple[DirectCNN, History]:
-    """The direct CNN end to end on normalised renders (N, 1, h, w); the baseline Sec. 3.2 argued against."""
+    """The direct CNN end to end on normalised renders (N, 1, h, w); the baseline Sec. 3.2 argued against.
+
+    ``start``: a direct CNN to train further (its target scale kept), else a new one."""
     h, w = renders.shape[2], renders.shape[3]
-    model = DirectCNN(config.net, normalise, h, w, *target_scale(y[train_idx].numpy()))
+    model = start if start is not None else DirectCNN(config.net, normalise, h, w, *target_scale(y[train_idx].numpy()))
 
     def val_loss() -> float:
         pred = in_chunks(model.predict, renders[val_idx])
@@ -319,15 +346,17 @@ def train_models(
 
     ``dataset``: a folder of renders to use (or to create, with ``config.samples``); without it the
     renders go to a temporary folder. ``holdout_video``: a simulated recording (with its
-    ``.truth.json``) that no model saw, scored as the "recording" validation set.
+    ``.truth.json``) that no model saw, scored as the "recording" validation set. ``config.init``: a model
+    folder (of any scene) whose weights the three networks start from (``training.warmstart``).
     """
     started = time.perf_counter()
     if holdout_video is not None and holdout_video.resolve() == lab_video.resolve():
         raise MeniscopeError(holdout_video, "the hold-out recording must differ from the lab video the VAE learns")
-    prepare_model_folder(out)
-    generator = seed_everything(config.seed, config.threads)
     height, width = scene.camera.height_px, scene.camera.width_px
     normalise = Normalise(downsample_factor(scene, config.net.input_px))
+    warm = None if config.init is None else load_warm_start(Path(config.init), config.net, normalise, height, width)
+    prepare_model_folder(out)
+    generator = seed_everything(config.seed, config.threads)
     lab_frames, lab_facts = read_roi_frames(lab_video, scene, config.lab_frames)
     with tempfile.TemporaryDirectory(prefix="meniscope-train-") as scratch:
         renders = _open_or_render(scene, dataset, Path(scratch), config, lab_facts["bit_depth"])
@@ -341,9 +370,14 @@ def train_models(
             "seed": renders.config.seed,
             "bit_depth": renders.config.bit_depth,
         }
-    vae, vae_history = train_vae(in_chunks(normalise, lab_frames, "normalise lab frames"), config, generator)
-    head, regressor_history = train_regressor(vae.encoder, x, y, train_idx, val_idx, config, generator)
-    direct, direct_history = train_direct(normalise, x, y, train_idx, val_idx, config, generator)
+    lab = in_chunks(normalise, lab_frames, "normalise lab frames")
+    vae, vae_history = train_vae(lab, config, generator, warm.vae if warm else None)
+    head, regressor_history = train_regressor(
+        vae.encoder, x, y, train_idx, val_idx, config, generator, warm.head if warm else None
+    )
+    direct, direct_history = train_direct(
+        normalise, x, y, train_idx, val_idx, config, generator, warm.direct if warm else None
+    )
     models = {"network": LatentRegressor(normalise, vae.encoder, head).eval(), "direct": direct.eval()}
 
     results = {"synthetic": {name: (_predict(m, val_frames), y[val_idx].numpy()) for name, m in models.items()}}

@@ -301,6 +301,7 @@ def main(argv: list[str] | None = None) -> None:
     )
     p.add_argument("--data", type=Path, default=Path("data/window"), help="folder of the rendered windows")
     p.add_argument("--models", type=Path, default=DEFAULT_MODELS, help="model folder: its network, and the output")
+    p.add_argument("--scene", type=Path, default=DEFAULT_SCENE, help="scene of the models and the rendered windows")
     p.add_argument("--epochs", type=int, default=300)
     p.add_argument("--seed", type=int, default=0)
     args = p.parse_args(argv)
@@ -309,7 +310,7 @@ def main(argv: list[str] | None = None) -> None:
         p.error("no recordings: name some or --render N")
     build(
         args.models,
-        Scene.load(DEFAULT_SCENE),
+        Scene.load(args.scene),
         args.data,
         args.render,
         args.epochs,
