@@ -269,38 +269,6 @@ def test_random_access_matches_one_full_read(tmp_path: Path) -> None:
         rec.read(0, 1)
 
 
-@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
-@given(
-    data=st.data(),
-    storage=st.sampled_from(["8", "16", "p10", "p12"]),
-    span=st.integers(1, 200),
-    annotations=st.sampled_from([8, 24]),
-)
-def test_a_read_across_many_spans_is_the_frames_read_one_by_one(
-    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, data: st.DataObject, storage: str, span: int, annotations: int
-) -> None:
-    """Images are read a span of bytes at a time into a reused buffer (``SPAN_BYTES``): however many spans a read
-    crosses, down to one image per span, its frames are those of single reads, at every storage's extreme values."""
-    bits = {"8": 8, "16": 16, "p10": 10, "p12": 12}[storage]
-    top = 2**bits - 1
-    frames = data.draw(
-        arrays(np.uint8 if bits == 8 else np.uint16, (11, 3, 8), elements=st.sampled_from([0, 1, top - 1, top]))
-    )
-    path = write(
-        tmp_path,
-        cine_bytes(
-            frames, storage=storage, real_bpp=bits, time64=np.zeros(11, np.uint64), annotations=[annotations] * 11
-        ),
-    )
-    monkeypatch.setattr("service.recordings.cine.SPAN_BYTES", span)
-    start = data.draw(st.integers(0, 10))
-    count = data.draw(st.integers(0, 11 - start))
-    with open_recording(path) as rec:
-        np.testing.assert_array_equal(rec.read(start, count), frames[start : start + count])
-        for i in range(start, start + count):
-            np.testing.assert_array_equal(rec[i], frames[i])
-
-
 def test_info_is_json_and_its_header_fields_extend_the_common_ones(tmp_path: Path) -> None:
     path = write(tmp_path, cine_bytes(np.zeros((2, 4, 4), np.uint16), time64=np.zeros(2, np.uint64)))
     with open_recording(path) as rec:

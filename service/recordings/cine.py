@@ -155,9 +155,6 @@ def unpack_12bit(raw: np.ndarray) -> np.ndarray:
 
 
 _UNPACK = {10: unpack_10bit, 12: unpack_12bit}
-#: Stored bytes read at a time, into one buffer reused by a read's spans: it stays in the cache while its rows are
-#: put in order (a whole batch read in one call went to fresh memory and back: docs/benchmarks.md).
-SPAN_BYTES = 1 << 18
 
 
 class CineRecording(Recording):
@@ -253,39 +250,26 @@ class CineRecording(Recording):
         )
 
     def _read(self, start: int, count: int) -> np.ndarray:
-        out = np.empty((count, self.height, self.width), self.dtype)
-        per = max(1, SPAN_BYTES // self._frame_bytes)  # images per read
-        buffer = np.empty(2 * SPAN_BYTES, np.uint8)  # reused by each read: it stays in the cache
-        for lo in range(0, count, per):
-            starts = self._starts[start + lo : start + min(lo + per, count)]
-            raw = self._stored_bytes(starts, buffer)  # (m, frame_bytes) uint8
-            out[lo : lo + len(raw)] = self._pixels(raw)
-        return out
-
-    def _pixels(self, raw: np.ndarray) -> np.ndarray:
-        """The images (m, height, width), rows top first, of their stored bytes ``raw`` (m, frame_bytes)."""
+        raw = self._stored_bytes(self._starts[start : start + count])  # (count, frame_bytes) uint8
         if self._stored_bits in _UNPACK:  # packed images are stored top row first
-            return _UNPACK[self._stored_bits](raw).reshape(len(raw), self.height, self.width)
-        words = raw.view(f"<u{self._stored_bits // 8}").reshape(len(raw), self.height, self.width)
-        return words[:, ::-1]  # bottom row first on disk
+            return _UNPACK[self._stored_bits](raw).reshape(count, self.height, self.width)
+        words = raw.view(f"<u{self._stored_bits // 8}").reshape(count, self.height, self.width)
+        return np.ascontiguousarray(words[:, ::-1], dtype=self.dtype)  # bottom row first on disk
 
-    def _stored_bytes(self, starts: np.ndarray, buffer: np.ndarray) -> np.ndarray:
-        """The stored bytes of the images at ``starts``: one read (into ``buffer`` where they fit) and a strided
-        view when evenly spaced."""
+    def _stored_bytes(self, starts: np.ndarray) -> np.ndarray:
+        """The stored bytes of the images at ``starts``: one read and a strided view when evenly spaced."""
         step = int(starts[1] - starts[0]) if len(starts) > 1 else self._frame_bytes
         if len(starts) == 1 or (np.diff(starts) == step).all():
-            size = (len(starts) - 1) * step + self._frame_bytes
-            span = self._pread(int(starts[0]), size, buffer[:size] if size <= len(buffer) else None)
+            span = self._pread(int(starts[0]), (len(starts) - 1) * step + self._frame_bytes)
             return np.ndarray((len(starts), self._frame_bytes), np.uint8, buffer=span, strides=(step, 1))
         return np.stack([self._pread(s, self._frame_bytes) for s in starts.tolist()])
 
-    def _pread(self, offset: int, size: int, into: np.ndarray | None = None) -> np.ndarray:
-        """``size`` bytes at ``offset`` (in ``into``, of that size, if given), or an error when the file no longer
-        holds them (it shrank since opening).
+    def _pread(self, offset: int, size: int) -> np.ndarray:
+        """``size`` bytes at ``offset``, or an error when the file no longer holds them (it shrank since opening).
 
-        Read straight into an (aligned) array: one copy fewer than a bytes object, and numpy converts aligned
+        Read straight into a new (aligned) array: one copy fewer than a bytes object, and numpy converts aligned
         words 2.8x faster (reading a 96 x 96 12-bit frame: 5 us instead of 14)."""
-        data = np.empty(size, np.uint8) if into is None else into
+        data = np.empty(size, np.uint8)
         try:
             got = os.preadv(self._fd, [data], offset)
         except OSError as exc:
