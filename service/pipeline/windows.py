@@ -8,6 +8,7 @@ Dask cluster for an offline analysis (:func:`run_jobs`).
 from __future__ import annotations
 
 import math
+import os
 from collections.abc import Callable
 from concurrent.futures import Future
 from dataclasses import dataclass
@@ -148,8 +149,9 @@ class JobRunner:
             import multiprocessing
             from concurrent.futures import ProcessPoolExecutor
 
-            count = workers or usable_cores()
-            self.threads = max(1, usable_cores() // count)
+            cores = usable_cores()
+            count = workers or cores
+            self.threads = max(1, cores // count)
             _warm()  # here, once: the forked workers inherit the compiled fit instead of each loading it again
             # fork: a worker starts in milliseconds with everything imported (spawned ones took seconds of the two
             # cores the frames need). Safe here although the caller may run inference threads: a worker only fits
@@ -204,8 +206,6 @@ class JobRunner:
 
 def usable_cores() -> int:
     """The cores this process may run on: its CPU affinity (a container's or ``taskset``'s share), not the machine's."""
-    import os
-
     return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
 
 
