@@ -10,9 +10,10 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+from collections.abc import Mapping
 from functools import cached_property
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
 import numpy as np
 from pydantic import (
@@ -157,6 +158,14 @@ class Scene(_Strict):
         return self
 
     # ---- construction -------------------------------------------------------------
+    def model_copy(self, *, update: Mapping[str, Any] | None = None, deep: bool = False) -> Scene:
+        """A copy with ``update`` applied and validated afresh.
+
+        pydantic's own copy would carry over the cached :attr:`sha256` and :attr:`spheres` of the
+        original, so a changed scene would still claim the old scene's hash (and models)."""
+        data = {name: getattr(self, name) for name in type(self).model_fields} | dict(update or {})
+        return type(self).model_validate(data)
+
     @classmethod
     def from_dict(cls, data: object, where: str | Path = "scene") -> Scene:
         """Validate a parsed scene; errors become one :class:`MeniscopeError` line."""

@@ -96,6 +96,17 @@ def test_hash_follows_content_not_key_order(scene: Scene) -> None:
     assert Scene.from_dict(changed).sha256 != scene.sha256
 
 
+def test_a_changed_copy_has_its_own_hash_and_spheres(scene: Scene) -> None:
+    """Derived values are never carried into a copy: a changed scene must not claim the original's models."""
+    assert scene.sha256 and scene.spheres.size  # read (and cached) on the original first
+    mirror = scene.model_copy(update={"fluid": scene.fluid.model_copy(update={"roughness": 0.004})})
+    assert mirror.sha256 == Scene.from_dict(json.loads(mirror.to_json())).sha256 != scene.sha256
+    reseeded = scene.model_copy(update={"artifacts": scene.artifacts.model_copy(update={"seed": 99})})
+    assert not np.array_equal(reseeded.spheres, scene.spheres)
+    with pytest.raises(ValueError, match="ring_mm"):
+        scene.model_copy(update={"artifacts": scene.artifacts.model_copy(update={"ring_mm": (0.0, 0.1)})})
+
+
 def test_direction_follows_the_scene_convention() -> None:
     np.testing.assert_allclose(direction(0, 0), [1, 0, 0], atol=1e-15)
     np.testing.assert_allclose(direction(90, 0), [0, 1, 0], atol=1e-15)
