@@ -36,18 +36,21 @@ def test_block_means_are_the_float64_means_rounded_once(dtype, factor, blocks, f
 
 
 def test_the_shipped_graphs_run_from_their_pooling_with_the_whole_graphs_outputs() -> None:
-    """Both shipped methods start with the pooling, and their outputs on recorded-like frames are the whole
-    graph's."""
+    """Both shipped methods start with the pooling, and their outputs on recorded-like frames, 12-bit and 8-bit
+    (pooled as they come, not widened first), are the whole graph's."""
     manifest = load_manifest(DEFAULT_MODELS, Scene.load(DEFAULT_SCENE))
-    frames = np.random.default_rng(1).integers(0, 4096, (100, 96, 96)).astype(np.uint16)
+    rng = np.random.default_rng(1)
+    twelve_bit = rng.integers(0, 4096, (100, 96, 96)).astype(np.uint16)
+    eight_bit = rng.integers(0, 256, (100, 96, 96)).astype(np.uint8)
     for name, entry in manifest.methods.items():
         method = NetworkMethod(DEFAULT_MODELS, Scene.load(DEFAULT_SCENE), name, threads=1, batch=32)
         assert method._pooling == manifest.input.downsample  # the split was taken
         whole = ort.InferenceSession(str(DEFAULT_MODELS / entry.file), providers=["CPUExecutionProvider"])
-        coefficients, centre = whole.run(list(OUTPUTS), {INPUT: frames})
-        out = method.infer(frames)
-        np.testing.assert_allclose(out.coefficients, coefficients, atol=pooling.PARITY_ABS)
-        np.testing.assert_allclose(out.centre, centre, atol=pooling.PARITY_ABS)
+        for frames in (twelve_bit, eight_bit):
+            coefficients, centre = whole.run(list(OUTPUTS), {INPUT: frames.astype(np.uint16)})
+            out = method.infer(frames)
+            np.testing.assert_allclose(out.coefficients, coefficients, atol=pooling.PARITY_ABS)
+            np.testing.assert_allclose(out.centre, centre, atol=pooling.PARITY_ABS)
 
 
 def test_a_graph_that_does_not_start_with_the_pooling_is_left_whole(tmp_path: Path) -> None:

@@ -101,6 +101,7 @@ class NetworkMethod(InverseMethod):
         pooled = session.run(list(OUTPUTS), {split[1]: pooling.block_means(frames, factor)})
         if all(np.abs(a - b).max() <= pooling.PARITY_ABS for a, b in zip(whole, pooled)):
             self._session, self._input, self._pooling = session, split[1], factor
+            pooling.block_means(frames[:1].astype(np.uint8), factor)  # the 8-bit kernel compiled now, not mid-stream
 
     def infer(self, frames: np.ndarray) -> InverseOutput:
         frames = np.asarray(frames)
@@ -110,7 +111,8 @@ class NetworkMethod(InverseMethod):
             )
         if frames.dtype not in (np.uint8, np.uint16) or not np.can_cast(frames.dtype, self._dtype, "safe"):
             raise MeniscopeError("frames", f"pixel type {frames.dtype} cannot feed a {self._dtype} model")
-        x = np.ascontiguousarray(frames, dtype=self._dtype)  # (N, H, W); widens uint8 losslessly
+        # (N, H, W): the block means sum 8- or 16-bit pixels as they come (exactly); a graph fed whole gets its dtype
+        x = np.ascontiguousarray(frames) if self._pooling else np.ascontiguousarray(frames, dtype=self._dtype)
         coefficients = np.empty((len(x), 4), np.float64)
         centre = np.empty(len(x), np.float64)
         for start in range(0, len(x), self.batch):
