@@ -98,3 +98,23 @@ def test_a_live_start_publishes_no_failed_fragment_before_the_first_ejection(liv
     assert [w.index for w in offline.report.windows if w.start_frame == first] == [
         min(f.result.index for f in live)
     ]  # the dropped fragment keeps its index: live counts as offline does
+
+
+def test_an_analysis_opens_its_recording_once(demo_cine: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Opening a .cine reads every image's offset, ~1 us of CPU per frame: ``analyze`` opens it once and replays
+    that (its digest maps the file apart)."""
+    from service.recordings import cine
+
+    opened: list[Path] = []
+    original = cine.CineRecording.__init__
+
+    def counted(self: cine.CineRecording, path: Path, *args: object, **kwargs: object) -> None:
+        opened.append(Path(path))
+        original(self, path, *args, **kwargs)
+
+    monkeypatch.setattr(cine.CineRecording, "__init__", counted)
+    scene = Scene.load(DEFAULT_SCENE)
+    analysis = analyse_recording(
+        demo_cine, scene, "network", DEFAULT_MODELS, progress=False, opened=(NetworkMethod(DEFAULT_MODELS, scene), None)
+    )
+    assert analysis.report.windows and opened == [demo_cine]

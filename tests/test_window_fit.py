@@ -22,6 +22,7 @@ from service.analysis import kernels
 from service.analysis.fit import fit_window, model_curve
 from service.analysis.pencil import energy
 from service.analysis.results import FitSettings, Report, Source
+from service.analysis.segment import robust_sigma
 from service.analysis.settling import envelope, settle, settling_time, tolerance
 from service.bench.peers import available, harminv_modes
 from service.physics import damped_mode
@@ -565,3 +566,26 @@ def test_warm_leaves_every_fit_kernel_in_numba_s_cache(tmp_path) -> None:
     ]
     assert all(r.returncode == 0 for r in runs), runs[-1].stderr
     assert int(runs[0].stdout) > 0 and int(runs[1].stdout) == 0
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    arrays(
+        np.float64,
+        st.integers(1, 400),
+        elements=st.one_of(
+            st.floats(allow_nan=True, allow_infinity=True),
+            st.sampled_from([0.0, -0.0, 1.0, 1.0 + 2**-52, 5e-324, 1e308, -1e308]),
+        ),
+    )
+)
+def test_compiled_median_and_robust_sigma_are_numpys_to_the_last_bit(values: np.ndarray) -> None:
+    """The fit's compiled median and 1.4826 MAD give numpy's bits for any float64 series, ties, signed zeros,
+    subnormals, values whose mean overflows, infinities and NaN included (the REPORT must not move)."""
+    with np.errstate(all="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        expected_median = np.median(values)
+        expected_sigma = robust_sigma(values)
+    assert np.array_equal(kernels.median(values), expected_median, equal_nan=True)
+    assert np.array_equal(kernels.robust_sigma(values), expected_sigma, equal_nan=True)
+    assert kernels.robust_sigma(np.empty(0)) == robust_sigma(np.empty(0)) == 0.0

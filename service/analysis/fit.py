@@ -23,6 +23,7 @@ all of this against peers and the Cramer-Rao bound (docs/benchmarks.md).
 from __future__ import annotations
 
 import copy
+import functools
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Literal
@@ -36,8 +37,9 @@ from tqdm import tqdm
 from service.analysis import kernels, pencil
 from service.analysis.kernels import BASE as _BASE
 from service.analysis.kernels import PER_MODE as _PER_MODE
+from service.analysis.kernels import robust_sigma
 from service.analysis.results import FitSettings, WindowResult
-from service.analysis.segment import Window, robust_sigma
+from service.analysis.segment import Window
 from service.analysis.settling import Settling, damping_ratio, quality_factor, settle, tolerance
 from service.physics import damped_mode
 
@@ -86,6 +88,13 @@ _BLAS = ThreadpoolController()
 def min_samples(order: int) -> int:
     """Finite samples needed to fit ``order`` modes with at least 3 residual degrees of freedom."""
     return _BASE + _PER_MODE * order + _MIN_DOF
+
+
+@functools.cache
+def _t_quantile(dof: int, confidence: float) -> float:
+    """Student t's two-sided ``confidence`` quantile at ``dof`` degrees of freedom (a window asks for it about 8
+    times, a few values over all windows; scipy's call costs ~3 us)."""
+    return float(stdtrit(dof, 0.5 + confidence / 2))
 
 
 def _noise_from_differences(n: np.ndarray, y: np.ndarray) -> float:
@@ -173,7 +182,7 @@ class _Window:
         free = np.ones(start.size, dtype=np.bool_)
         if drift_first:
             with_drift = self._judge(order, _canonical(self._refine(start, free)))
-            t = stdtrit(max(self.n.size - start.size, 1), 0.5 + self.settings.confidence / 2)
+            t = _t_quantile(max(self.n.size - start.size, 1), self.settings.confidence)
             evident = abs(with_drift.params[1]) * t >= _DRIFT_TEST * with_drift.half_width[1]
             if evident and not _slow_swing(with_drift.params, self.n[-1] - self.n[0] + 1):
                 return with_drift
@@ -216,7 +225,7 @@ class _Window:
         n, k = self.n.size, params.size
         half = poles.half_width.copy()
         variance = kernels.covariance_diagonal(np.ascontiguousarray(j[:, linear])) * cost / max(n - k, 1)
-        half[linear] = stdtrit(max(n - k, 1), 0.5 + self.settings.confidence / 2) * np.sqrt(variance)
+        half[linear] = _t_quantile(max(n - k, 1), self.settings.confidence) * np.sqrt(variance)
         return _OrderFit(poles.order, params, half, cost, self.bic(cost, k), None, "frames")
 
     def _judge(self, order: int, params: np.ndarray, drift: bool = True) -> _OrderFit:
@@ -231,7 +240,7 @@ class _Window:
         half = np.zeros(params.size)
         with np.errstate(all="ignore"):  # a singular Jacobian's infinite variance: the mode is judged unresolved
             variance = kernels.covariance_diagonal(np.ascontiguousarray(j[:, fitted])) * cost / (n - k)
-        half[fitted] = stdtrit(n - k, 0.5 + self.settings.confidence / 2) * np.sqrt(variance)
+        half[fitted] = _t_quantile(n - k, self.settings.confidence) * np.sqrt(variance)
         return _OrderFit(
             order, params, half, cost, bic, _unresolved(params, half, self.n[-1] - self.n[0] + 1), drift=drift
         )
@@ -430,7 +439,7 @@ def _centred(x: np.ndarray) -> tuple[np.ndarray, np.ndarray, float, float]:
     """The finite samples of ``x`` (N,): their indices (as floats), values, median and largest deviation from it."""
     finite = np.isfinite(x)
     raw = x[finite]
-    centre = float(np.median(raw))
+    centre = kernels.median(raw)
     return np.flatnonzero(finite).astype(np.float64), raw, centre, float(np.max(np.abs(raw - centre)))
 
 

@@ -14,6 +14,7 @@ from __future__ import annotations
 from collections import deque
 from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
+from contextlib import ExitStack
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TypeVar
@@ -98,25 +99,27 @@ def analyse_recording(
         settings = settings.model_copy(update={"poles": "series"})
     if refine or method != "network":  # the window model reads the network's per-frame values, not refined ones
         settings = settings.model_copy(update={"series_model": "steady"})
-    with open_recording(path) as rec:
-        fps, frames, width, height = rec.fps, len(rec), rec.width, rec.height
-    inverse, db = opened or open_method(method, scene, models, database)
-    db = db if method == "regularised" else None
-    transient, radius = settings.transient_frames(fps), scene.nozzle.radius_mm
-    detecting = ejections.file is None and ejections.hz is None
-    # the windows cut as the frames come, at the ejections the live detector finds looking further ahead; with the
-    # default method each is fitted as soon as it closes, beside the inference of the frames after it
-    segmenter = StreamingSegmenter(
-        frames, EjectionDetector(fps, lookahead=int(round(OFFLINE_LOOKAHEAD_S * fps))) if detecting else None
-    )
-    streamed = db is None and not refine  # the window-level methods need every window's frames first
-    model = window_model_for(settings, models, method)
-    with JobRunner(settings, scheduler, workers) as runner, ThreadPoolExecutor(1) as hasher:
+    # the recording opened once (its header and every image's offset read: ~1 us of CPU per frame), then replayed
+    with ReplaySource(path, speed=0.0) as replay, ExitStack() as stack:
+        fps, frames, width, height = replay.fps, replay.frames, replay.width, replay.height
+        inverse, db = opened or open_method(method, scene, models, database)
+        db = db if method == "regularised" else None
+        transient, radius = settings.transient_frames(fps), scene.nozzle.radius_mm
+        detecting = ejections.file is None and ejections.hz is None
+        # the windows cut as the frames come, at the ejections the live detector finds looking further ahead; with
+        # the default method each is fitted as soon as it closes, beside the inference of the frames after it
+        segmenter = StreamingSegmenter(
+            frames, EjectionDetector(fps, lookahead=int(round(OFFLINE_LOOKAHEAD_S * fps))) if detecting else None
+        )
+        streamed = db is None and not refine  # the window-level methods need every window's frames first
+        model = window_model_for(settings, models, method)
+        runner = stack.enter_context(JobRunner(settings, scheduler, workers))
+        hasher = stack.enter_context(ThreadPoolExecutor(1))
         digest = hasher.submit(blake3_file, path)  # the hash lets go of the interpreter lock: read while it hashes
         # one pass over the frames (each read once: reading was a fifth of the CPU)
         parts, found, closed, jobs = [], [], [], []
         with tqdm(total=frames, unit="frame", desc=f"{inverse.name} {path.name}", disable=not progress) as bar:
-            for stages, batch, part in _ahead(_measured(path, scene, inverse)):
+            for stages, batch, part in _ahead(_measured(replay, scene, inverse)):
                 if db is None:
                     stages.infer(batch.pixels, part)
                 else:  # the window fit picks every frame's values among these; one search serves
@@ -180,14 +183,15 @@ def fps_of(path: Path) -> float:
         return rec.fps
 
 
-def _measured(path: Path, scene: Scene, inverse: InverseMethod) -> Iterator[tuple[FrameStages, FrameBatch, np.ndarray]]:
-    """The recording replayed at full speed in reads of :data:`READ_FRAMES`: each read's ROI and its records as
-    far as the pixels alone fill them (:meth:`FrameStages.measure`), with the stages of the stream."""
-    with ReplaySource(path, speed=0.0) as source:
-        stages = FrameStages(scene, source.format, str(path), inverse)
-        while (batch := source.read(READ_FRAMES)) is not None:
-            batch = stages.roi(batch)
-            yield stages, batch, stages.measure(batch)
+def _measured(
+    source: ReplaySource, scene: Scene, inverse: InverseMethod
+) -> Iterator[tuple[FrameStages, FrameBatch, np.ndarray]]:
+    """The open replay ``source`` read at full speed in reads of :data:`READ_FRAMES`: each read's ROI and its records
+    as far as the pixels alone fill them (:meth:`FrameStages.measure`), with the stages of the stream."""
+    stages = FrameStages(scene, source.format, str(source.path), inverse)
+    while (batch := source.read(READ_FRAMES)) is not None:
+        batch = stages.roi(batch)
+        yield stages, batch, stages.measure(batch)
 
 
 _END = object()

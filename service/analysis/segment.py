@@ -26,7 +26,8 @@ from numpy.typing import ArrayLike
 
 from service.errors import MeniscopeError
 
-_MAD_TO_SIGMA = 1.482602218505602
+#: 1 / Phi^-1(3/4): the median absolute deviation of Gaussian samples times this is their standard deviation.
+MAD_TO_SIGMA = 1.482602218505602
 _CHUNK_FRAMES = 256  # frame differences are taken this many frames at a time to bound memory
 
 
@@ -97,7 +98,7 @@ def read_ejections(path: str | Path, fps: float, n_frames: int) -> np.ndarray:
 
 def robust_sigma(values: np.ndarray) -> float:
     """1.4826 * MAD: the standard deviation of the Gaussian part of ``values`` (0 for none)."""
-    return float(_MAD_TO_SIGMA * np.median(np.abs(values - np.median(values)))) if values.size else 0.0
+    return float(MAD_TO_SIGMA * np.median(np.abs(values - np.median(values)))) if values.size else 0.0
 
 
 def robust_z(values: ArrayLike) -> np.ndarray:

@@ -73,6 +73,13 @@ class ReplaySource(FrameSource):
         self._pacer.start(float(times[0]))
         return StreamFormat(rec.width, rec.height, rec.dtype, rec.bit_depth, rec.fps)
 
+    @property
+    def frames(self) -> int:
+        """Frames in one pass of the recording."""
+        if not self.is_open:
+            raise MeniscopeError(self.uri, "the source is not open")
+        return len(self._times)
+
     def _file_identity(self) -> tuple[int, int, int, int]:
         try:
             st = os.stat(self.path)
