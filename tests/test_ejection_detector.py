@@ -184,3 +184,18 @@ def test_the_streams_first_ejections_wait_for_the_period_and_no_longer_than_the_
     for frame in range(int(PERIOD_WAIT_S * FPS) + quiet.latency + 2):
         assert quiet.push(np.array([frame]), np.array([8.0]), np.array([3.0])) == []
     assert quiet.settled > 0
+
+
+@pytest.mark.parametrize("offline", [False, True])
+def test_a_stream_that_starts_in_a_burst_the_period_does_not_put_there_does_not_start_with_an_ejection(
+    offline: bool,
+) -> None:
+    """The stream's first frame is judged against the frames after it alone; the period the next ejections agree
+    on decides whether it is one (here a burst 100 frames before the first of ejections 190 apart)."""
+    true = [100, 290, 480, 670, 860, 1050]
+    change = bursts([0, *true], 1200, np.random.default_rng(0))
+    change[0] = np.nan
+    assert detect_ejections_streamed(change, FPS, offline=offline).tolist() == true
+    change = bursts([10, 200, *true[1:]], 1200, np.random.default_rng(0))[10:]  # where the period puts one: kept
+    change[0] = np.nan
+    assert detect_ejections_streamed(change, FPS, offline=offline).tolist() == [0, *[e - 10 for e in [200, *true[1:]]]]

@@ -22,10 +22,9 @@ after the last ejection, the start where change and novelty stand out most toget
 burst above its baseline's 90th percentile, in baseline medians; the novelty's over the bulge's rise, half the
 transient) is the ejection, once that product passes :data:`STRETCH_SCORE` (a start that does waits for the
 stretch's end). The rate is learned from the video, not assumed, and a skipped ejection or a rate drifting a few per cent
-keeps it: the period is the longest of which every recent interval is about a multiple (their median where none is).
-The stream's first ejections into such ringing come before any period is known: the stream's first frames wait (their
-change and novelty, at most :data:`PERIOD_WAIT_S`) until two intervals agree on one, and the stretches it then puts
-between and before the ejections found are judged as above.
+keeps it. The stream's first ejections into such ringing come before any period is known: the stream's first frames
+wait (their change and novelty, at most :data:`PERIOD_WAIT_S`) until two intervals agree on one (the longest of which
+each is about a multiple), and the stretches it then puts between and before the ejections found are judged as above.
 
 What happens after the ejection is not consulted beyond the transient, so a settled meniscus, a heavily
 or lightly damped one and 4 kHz modes look the same to it. Live runs it with ``lookahead`` = the transient
@@ -172,17 +171,31 @@ class EjectionDetector:
         if not self._learning:
             return found
         self._held += found
-        agreed = len(self._held) >= 3 and self._unit(np.diff(self._held)) is not None
-        if not (agreed or final or self._decided - self._origin > self._period_wait):
+        held = self._agreed(self._held)
+        if held is None and not (final or self._decided - self._origin > self._period_wait):
             return []
         self._learning = False
-        held, self._held = self._held, []
+        held, self._held = held or self._held, []
         if len(held) < 3:
             return held
-        found = sorted(held + self._look_back(held, self._unit(np.diff(held))))  # not bursts: the floor keeps
+        # those looked back at are not bursts: the floor stays the clear bursts'
+        found = sorted(held + self._look_back(held, self._unit(np.diff(held))))
         self._intervals.clear()
         self._intervals.extend(np.diff(found).tolist())
         return found
+
+    def _agreed(self, held: list[int]) -> list[int] | None:
+        """``held`` once two intervals between them agree on a period, None before. A first one within the stream's
+        first ``history`` frames (judged against a short baseline or none: a stream started inside a window may
+        ring harder at first than later) does not count towards the period, and stays only where it puts one."""
+        early = bool(held) and held[0] - self._origin < self.history
+        rest = held[1:] if early else held
+        unit = self._unit(np.diff(rest)) if len(rest) >= 3 else None
+        if unit is None:
+            return None
+        n = round((held[1] - held[0]) / unit)
+        fits = n >= 1 and abs(held[1] - held[0] - n * unit) <= EXPECTED_SPREAD * n * unit
+        return held if not early or fits else rest
 
     def _look_back(self, held: list[int], period: float | None) -> list[int]:
         """The ejections in the stretches that ``period`` puts between the ``held`` ejections (each gap about a
@@ -326,8 +339,7 @@ class EjectionDetector:
         out = np.full((count, 2), -1, np.int64)
         if self._last is None or not self._intervals:
             return out
-        intervals = np.asarray(self._intervals, np.float64)
-        period = self._unit(intervals) or float(np.median(intervals))
+        period = float(np.median(self._intervals))
         for k in range(1, EXPECTED_PERIODS + 1):
             centre, spread = self._last + k * period, max(2.0, EXPECTED_SPREAD * k * period)
             a, b = int(np.ceil(centre - spread)) - lo, int(np.floor(centre + spread)) - lo
