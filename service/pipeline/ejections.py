@@ -24,7 +24,10 @@ transient) is the ejection, once that product passes :data:`STRETCH_SCORE` (a st
 stretch's end). The rate is learned from the video, not assumed, and a skipped ejection or a rate drifting a few per cent
 keeps it. The stream's first ejections into such ringing come before any period is known: the stream's first frames
 wait (their change and novelty, at most :data:`PERIOD_WAIT_S`) until two intervals agree on one (the longest of which
-each is about a multiple), and the stretches it then puts between and before the ejections found are judged as above.
+each is about a multiple), and the stretches it then puts between and before the ejections found are judged as above;
+one found in the stream's first ``history`` frames (a short baseline) does not count towards it, and stays only where
+it puts one. A stretch's ejection starts at the first peak of that product before its highest (the ringing an
+ejection starts can stand out more than its own first frames).
 
 What happens after the ejection is not consulted beyond the transient, so a settled meniscus, a heavily
 or lightly damped one and 4 kHz modes look the same to it. Live runs it with ``lookahead`` = the transient
