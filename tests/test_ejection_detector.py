@@ -10,7 +10,7 @@ from hypothesis import strategies as st
 from service import DEFAULT_SCENE
 from service.bench.ejections import frame_measures, score
 from service.camera_effects import noise_preset
-from service.pipeline.ejections import EjectionDetector, detect_ejections_streamed
+from service.pipeline.ejections import PERIOD_WAIT_S, EjectionDetector, detect_ejections_streamed
 from service.scene import Scene
 from service.simulate import simulate
 from service.window_kinds import KINDS, kinds_named
@@ -144,3 +144,58 @@ def test_ejections_into_ringing_as_strong_as_their_burst_are_found_where_the_rat
     true = [190 * k + int(d) for k, d in enumerate([0, 3, -2, 4, 0, -3, 2, 1, -4, 0])]  # a rate drifting 2 %
     change, novelty = ringing_on(true, 2000, np.random.default_rng(5), loud_from=3)
     assert score(detect_ejections_streamed(change, FPS, offline=offline, novelty=novelty), true) == (9, 9, 9)
+
+
+@pytest.mark.parametrize("offline", [False, True])
+@pytest.mark.parametrize("seed", [0, 3])
+def test_the_streams_first_ejections_into_strong_ringing_are_found_once_two_intervals_give_the_period(
+    offline: bool, seed: int
+) -> None:
+    """Into ringing as strong as their bursts from the stream's start on, the first ejections come before any period
+    is known (the change alone misses 190 in these streams): held until two intervals agree on one, then found where
+    it puts them, between and before the ejections found."""
+    true = [190 * k + int(d) for k, d in enumerate([0, 3, -2, 4, 0, -3, 2, 1, -4, 0])]
+    change, novelty = ringing_on(true, 2000, np.random.default_rng(seed), loud_from=0)
+    assert score(detect_ejections_streamed(change, FPS, offline=offline, novelty=novelty), true) == (9, 9, 9)
+
+
+@pytest.mark.parametrize("offline", [False, True])
+@pytest.mark.parametrize("skipped", [[190], [380], [190, 380]])
+def test_a_skipped_ejection_among_the_streams_first_is_not_claimed(offline: bool, skipped: list[int]) -> None:
+    """The period puts a stretch where the skipped ejection would have been; ringing there is no ejection."""
+    true = [e for e in range(0, 1400, 190) if e not in skipped]
+    change, novelty = ringing_on(true, 1500, np.random.default_rng(4), loud_from=0)
+    found = detect_ejections_streamed(change, FPS, offline=offline, novelty=novelty)
+    assert score(found, true) == (len(true) - 1,) * 3
+
+
+def test_the_streams_first_ejections_wait_for_the_period_and_no_longer_than_the_bound() -> None:
+    """Live, nothing is decided before two intervals agree on a period (then all of it at once, in order); a stream
+    with no ejection waits PERIOD_WAIT_S at most."""
+    true = [0, 190, 380, 570, 760]
+    change, novelty = ringing_on(true, 1000, np.random.default_rng(0), loud_from=0)
+    detector, decided = EjectionDetector(FPS), {}
+    for frame in range(1000):
+        for e in detector.push(np.array([frame]), change[frame : frame + 1], novelty[frame : frame + 1]):
+            decided[e] = frame
+    assert score(list(decided), true) == (4, 4, 4) and list(decided) == sorted(decided)
+    assert min(decided.values()) > 380 and detector.settled > 760 - detector.latency
+    quiet = EjectionDetector(FPS)
+    for frame in range(int(PERIOD_WAIT_S * FPS) + quiet.latency + 2):
+        assert quiet.push(np.array([frame]), np.array([8.0]), np.array([3.0])) == []
+    assert quiet.settled > 0
+
+
+@pytest.mark.parametrize("offline", [False, True])
+def test_a_stream_that_starts_in_a_burst_the_period_does_not_put_there_does_not_start_with_an_ejection(
+    offline: bool,
+) -> None:
+    """The stream's first frame is judged against the frames after it alone; the period the next ejections agree
+    on decides whether it is one (here a burst 100 frames before the first of ejections 190 apart)."""
+    true = [100, 290, 480, 670, 860, 1050]
+    change = bursts([0, *true], 1200, np.random.default_rng(0))
+    change[0] = np.nan
+    assert detect_ejections_streamed(change, FPS, offline=offline).tolist() == true
+    change = bursts([10, 200, *true[1:]], 1200, np.random.default_rng(0))[10:]  # where the period puts one: kept
+    change[0] = np.nan
+    assert detect_ejections_streamed(change, FPS, offline=offline).tolist() == [0, *[e - 10 for e in [200, *true[1:]]]]

@@ -9,7 +9,7 @@ import pytest
 
 from service.analysis.segment import windows_between
 from service.pipeline.demo import DEMO_AVI, DEMO_TRUTH
-from service.pipeline.ejections import EjectionDetector, novelty_lags
+from service.pipeline.ejections import PERIOD_WAIT_S, EjectionDetector, novelty_lags
 from service.pipeline.measures import PixelMeasures
 from service.pipeline.segmenter import StreamingSegmenter
 from service.recordings import open_recording
@@ -75,16 +75,16 @@ def test_windows_match_the_offline_windows_between_the_same_ejections() -> None:
     assert [c.window for c in seg.finish(0.0)] == offline[-1:]
 
 
-def test_frames_wait_only_for_the_detectors_look_ahead() -> None:
+def test_frames_wait_for_the_streams_period_then_only_for_the_detectors_look_ahead() -> None:
     detector = EjectionDetector(FPS)
     seg = StreamingSegmenter(10_000, detector)
-    change = bursts([300], 400)
-    closed = segment(seg, np.arange(300 + detector.latency), np.zeros(400), change, 1)
-    assert closed == []
+    change = bursts([100, 290, 480, 700], 800)
+    closed = segment(seg, np.arange(700 + detector.latency), np.zeros(800), change, 1)
+    assert [c.window.end for c in closed] == [100, 290, 480]  # held until two intervals agreed on a period
     closed = seg.push(
-        np.array([300 + detector.latency]), np.zeros(1), change[300 + detector.latency :][:1], np.zeros(1)
+        np.array([700 + detector.latency]), np.zeros(1), change[700 + detector.latency :][:1], np.zeros(1)
     )
-    assert [c.window.end for c in closed] == [300]  # closed as soon as the look-ahead after the ejection is in
+    assert [c.window.end for c in closed] == [700]  # closed as soon as the look-ahead after the ejection is in
     assert detector.latency <= 12  # a few frames at 19,000 frames/s
 
 
@@ -102,13 +102,14 @@ def test_lost_frames_become_missing_samples_and_a_long_gap_cuts_the_window() -> 
 
 def test_a_window_longer_than_the_limit_is_cut_and_memory_stays_bounded() -> None:
     seg = StreamingSegmenter(max_frames=100, detector=EjectionDetector(FPS))
-    closed = segment(seg, np.arange(1050), np.zeros(1050), np.zeros(1050), 64)
-    assert [(c.window.start, c.window.end) for c in closed] == [(k, k + 100) for k in range(0, 1000, 100)]
+    n = int(PERIOD_WAIT_S * FPS) + 150  # the stream's first frames wait for its period, at most PERIOD_WAIT_S
+    closed = segment(seg, np.arange(n), np.zeros(n), np.zeros(n), 64)
+    assert [(c.window.start, c.window.end) for c in closed] == [(k, k + 100) for k in range(0, n - 100, 100)]
     assert not any(c.window.ends_at_ejection or c.window.starts_at_ejection for c in closed)
 
 
 def test_bursts_within_the_refractory_time_are_one_ejection() -> None:
     change = bursts([50, 60, 70, 200], 300)
     seg = StreamingSegmenter(10_000, EjectionDetector(FPS, refractory=100))
-    closed = segment(seg, np.arange(300), np.zeros(300), change, 300)
-    assert [(c.window.start, c.window.end) for c in closed] == [(0, 50), (50, 200)]
+    closed = segment(seg, np.arange(300), np.zeros(300), change, 300) + seg.finish(0.0)
+    assert [(c.window.start, c.window.end) for c in closed] == [(0, 50), (50, 200), (200, 300)]

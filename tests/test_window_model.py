@@ -19,7 +19,7 @@ from service.errors import MeniscopeError
 from service.inverse import window_model as wm
 from service.inverse.manifest import sha256_file
 from service.pipeline.records import FRAME
-from service.pipeline.windows import job_for, window_model_for
+from service.pipeline.windows import WindowJob, fit_job, job_for, window_model_for
 from service.validation.score import QUANTITIES
 from training.window import WindowNet, export
 from training.window_intervals import calibrate
@@ -227,3 +227,32 @@ def test_the_calibration_travels_with_the_job_and_calibrates_the_fit(graph, tmp_
     job = job_for(Window(0, 0, 190, True, True), r, 0.25, 6, model=model)
     assert job.intervals == factors
     assert wm.WindowModel(path).intervals is None  # a model without a calibration keeps the fit's intervals
+
+
+def _wandering(steady: np.ndarray, height_mm: float, rise: float) -> np.ndarray:
+    """``steady`` with a slow bump of ``height_mm`` peaking ``rise`` frames in: a correction that wanders."""
+    t = np.arange(steady.size)
+    return steady + height_mm * (t / rise) * np.exp(1 - t / rise)
+
+
+@settings(max_examples=12, deadline=None)
+@given(seed=st.integers(0, 2**16), height=st.floats(0.002, 0.02), rise=st.floats(10.0, 60.0))
+def test_a_settled_window_is_settled_whatever_the_window_models_correction_wanders(
+    seed: int, height: float, rise: float
+) -> None:
+    """The window model de-shrinks oscillations; a slow swing or trend it adds to a steady series that has none
+    above the noise does not make the meniscus move (a Blender recording's settled window came out unresolved)."""
+    steady = 0.001 + np.random.default_rng(seed).normal(0, 0.0002, 190)
+    job = WindowJob(Window(0, 0, 190, True, True), _wandering(steady, height, rise), None, 0.5, steady=steady)
+    result = fit_job(job, 19_000.0, FitSettings())
+    assert result.status == "settled" and not result.modes and result.settled
+    assert 0 < result.residual_amplitude_mm < 0.001
+
+
+def test_a_window_whose_steady_series_oscillates_keeps_the_window_models_fit() -> None:
+    t = np.arange(190)
+    steady = 0.001 + np.random.default_rng(0).normal(0, 0.0002, 190)
+    steady += 0.002 * np.exp(-t / 80) * np.cos(2 * np.pi * t / 19)
+    job = WindowJob(Window(0, 0, 190, True, True), _wandering(steady, 0.003, 30.0), None, 0.5, steady=steady)
+    result = fit_job(job, 19_000.0, FitSettings())
+    assert result.status != "settled" and any(abs(m.frequency_hz - 1000) < 20 for m in result.modes)

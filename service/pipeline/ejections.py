@@ -22,8 +22,12 @@ after the last ejection, the start where change and novelty stand out most toget
 burst above its baseline's 90th percentile, in baseline medians; the novelty's over the bulge's rise, half the
 transient) is the ejection, once that product passes :data:`STRETCH_SCORE` (a start that does waits for the
 stretch's end). The rate is learned from the video, not assumed, and a skipped ejection or a rate drifting a few per cent
-keeps it. The stream's first ejections into such ringing, before two found ones have given the period, are
-missed.
+keeps it. The stream's first ejections into such ringing come before any period is known: the stream's first frames
+wait (their change and novelty, at most :data:`PERIOD_WAIT_S`) until two intervals agree on one (the longest of which
+each is about a multiple), and the stretches it then puts between and before the ejections found are judged as above;
+one found in the stream's first ``history`` frames (a short baseline) does not count towards it, and stays only where
+it puts one. A stretch's ejection starts at the first peak of that product before its highest (the ringing an
+ejection starts can stand out more than its own first frames).
 
 What happens after the ejection is not consulted beyond the transient, so a settled meniscus, a heavily
 or lightly damped one and 4 kHz modes look the same to it. Live runs it with ``lookahead`` = the transient
@@ -51,6 +55,9 @@ REFRACTORY_S = 4e-3
 #: ejection found after it: decided then, or not at all once the stream has run this long without one (s).
 START_FRACTION = 0.5
 START_WAIT_S = 25e-3
+#: The stream's first ejections are held (and its frames wait) until two intervals between them agree on a period, at
+#: most this long (s); then the stretches the period puts between and before them are looked at (:data:`STRETCH_SCORE`).
+PERIOD_WAIT_S = 80e-3
 
 #: A burst starts at its first frame whose change above the baseline reaches this share of its highest: the
 #: bulge's first frame changes less than its fastest (one ejection in 50 at half; at 0.3 an ejection into strong
@@ -97,6 +104,7 @@ class EjectionDetector:
         self.lookahead = max(self.transient + 2, lookahead if lookahead is not None else 0)
         self.ratio, self.floor = ratio, floor
         self._start_wait = int(START_WAIT_S * fps)
+        self._period_wait = int(PERIOD_WAIT_S * fps)
         self._changes = np.empty(0)  # changes of frames [self._first, ...), NaN where missing
         self._novelty = np.empty(0)  # their novelty, the same frames
         self._first: int | None = None
@@ -107,6 +115,8 @@ class EjectionDetector:
         self._pending: float | None = None  # the first transient's highest change while its ejection is undecided
         self._bursts: deque[float] = deque(maxlen=8)
         self._intervals: deque[int] = deque(maxlen=8)  # frames between consecutive ejections found
+        self._learning = True  # the stream's first ejections are held until a period is known
+        self._held: list[int] = []
 
     @property
     def latency(self) -> int:
@@ -121,7 +131,8 @@ class EjectionDetector:
         whether it starts at one is undecided)."""
         if self._first is None:
             return np.iinfo(np.int64).min
-        return self._origin if self._pending is not None else self._decided - self.transient + 1
+        held = self._pending is not None or self._learning
+        return self._origin if held else self._decided - self.transient + 1
 
     def push(self, indices: np.ndarray, change: np.ndarray, novelty: np.ndarray | None = None) -> list[int]:
         """Add frames ``indices`` (N,), increasing, with their change and novelty (N,) (NaN where unknown, as all
@@ -131,7 +142,7 @@ class EjectionDetector:
             return []
         if self._first is None:
             self._first = self._decided = self._origin = int(indices[0])
-            self._start_checked = False
+            self._start_checked, self._learning = False, True
         end = self._first + self._changes.size
         grown = np.full(max(int(indices[-1]) + 1 - end, 0), np.nan)
         self._changes = np.concatenate([self._changes, grown])
@@ -146,7 +157,7 @@ class EjectionDetector:
         found += self._decide(self._first + self._changes.size - self.lookahead + 1)
         if self._pending is not None and self._decided - self._origin > self._start_wait:
             self._pending = None  # no ejection for long: the stream started inside a window
-        return found
+        return self._release(found, final=False)
 
     def finish(self) -> list[int]:
         """The stream ended: decide the frames still waiting for their look-ahead."""
@@ -154,7 +165,82 @@ class EjectionDetector:
             return []
         found = self._start(final=True) + self._decide(self._first + self._changes.size - self.transient, final=True)
         self._pending = None
+        return self._release(found, final=True)
+
+    def _release(self, found: list[int], final: bool) -> list[int]:
+        """The ejections ``found`` once the stream's period is known; before, they are held, and once it is (two
+        intervals agree on one, the stream has run PERIOD_WAIT_S or ended) returned with those the period finds
+        between and before them."""
+        if not self._learning:
+            return found
+        self._held += found
+        held = self._agreed(self._held)
+        if held is None and not (final or self._decided - self._origin > self._period_wait):
+            return []
+        self._learning = False
+        held, self._held = held or self._held, []
+        if len(held) < 3:
+            return held
+        # those looked back at are not bursts: the floor stays the clear bursts'
+        found = sorted(held + self._look_back(held, self._unit(np.diff(held))))
+        self._intervals.clear()
+        self._intervals.extend(np.diff(found).tolist())
         return found
+
+    def _agreed(self, held: list[int]) -> list[int] | None:
+        """``held`` once two intervals between them agree on a period, None before. A first one within the stream's
+        first ``history`` frames (judged against a short baseline or none: a stream started inside a window may
+        ring harder at first than later) does not count towards the period, and stays only where it puts one."""
+        early = bool(held) and held[0] - self._origin < self.history
+        rest = held[1:] if early else held
+        unit = self._unit(np.diff(rest)) if len(rest) >= 3 else None
+        if unit is None:
+            return None
+        n = round((held[1] - held[0]) / unit)
+        fits = n >= 1 and abs(held[1] - held[0] - n * unit) <= EXPECTED_SPREAD * n * unit
+        return held if not early or fits else rest
+
+    def _look_back(self, held: list[int], period: float | None) -> list[int]:
+        """The ejections in the stretches that ``period`` puts between the ``held`` ejections (each gap about a
+        multiple of it) and before the first (back to the stream's start, up to EXPECTED_PERIODS): the start
+        where change and novelty stand out most together, where it passes STRETCH_SCORE."""
+        if period is None:
+            return []
+        spread = max(2.0, EXPECTED_SPREAD * period)
+        stretches = [
+            (a + j * (b - a) / n, spread)
+            for a, b in zip(held, held[1:])
+            for n in [int(round((b - a) / period))]
+            for j in range(1, n)
+        ]
+        if held[0] != self._origin:
+            stretches += [(held[0] - k * period, k * spread) for k in range(1, EXPECTED_PERIODS + 1)]
+        lo, hi = self._origin + self.history, self._first + self._changes.size - self.transient
+        found: list[int] = []
+        for centre, half in stretches:
+            frames = np.arange(max(int(np.ceil(centre - half)), lo), min(int(np.floor(centre + half)), hi - 1) + 1)
+            if frames.size == 0:
+                continue
+            positions = frames - self._first
+            _, level, base, _ = self._levels(positions)
+            score = self._scores(level, base, positions)
+            best = int(frames[self._first_peak(score, int(np.argmax(score)))])
+            if score.max() > STRETCH_SCORE and min(abs(best - f) for f in held + found) >= self.refractory:
+                found.append(best)
+        return found
+
+    def _unit(self, intervals: np.ndarray) -> float | None:
+        """The longest period (at least the refractory time) of which each of ``intervals`` is about a multiple
+        (within EXPECTED_SPREAD of that multiple), from the shortest one over up to EXPECTED_PERIODS: the
+        intervals' median in it; None where there is none."""
+        for k in range(1, EXPECTED_PERIODS + 1):
+            unit = float(np.min(intervals)) / k
+            if unit < self.refractory:
+                break
+            n = np.round(intervals / unit)  # at least 1: the unit is at most the shortest
+            if np.all(np.abs(intervals - n * unit) <= EXPECTED_SPREAD * n * unit):
+                return float(np.median(intervals / n))
+        return None
 
     def _start(self, final: bool) -> list[int]:
         """Whether the stream starts with an ejection (a recording cut at one), once the ``history`` frames after
@@ -181,15 +267,8 @@ class EjectionDetector:
             return []
         c = self._changes
         at = lambda frame: frame - self._first
-        pad = np.full(self.history, np.nan)
-        ext = np.concatenate([pad, c, np.full(self.lookahead, np.nan)])  # ext[i + history] = c[i]
         span = np.arange(at(lo), max(at(until) + self.lookahead, c.size))
-        with np.errstate(all="ignore"), _quiet():
-            burst = np.nanmax(sliding_window_view(ext[self.history :], self.transient)[span], axis=1)
-            past = sliding_window_view(ext, self.history)[span]
-            base, top, known = _median_and_p90(past)
-        level = np.nan_to_num(burst - top, nan=-np.inf)
-        level[known < self.transient] = -np.inf  # too little history to judge against
+        burst, level, base, top = self._levels(span)
         levels, bases = level.tolist(), base.tolist()  # floats: the loop below looks at every frame
         found = []
         typical = self.floor * self._typical()
@@ -220,7 +299,7 @@ class EjectionDetector:
                     break
                 if i != a + int(np.argmax(score)):
                     continue
-                onset = at(frame)
+                onset = at(lo + a + self._first_peak(score, i - a))
             else:
                 continue
             if self._last is not None:
@@ -237,10 +316,23 @@ class EjectionDetector:
                 self._pending = None
             found.append(self._last)
         self._decided = until
-        drop = max(0, at(until) - self.history - self.transient)
+        drop = 0 if self._learning else max(0, at(until) - self.history - self.transient)
         self._changes, self._first = c[drop:], self._first + drop
         self._novelty = self._novelty[drop:]
         return found
+
+    def _levels(self, positions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """For starts at ``positions`` (in the kept frames): the highest change over the transient, how far it
+        stands above the baseline's 90th percentile (-inf where the baseline is too short to judge against), the
+        baseline's median and its 90th percentile."""
+        pad = np.full(self.history, np.nan)
+        ext = np.concatenate([pad, self._changes, np.full(self.lookahead, np.nan)])  # ext[i + history] = change i
+        with np.errstate(all="ignore"), _quiet():
+            burst = np.nanmax(sliding_window_view(ext[self.history :], self.transient)[positions], axis=1)
+            base, top, known = _median_and_p90(sliding_window_view(ext, self.history)[positions])
+        level = np.nan_to_num(burst - top, nan=-np.inf)
+        level[known < self.transient] = -np.inf  # too little history to judge against
+        return burst, level, base, top
 
     def _stretches(self, lo: int, count: int) -> np.ndarray:
         """For frames ``lo .. lo + count - 1``: the first and last frame (from ``lo``) of the stretch about a
@@ -271,6 +363,17 @@ class EjectionDetector:
             novel = np.where(known >= self.transient, (burst - novel_top) / novel_base, np.nan)
             change = level / base
         return np.nan_to_num(np.clip(change, 0, None) * np.clip(novel, 0, None), nan=0.0, posinf=0.0)
+
+    def _first_peak(self, score: np.ndarray, best: int) -> int:
+        """Where, among a stretch's starts ``score``, the ejection that its highest ``best`` belongs to starts: the
+        first of the transient's starts up to ``best`` that stands above both its neighbours and reaches
+        ONSET_FRACTION of the highest (the ringing an ejection starts can stand out more than the ejection's own
+        first frames: a 4 kHz mode on a Blender recording), else ``best``."""
+        lo = max(0, best - self.transient + 1)
+        s = score[lo : best + 1]
+        peak = (s >= ONSET_FRACTION * s[-1]) & (s > np.append(s[1:], -np.inf)) & (s > np.append(-np.inf, s[:-1]))
+        peak[-1] = True
+        return lo + int(np.argmax(peak))
 
     def _typical(self) -> float:
         """The median burst level of the recent ejections (0 before the first)."""

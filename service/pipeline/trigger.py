@@ -74,14 +74,15 @@ class TriggerCheck:
         self.cuts: list[int] = []  # printer ejections not yet cut
 
     def update(self, video: list[int], newest: int, settled: int) -> int:
-        """Take new events and the video's new ejections; compare those before both are final; return the frame
-        before which the cuts are known (``wait_frames`` behind ``newest``, and the detector's ``settled``)."""
+        """Take new events and the video's new ejections; compare those before both are final (the detector's
+        ``settled``: it holds a stream's first ejections until it knows their period); return the frame before
+        which the cuts are known (``wait_frames`` behind ``newest``)."""
         fresh = self.inbox.take(self.fps)
         self.printer = sorted(self.printer + fresh)
         self.cuts = sorted(set(self.cuts + fresh))
         self._video += video
-        until = min(settled, newest + 1 - self.wait)
-        self._compare(until - self.tolerance)
+        until = newest + 1 - self.wait
+        self._compare(min(until, settled) - self.tolerance)
         return until
 
     def _compare(self, before: int) -> None:

@@ -29,7 +29,8 @@ class WindowJob:
     """One window's fit to be done: the series it takes (the steady D(0, t), mm per frame, NaN where frames are
     missing), its frames' mean brightness (where the fit takes its poles from the frames), their median highlight
     (:data:`~service.pipeline.records.FRAME`'s, fraction of full scale; NaN where unknown) and when (monotonic s)
-    the frame that closed it was read (NaN offline); the window model's calibration of its intervals, if any."""
+    the frame that closed it was read (NaN offline); the window model's calibration of its intervals, if any, and
+    the steady D(0, t) it corrected (``series`` being the correction's)."""
 
     window: Window
     series: np.ndarray
@@ -37,6 +38,7 @@ class WindowJob:
     highlight: float = math.nan
     closed_at: float = math.nan
     intervals: Intervals | None = None
+    steady: np.ndarray | None = None
 
 
 def job_for(
@@ -51,10 +53,11 @@ def job_for(
     ``model``'s correction and its intervals' calibration where there is one (:func:`window_model_for`), and
     brightness."""
     coefficients = coefficients_of(records)
-    series = window_steady_centre(coefficients, radius_mm, transient, window.starts_at_ejection)
+    steady = window_steady_centre(coefficients, radius_mm, transient, window.starts_at_ejection)
+    series = steady
     if model is not None:
         skip = transient if window.starts_at_ejection else 0
-        series = model.correct(coefficients, records["brightness"], series, skip)
+        series = model.correct(coefficients, records["brightness"], steady, skip)
     highlight = records["highlight"][np.isfinite(records["highlight"])]
     return WindowJob(
         window,
@@ -63,6 +66,7 @@ def job_for(
         float(np.median(highlight)) if len(highlight) else math.nan,
         closed_at,
         None if model is None else model.intervals,
+        None if model is None else steady,
     )
 
 
@@ -76,7 +80,10 @@ def window_model_for(settings: FitSettings, models: Path, method: str) -> Window
 def fit_job(job: WindowJob, fps: float, settings: FitSettings) -> WindowResult:
     """The window fit (:func:`service.analysis.fit.fit_window`) of one job, its intervals calibrated where the job
     carries a calibration; ``unresolved`` without a fit where its frames show no highlight (a dark or unlit camera
-    would otherwise pass for a settled meniscus)."""
+    would otherwise pass for a settled meniscus). The window model de-shrinks oscillations; it does not make a
+    settled meniscus move: where its series leaves the window unresolved (a slow swing or trend: its correction
+    wandering, on a Blender recording's settled window) and the steady series it corrected is settled, the window is
+    settled, as that series' fit reports it."""
     from service.analysis.fit import fit_window
 
     w = job.window
@@ -88,16 +95,19 @@ def fit_job(job: WindowJob, fps: float, settings: FitSettings) -> WindowResult:
             "the meniscus",
             "unresolved",
         )
-    result = fit_window(
-        job.series,
-        fps,
-        settings,
+    where = dict(
         index=w.index,
         start_frame=w.start,
         starts_at_ejection=w.starts_at_ejection,
         ends_at_ejection=w.ends_at_ejection,
         brightness=job.brightness,
     )
+    result = fit_window(job.series, fps, settings, **where)
+    if result.status == "unresolved" and job.steady is not None:
+        steady = fit_window(job.steady, fps, settings, **where)
+        if steady.status == "settled":
+            note = f"in the steady series (the window model's was unresolved: {result.reason})"
+            return steady.model_copy(update={"reason": f"{steady.reason}, {note}"})
     return result if job.intervals is None else job.intervals.apply(result)
 
 
