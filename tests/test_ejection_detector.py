@@ -199,3 +199,35 @@ def test_a_stream_that_starts_in_a_burst_the_period_does_not_put_there_does_not_
     change = bursts([10, 200, *true[1:]], 1200, np.random.default_rng(0))[10:]  # where the period puts one: kept
     change[0] = np.nan
     assert detect_ejections_streamed(change, FPS, offline=offline).tolist() == [0, *[e - 10 for e in [200, *true[1:]]]]
+
+
+#: Frame change and novelty after an ejection whose own 4 kHz ringing changes the frame more than its burst did
+#: (our renderer, 4 kHz lab seed 5 at 950 and at 570, less the ringing before): offsets from the ejection's first frame.
+LOUDER_RINGING = {
+    "quiet between": (
+        {0: 244, 2: 15, 3: 45, 4: 46, 6: 73, 7: 200, 8: 84, 9: 163, 10: 136, 11: 41, 12: 276, 14: 195},
+        {0: 201, 1: 231, 2: 225, 3: 193, 4: 170, 5: 171, 6: 111, 7: 24, 8: 68, 9: 30, 10: 69, 11: 55, 12: 63},
+    ),
+    "unbroken": (
+        {0: 136, 1: 60, 4: 218, 5: 172, 6: 133, 7: 194, 8: 60, 10: 179, 11: 150, 12: 258},
+        {0: 88, 1: 129, 2: 114, 3: 100, 4: 102, 5: 47, 6: 56, 7: 108, 8: 162, 9: 153, 10: 31, 11: 43, 12: 97},
+    ),
+}
+
+
+@pytest.mark.parametrize("offline", [False, True])
+@pytest.mark.parametrize("case", sorted(LOUDER_RINGING))
+def test_an_ejection_whose_ringing_changes_the_frame_more_than_its_burst_is_placed_at_its_first_frame(
+    offline: bool, case: str
+) -> None:
+    """The offline look-ahead's strongest start is then the ringing, 7 frames on; the ejection is the burst before
+    it: the start with the newer shape (novelty), or the first of the unbroken run of starts leading to it."""
+    rng = np.random.default_rng(6)
+    true = list(range(100, 1900, 190))
+    change, novelty = rng.normal(40.0, 4.0, 2000), np.abs(rng.normal(3.0, 1.0, 2000))
+    for e in true:
+        for offset, value in LOUDER_RINGING[case][0].items():
+            change[e + offset] = value
+        for offset, value in LOUDER_RINGING[case][1].items():
+            novelty[e + offset] = value
+    assert score(detect_ejections_streamed(change, FPS, offline=offline, novelty=novelty), true) == (9, 9, 9)

@@ -117,6 +117,7 @@ class EjectionDetector:
         self._intervals: deque[int] = deque(maxlen=8)  # frames between consecutive ejections found
         self._learning = True  # the stream's first ejections are held until a period is known
         self._held: list[int] = []
+        self._run: int | None = None  # the first of the unbroken run of starts that pass, up to the frame deciding
 
     @property
     def latency(self) -> int:
@@ -278,13 +279,17 @@ class EjectionDetector:
         for i in range(count):
             frame = lo + i
             if self._last is not None and frame - self._last < self.refractory:
+                self._run = None
                 continue
             if levels[i] > self.ratio * bases[i] and levels[i] > typical:
+                self._run = frame if self._run is None else self._run
                 ahead = level[i : i + self.lookahead - self.transient + 1]
-                if ahead.max() > level[i]:  # a stronger start follows within the look-ahead: decide there
-                    continue
-                onset = self._onset(c, at(frame), top[i])
+                stronger = span[i] + int(np.argmax(ahead))
+                if ahead.max() > level[i] and not self._newer(span[i], stronger):
+                    continue  # a stronger start follows within the look-ahead, showing no older shape: decide there
+                onset = self._onset(c, at(frame), top[i], at(self._run))
             elif stretch_of[i, 0] >= 0 and levels[i] > 0:  # where the rate puts the next ejection
+                self._run = None
                 a, b = int(stretch_of[i, 0]), int(stretch_of[i, 1])
                 if scored is None or scored[:2] != (a, b):  # the stretch's starts, as far as they are in
                     z = min(b, span.size - 1) + 1
@@ -301,6 +306,7 @@ class EjectionDetector:
                     continue
                 onset = at(lo + a + self._first_peak(score, i - a))
             else:
+                self._run = None
                 continue
             if self._last is not None:
                 self._intervals.append(self._first + onset - self._last)
@@ -375,15 +381,27 @@ class EjectionDetector:
         peak[-1] = True
         return lo + int(np.argmax(peak))
 
+    def _newer(self, start: int, other: int) -> bool:
+        """Whether the start at kept position ``start`` shows a newer shape than the one at ``other`` (the highest
+        novelty over each one's transient): the ringing an ejection starts can change the frame more than the
+        bulge did (a 4 kHz mode), never show as new a shape. False where novelty is unknown."""
+        n, t = self._novelty, self.transient
+        with np.errstate(all="ignore"), _quiet():
+            return bool(np.nanmax(n[start : start + t]) > np.nanmax(n[other : other + t]))
+
     def _typical(self) -> float:
         """The median burst level of the recent ejections (0 before the first)."""
         return float(np.median(self._bursts)) if self._bursts else 0.0
 
-    def _onset(self, c: np.ndarray, peak: int, top: float) -> int:
-        """Position of the burst's first frame: the earliest of the ``transient`` frames up to ``peak`` whose
-        change above ``top`` (the baseline's 90th percentile) reaches ONSET_FRACTION of the burst's highest."""
+    def _onset(self, c: np.ndarray, peak: int, top: float, run: int) -> int:
+        """Position of the burst's first frame: the earliest of the frames from the ``transient`` before ``peak``, or
+        from ``run`` (the first of the unbroken run of passing starts it ends: the ringing an ejection starts can
+        change the frame more than its bulge, and the look-ahead then decides at the ringing), whose change above
+        ``top`` (the baseline's 90th percentile) reaches ONSET_FRACTION of the burst's highest."""
         lo = max(
-            peak - self.transient + 1, 0, (self._last - self._first + self.refractory) if self._last is not None else 0
+            min(peak - self.transient + 1, run),
+            0,
+            (self._last - self._first + self.refractory) if self._last is not None else 0,
         )
         lo = min(lo, peak)
         span = np.nan_to_num(c[lo : peak + self.transient] - top, nan=0.0)
