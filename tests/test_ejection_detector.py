@@ -13,6 +13,7 @@ from service.camera_effects import noise_preset
 from service.pipeline.ejections import PERIOD_WAIT_S, EjectionDetector, detect_ejections_streamed
 from service.scene import Scene
 from service.simulate import simulate
+from service.validation.score import ejection_matches
 from service.window_kinds import KINDS, kinds_named
 
 FPS = 19_000.0
@@ -231,3 +232,28 @@ def test_an_ejection_whose_ringing_changes_the_frame_more_than_its_burst_is_plac
         for offset, value in LOUDER_RINGING[case][1].items():
             novelty[e + offset] = value
     assert score(detect_ejections_streamed(change, FPS, offline=offline, novelty=novelty), true) == (9, 9, 9)
+
+
+def a_beat_then_ejections(at: list[int], n: int, rng: np.random.Generator, beat: int) -> tuple[np.ndarray, np.ndarray]:
+    """Frame change and novelty of a stream started inside a lightly damped window whose ringing beats: quiet (change
+    about 8, novelty about 3) but for one loud beat at ``beat`` (3 frames of change 50, a shape seen a period before);
+    at each of ``at`` an ejection's burst (3 frames, 260) and new shape (novelty 60 above)."""
+    change, novelty = rng.normal(8.0, 0.5, n), np.abs(rng.normal(3.0, 1.0, n))
+    change[beat : beat + 3] += 42.0
+    for e in at:
+        change[e : e + 3] += 260.0
+        novelty[e : e + 3] += 60.0
+    change[0], novelty[:7] = np.nan, np.nan  # the stream's first frames have none (or too few) before them
+    return change, novelty
+
+
+@pytest.mark.parametrize("offline", [False, True])
+@pytest.mark.parametrize("beat", [12, 30, 50, 70])
+def test_a_beat_of_ringing_before_a_streams_first_ejection_is_not_one(offline: bool, beat: int) -> None:
+    """Before any ejection sets the floor, a beat standing ``ratio`` above the quiet frames before it passes; it
+    falls under the floor the ejections found after it set (and in the stream's first 2 ms, its baseline is too
+    short to judge), so it is no ejection and does not spoil the period."""
+    true = list(range(150, 1900, 190))
+    change, novelty = a_beat_then_ejections(true, 1900, np.random.default_rng(beat), beat)
+    found = detect_ejections_streamed(change, FPS, offline=offline, novelty=novelty)
+    assert ejection_matches(found, np.array(true), 2) == (len(true),) * 3

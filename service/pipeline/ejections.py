@@ -24,9 +24,11 @@ transient) is the ejection, once that product passes :data:`STRETCH_SCORE` (a st
 stretch's end). The rate is learned from the video, not assumed, and a skipped ejection or a rate drifting a few per cent
 keeps it. The stream's first ejections into such ringing come before any period is known: the stream's first frames
 wait (their change and novelty, at most :data:`PERIOD_WAIT_S`) until two intervals agree on one (the longest of which
-each is about a multiple), and the stretches it then puts between and before the ejections found are judged as above;
-one found in the stream's first ``history`` frames (a short baseline) does not count towards it, and stays only where
-it puts one. A stretch's ejection starts at the first peak of that product before its highest (the ringing an
+each is about a multiple), and the stretches it then puts between, before and after the ejections found are judged as
+above. No start in the stream's first ``history`` frames is judged by its burst (a baseline shorter than a slow
+ringing's period misses its peaks), and a held one whose burst falls under ``floor`` times the held ones' median (the
+floor those set later: ringing that beats passes ``ratio`` against its own quiet frames) is dropped; the stream's first
+frame counts towards the period only where it fits it, or where a shorter period that it fits finds more ejections. A stretch's ejection starts at the first peak of that product before its highest (the ringing an
 ejection starts can stand out more than its own first frames).
 
 What happens after the ejection is not consulted beyond the transient, so a settled meniscus, a heavily
@@ -117,6 +119,9 @@ class EjectionDetector:
         self._intervals: deque[int] = deque(maxlen=8)  # frames between consecutive ejections found
         self._learning = True  # the stream's first ejections are held until a period is known
         self._held: list[int] = []
+        # each held ejection found by its own burst: that burst's level (the floor's) and highest change (the start's)
+        self._held_bursts: dict[int, tuple[float, float]] = {}
+        self._start_highest: float | None = None  # the stream's first transient's, where its first ejection took it
         self._run: int | None = None  # the first of the unbroken run of starts that pass, up to the frame deciding
 
     @property
@@ -175,18 +180,43 @@ class EjectionDetector:
         if not self._learning:
             return found
         self._held += found
-        held = self._agreed(self._held)
+        clear = self._clear(self._held)
+        held = self._agreed(clear)
         if held is None and not (final or self._decided - self._origin > self._period_wait):
             return []
         self._learning = False
-        held, self._held = held or self._held, []
+        held, self._held = held or clear, []
+        self._held_bursts.clear()
         if len(held) < 3:
             return held
         # those looked back at are not bursts: the floor stays the clear bursts'
-        found = sorted(held + self._look_back(held, self._unit(np.diff(held))))
+        found = held + self._look_back(held, self._unit(np.diff(held)))
+        if len(held) < len(clear):  # the first, off the period: kept where a shorter one fits it and finds more
+            unit = self._unit(np.diff(clear))
+            more = self._look_back(clear, unit) if unit is not None else []
+            found = clear + more if any(f > clear[1] for f in more) else found
+        found = sorted(found)
         self._intervals.clear()
         self._intervals.extend(np.diff(found).tolist())
+        self._last = found[-1]
         return found
+
+    def _clear(self, held: list[int]) -> list[int]:
+        """``held`` but those found by their own burst whose burst falls under ``floor`` times the median of those
+        bursts (the floor that the recent ejections set later in the stream; before the first, ringing that beats
+        passes ``ratio`` against its own quiet frames), and the stream's first frame where one of those took it and
+        its transient falls under START_FRACTION of their median highest change."""
+        own = np.array([self._held_bursts[f] for f in held if f in self._held_bursts]).reshape(-1, 2)
+        if not own.size:
+            return held
+        weak, start = self.floor * np.median(own[:, 0]), START_FRACTION * np.median(own[:, 1])
+
+        def clear(frame: int) -> bool:
+            if frame in self._held_bursts:
+                return self._held_bursts[frame][0] >= weak
+            return frame != self._origin or self._start_highest is None or self._start_highest >= start
+
+        return [f for f in held if clear(f)]
 
     def _agreed(self, held: list[int]) -> list[int] | None:
         """``held`` once two intervals between them agree on a period, None before. A first one within the stream's
@@ -216,6 +246,9 @@ class EjectionDetector:
         ]
         if held[0] != self._origin:
             stretches += [(held[0] - k * period, k * spread) for k in range(1, EXPECTED_PERIODS + 1)]
+        # and after the last, where already decided (held, no stretch was looked at)
+        stretches += [(held[-1] + k * period, k * spread) for k in range(1, EXPECTED_PERIODS + 1)]
+        stretches = [(centre, half) for centre, half in stretches if centre < self._decided]
         lo, hi = self._origin + self.history, self._first + self._changes.size - self.transient
         found: list[int] = []
         for centre, half in stretches:
@@ -258,6 +291,7 @@ class EjectionDetector:
             return []
         self._last = self._first
         self._bursts.append(float(level))
+        self._held_bursts[self._first] = (float(level), float(np.nanmax(burst)))
         return [self._first]
 
     def _decide(self, until: int, final: bool = False) -> list[int]:
@@ -312,11 +346,14 @@ class EjectionDetector:
                 self._intervals.append(self._first + onset - self._last)
             self._last = self._first + onset
             self._bursts.append(float(level[i]))
+            if self._learning and self._run is not None:  # found by its own burst
+                self._held_bursts[self._last] = (float(level[i]), float(burst[i]))
             typical = self.floor * self._typical()
             stretch_of = self._stretches(lo, count)
             if self._pending is not None:  # the stream's start judged against its first ejection
                 starts = self._last - self._origin >= self.refractory and self._pending >= START_FRACTION * burst[i]
                 if starts:
+                    self._start_highest = self._pending
                     found.append(self._origin)
                     self._intervals.append(self._last - self._origin)
                 self._pending = None
@@ -338,6 +375,8 @@ class EjectionDetector:
             base, top, known = _median_and_p90(sliding_window_view(ext, self.history)[positions])
         level = np.nan_to_num(burst - top, nan=-np.inf)
         level[known < self.transient] = -np.inf  # too little history to judge against
+        # nor in the stream's first ``history``: a baseline shorter than a slow ringing's period misses its peaks
+        level[positions + self._first < self._origin + self.history] = -np.inf
         return burst, level, base, top
 
     def _stretches(self, lo: int, count: int) -> np.ndarray:
@@ -346,7 +385,7 @@ class EjectionDetector:
         the last ejection that each lies in, +-``EXPECTED_SPREAD`` of that time; (count, 2), -1 where none (or
         too few ejections are known)."""
         out = np.full((count, 2), -1, np.int64)
-        if self._last is None or not self._intervals:
+        if self._last is None or not self._intervals or self._learning:
             return out
         period = float(np.median(self._intervals))
         for k in range(1, EXPECTED_PERIODS + 1):
