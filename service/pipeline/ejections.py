@@ -321,7 +321,7 @@ class EjectionDetector:
                 stronger = span[i] + int(np.argmax(ahead))
                 if ahead.max() > level[i] and not self._newer(span[i], stronger):
                     continue  # a stronger start follows within the look-ahead, showing no older shape: decide there
-                onset = self._onset(c, at(frame), top[i], at(self._run))
+                onset = self._onset(c, at(frame), top[i], at(self._run), self.ratio * bases[i])
             elif stretch_of[i, 0] >= 0 and levels[i] > 0:  # where the rate puts the next ejection
                 self._run = None
                 a, b = int(stretch_of[i, 0]), int(stretch_of[i, 1])
@@ -432,11 +432,12 @@ class EjectionDetector:
         """The median burst level of the recent ejections (0 before the first)."""
         return float(np.median(self._bursts)) if self._bursts else 0.0
 
-    def _onset(self, c: np.ndarray, peak: int, top: float, run: int) -> int:
+    def _onset(self, c: np.ndarray, peak: int, top: float, run: int, clear: float) -> int:
         """Position of the burst's first frame: the earliest of the frames from the ``transient`` before ``peak``, or
         from ``run`` (the first of the unbroken run of passing starts it ends: the ringing an ejection starts can
         change the frame more than its bulge, and the look-ahead then decides at the ringing), whose change above
-        ``top`` (the baseline's 90th percentile) reaches ONSET_FRACTION of the burst's highest."""
+        ``top`` (the baseline's 90th percentile) reaches ONSET_FRACTION of the burst's highest, or ``clear`` (as far above
+        it as a burst must stand: a faint droplet's first frames can change the frame less than a fifth of the bulge)."""
         lo = max(
             min(peak - self.transient + 1, run),
             0,
@@ -444,7 +445,7 @@ class EjectionDetector:
         )
         lo = min(lo, peak)
         span = np.nan_to_num(c[lo : peak + self.transient] - top, nan=0.0)
-        return lo + int(np.argmax(span >= ONSET_FRACTION * span.max()))
+        return lo + int(np.argmax(span >= min(ONSET_FRACTION * span.max(), clear)))
 
 
 def _median_and_p90(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
