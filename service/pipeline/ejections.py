@@ -191,10 +191,11 @@ class EjectionDetector:
             return held
         # those looked back at are not bursts: the floor stays the clear bursts'
         found = held + self._look_back(held, self._unit(np.diff(held)))
-        if len(held) < len(clear):  # the first, off the period: kept where a shorter one fits it and finds more
-            unit = self._unit(np.diff(clear))
+        if len(held) < len(clear):  # the first, off the period: kept where a shorter one fits it and finds an
+            unit = self._unit(np.diff(clear))  # ejection in every stretch it puts between the others
             more = self._look_back(clear, unit) if unit is not None else []
-            found = clear + more if any(f > clear[1] for f in more) else found
+            between = sum(round((b - a) / unit) - 1 for a, b in zip(clear[1:], clear[2:])) if unit is not None else 0
+            found = clear + more if 0 < between == sum(clear[1] < f < clear[-1] for f in more) else found
         found = sorted(found)
         self._intervals.clear()
         self._intervals.extend(np.diff(found).tolist())
