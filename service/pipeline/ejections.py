@@ -222,14 +222,15 @@ class EjectionDetector:
     def _agreed(self, held: list[int]) -> list[int] | None:
         """``held`` once two intervals between them agree on a period, None before. A first one within the stream's
         first ``history`` frames (judged against a short baseline or none: a stream started inside a window may
-        ring harder at first than later) does not count towards the period, and stays only where it puts one."""
+        ring harder at first than later) does not count towards the period, and stays only within EXPECTED_SPREAD of a
+        period of where it puts one (not n times that: 37 frames into a 4 kHz window, two periods before, is no ejection)."""
         early = bool(held) and held[0] - self._origin < self.history
         rest = held[1:] if early else held
         unit = self._unit(np.diff(rest)) if len(rest) >= 3 else None
         if unit is None:
             return None
         n = round((held[1] - held[0]) / unit)
-        fits = n >= 1 and abs(held[1] - held[0] - n * unit) <= EXPECTED_SPREAD * n * unit
+        fits = n >= 1 and abs(held[1] - held[0] - n * unit) <= EXPECTED_SPREAD * unit
         return held if not early or fits else rest
 
     def _look_back(self, held: list[int], period: float | None) -> list[int]:
