@@ -24,9 +24,11 @@ transient) is the ejection, once that product passes :data:`STRETCH_SCORE` (a st
 stretch's end). The rate is learned from the video, not assumed, and a skipped ejection or a rate drifting a few per cent
 keeps it. The stream's first ejections into such ringing come before any period is known: the stream's first frames
 wait (their change and novelty, at most :data:`PERIOD_WAIT_S`) until two intervals agree on one (the longest of which
-each is about a multiple), and the stretches it then puts between and before the ejections found are judged as above;
-one found in the stream's first ``history`` frames (a short baseline) does not count towards it, and stays only where
-it puts one. A stretch's ejection starts at the first peak of that product before its highest (the ringing an
+each is about a multiple), and the stretches it then puts between, before and after the ejections found are judged as
+above. No start in the stream's first ``history`` frames is judged by its burst (a baseline shorter than a slow
+ringing's period misses its peaks), and a held one whose burst falls under ``floor`` times the held ones' median (the
+floor those set later: ringing that beats passes ``ratio`` against its own quiet frames) is dropped; the stream's first
+frame counts towards the period only where it fits it, or where a shorter period that it fits finds more ejections. A stretch's ejection starts at the first peak of that product before its highest (the ringing an
 ejection starts can stand out more than its own first frames).
 
 What happens after the ejection is not consulted beyond the transient, so a settled meniscus, a heavily
@@ -117,6 +119,10 @@ class EjectionDetector:
         self._intervals: deque[int] = deque(maxlen=8)  # frames between consecutive ejections found
         self._learning = True  # the stream's first ejections are held until a period is known
         self._held: list[int] = []
+        # each held ejection found by its own burst: that burst's level (the floor's) and highest change (the start's)
+        self._held_bursts: dict[int, tuple[float, float]] = {}
+        self._start_highest: float | None = None  # the stream's first transient's, where its first ejection took it
+        self._run: int | None = None  # the first of the unbroken run of starts that pass, up to the frame deciding
 
     @property
     def latency(self) -> int:
@@ -174,30 +180,57 @@ class EjectionDetector:
         if not self._learning:
             return found
         self._held += found
-        held = self._agreed(self._held)
+        clear = self._clear(self._held)
+        held = self._agreed(clear)
         if held is None and not (final or self._decided - self._origin > self._period_wait):
             return []
         self._learning = False
-        held, self._held = held or self._held, []
+        held, self._held = held or clear, []
+        self._held_bursts.clear()
         if len(held) < 3:
             return held
         # those looked back at are not bursts: the floor stays the clear bursts'
-        found = sorted(held + self._look_back(held, self._unit(np.diff(held))))
+        found = held + self._look_back(held, self._unit(np.diff(held)))
+        if len(held) < len(clear):  # the first, off the period: kept where a shorter one fits it and finds an
+            unit = self._unit(np.diff(clear))  # ejection in every stretch it puts between the others
+            more = self._look_back(clear, unit) if unit is not None else []
+            between = sum(round((b - a) / unit) - 1 for a, b in zip(clear[1:], clear[2:])) if unit is not None else 0
+            found = clear + more if 0 < between == sum(clear[1] < f < clear[-1] for f in more) else found
+        found = sorted(found)
         self._intervals.clear()
         self._intervals.extend(np.diff(found).tolist())
+        self._last = found[-1]
         return found
+
+    def _clear(self, held: list[int]) -> list[int]:
+        """``held`` but those found by their own burst whose burst falls under ``floor`` times the median of those
+        bursts (the floor that the recent ejections set later in the stream; before the first, ringing that beats
+        passes ``ratio`` against its own quiet frames), and the stream's first frame where one of those took it and
+        its transient falls under START_FRACTION of their median highest change."""
+        own = np.array([self._held_bursts[f] for f in held if f in self._held_bursts]).reshape(-1, 2)
+        if not own.size:
+            return held
+        weak, start = self.floor * np.median(own[:, 0]), START_FRACTION * np.median(own[:, 1])
+
+        def clear(frame: int) -> bool:
+            if frame in self._held_bursts:
+                return self._held_bursts[frame][0] >= weak
+            return frame != self._origin or self._start_highest is None or self._start_highest >= start
+
+        return [f for f in held if clear(f)]
 
     def _agreed(self, held: list[int]) -> list[int] | None:
         """``held`` once two intervals between them agree on a period, None before. A first one within the stream's
         first ``history`` frames (judged against a short baseline or none: a stream started inside a window may
-        ring harder at first than later) does not count towards the period, and stays only where it puts one."""
+        ring harder at first than later) does not count towards the period, and stays only within EXPECTED_SPREAD of a
+        period of where it puts one (not n times that: 37 frames into a 4 kHz window, two periods before, is no ejection)."""
         early = bool(held) and held[0] - self._origin < self.history
         rest = held[1:] if early else held
         unit = self._unit(np.diff(rest)) if len(rest) >= 3 else None
         if unit is None:
             return None
         n = round((held[1] - held[0]) / unit)
-        fits = n >= 1 and abs(held[1] - held[0] - n * unit) <= EXPECTED_SPREAD * n * unit
+        fits = n >= 1 and abs(held[1] - held[0] - n * unit) <= EXPECTED_SPREAD * unit
         return held if not early or fits else rest
 
     def _look_back(self, held: list[int], period: float | None) -> list[int]:
@@ -215,6 +248,9 @@ class EjectionDetector:
         ]
         if held[0] != self._origin:
             stretches += [(held[0] - k * period, k * spread) for k in range(1, EXPECTED_PERIODS + 1)]
+        # and after the last, where already decided (held, no stretch was looked at)
+        stretches += [(held[-1] + k * period, k * spread) for k in range(1, EXPECTED_PERIODS + 1)]
+        stretches = [(centre, half) for centre, half in stretches if centre < self._decided]
         lo, hi = self._origin + self.history, self._first + self._changes.size - self.transient
         found: list[int] = []
         for centre, half in stretches:
@@ -257,6 +293,7 @@ class EjectionDetector:
             return []
         self._last = self._first
         self._bursts.append(float(level))
+        self._held_bursts[self._first] = (float(level), float(np.nanmax(burst)))
         return [self._first]
 
     def _decide(self, until: int, final: bool = False) -> list[int]:
@@ -278,13 +315,17 @@ class EjectionDetector:
         for i in range(count):
             frame = lo + i
             if self._last is not None and frame - self._last < self.refractory:
+                self._run = None
                 continue
             if levels[i] > self.ratio * bases[i] and levels[i] > typical:
+                self._run = frame if self._run is None else self._run
                 ahead = level[i : i + self.lookahead - self.transient + 1]
-                if ahead.max() > level[i]:  # a stronger start follows within the look-ahead: decide there
-                    continue
-                onset = self._onset(c, at(frame), top[i])
+                stronger = span[i] + int(np.argmax(ahead))
+                if ahead.max() > level[i] and not self._newer(span[i], stronger):
+                    continue  # a stronger start follows within the look-ahead, showing no older shape: decide there
+                onset = self._onset(c, at(frame), top[i], at(self._run), self.ratio * bases[i])
             elif stretch_of[i, 0] >= 0 and levels[i] > 0:  # where the rate puts the next ejection
+                self._run = None
                 a, b = int(stretch_of[i, 0]), int(stretch_of[i, 1])
                 if scored is None or scored[:2] != (a, b):  # the stretch's starts, as far as they are in
                     z = min(b, span.size - 1) + 1
@@ -301,16 +342,20 @@ class EjectionDetector:
                     continue
                 onset = at(lo + a + self._first_peak(score, i - a))
             else:
+                self._run = None
                 continue
             if self._last is not None:
                 self._intervals.append(self._first + onset - self._last)
             self._last = self._first + onset
             self._bursts.append(float(level[i]))
+            if self._learning and self._run is not None:  # found by its own burst
+                self._held_bursts[self._last] = (float(level[i]), float(burst[i]))
             typical = self.floor * self._typical()
             stretch_of = self._stretches(lo, count)
             if self._pending is not None:  # the stream's start judged against its first ejection
                 starts = self._last - self._origin >= self.refractory and self._pending >= START_FRACTION * burst[i]
                 if starts:
+                    self._start_highest = self._pending
                     found.append(self._origin)
                     self._intervals.append(self._last - self._origin)
                 self._pending = None
@@ -332,6 +377,8 @@ class EjectionDetector:
             base, top, known = _median_and_p90(sliding_window_view(ext, self.history)[positions])
         level = np.nan_to_num(burst - top, nan=-np.inf)
         level[known < self.transient] = -np.inf  # too little history to judge against
+        # nor in the stream's first ``history``: a baseline shorter than a slow ringing's period misses its peaks
+        level[positions + self._first < self._origin + self.history] = -np.inf
         return burst, level, base, top
 
     def _stretches(self, lo: int, count: int) -> np.ndarray:
@@ -340,7 +387,7 @@ class EjectionDetector:
         the last ejection that each lies in, +-``EXPECTED_SPREAD`` of that time; (count, 2), -1 where none (or
         too few ejections are known)."""
         out = np.full((count, 2), -1, np.int64)
-        if self._last is None or not self._intervals:
+        if self._last is None or not self._intervals or self._learning:
             return out
         period = float(np.median(self._intervals))
         for k in range(1, EXPECTED_PERIODS + 1):
@@ -375,19 +422,32 @@ class EjectionDetector:
         peak[-1] = True
         return lo + int(np.argmax(peak))
 
+    def _newer(self, start: int, other: int) -> bool:
+        """Whether the start at kept position ``start`` shows a newer shape than the one at ``other`` (the highest
+        novelty over each one's transient): the ringing an ejection starts can change the frame more than the
+        bulge did (a 4 kHz mode), never show as new a shape. False where novelty is unknown."""
+        n, t = self._novelty, self.transient
+        with np.errstate(all="ignore"), _quiet():
+            return bool(np.nanmax(n[start : start + t]) > np.nanmax(n[other : other + t]))
+
     def _typical(self) -> float:
         """The median burst level of the recent ejections (0 before the first)."""
         return float(np.median(self._bursts)) if self._bursts else 0.0
 
-    def _onset(self, c: np.ndarray, peak: int, top: float) -> int:
-        """Position of the burst's first frame: the earliest of the ``transient`` frames up to ``peak`` whose
-        change above ``top`` (the baseline's 90th percentile) reaches ONSET_FRACTION of the burst's highest."""
+    def _onset(self, c: np.ndarray, peak: int, top: float, run: int, clear: float) -> int:
+        """Position of the burst's first frame: the earliest of the frames from the ``transient`` before ``peak``, or
+        from ``run`` (the first of the unbroken run of passing starts it ends: the ringing an ejection starts can
+        change the frame more than its bulge, and the look-ahead then decides at the ringing), whose change above
+        ``top`` (the baseline's 90th percentile) reaches ONSET_FRACTION of the burst's highest, or ``clear`` (as far above
+        it as a burst must stand: a faint droplet's first frames can change the frame less than a fifth of the bulge)."""
         lo = max(
-            peak - self.transient + 1, 0, (self._last - self._first + self.refractory) if self._last is not None else 0
+            min(peak - self.transient + 1, run),
+            0,
+            (self._last - self._first + self.refractory) if self._last is not None else 0,
         )
         lo = min(lo, peak)
         span = np.nan_to_num(c[lo : peak + self.transient] - top, nan=0.0)
-        return lo + int(np.argmax(span >= ONSET_FRACTION * span.max()))
+        return lo + int(np.argmax(span >= min(ONSET_FRACTION * span.max(), clear)))
 
 
 def _median_and_p90(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
