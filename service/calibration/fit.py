@@ -61,7 +61,7 @@ START_ALPHAS = (0.004, 0.1)
 CARRY = 1
 #: The light directions tried before the finer stages: the guess's azimuth and elevation offset by multiples of
 #: ``LIGHT_STEP_DEG`` up to ``LIGHT_REACH_DEG`` either way (the issue's mismatch: up to 10 deg in each), each
-#: scored on the finest level (:func:`aim_light`). The coarse levels cannot tell a light ``+x`` deg round from
+#: scored on the finest level (:func:`aim_scene`). The coarse levels cannot tell a light ``+x`` deg round from
 #: one ``-x`` deg round when the guess's light faces the camera (the scene is mirror-symmetric about their plane):
 #: on Blender's light recording (true 188, -34 from 180, -40) they scored 172 and 188 within 1 %, and the fit went
 #: the wrong way; the finest level told them apart (277 against 397).
@@ -69,6 +69,9 @@ LIGHT_STEP_DEG = 5.0
 LIGHT_REACH_DEG = 10.0
 #: Least-squares evaluations refining each frame's motion (from its nearest library render) to score a light.
 LIGHT_EVALUATIONS = 6
+#: Fluid roughness values scored at the light direction chosen (:func:`aim_scene`): the issue's 0.001-0.3 in steps
+#: of about x3.
+AIM_ALPHAS = (0.002, 0.006, 0.02, 0.06, 0.2)
 
 
 @dataclass
@@ -271,23 +274,47 @@ def light_grid(guess: Scene, step: float = LIGHT_STEP_DEG, reach: float = LIGHT_
     return np.column_stack([light.azimuth_deg + da[order], np.clip(light.elevation_deg + de[order], -89.0, 89.0)])
 
 
-def aim_light(
-    synth: Synthesis, scene: Scene, lab: np.ndarray, sigmas: tuple[float, ...], directions: np.ndarray
+def aim(
+    synth: Synthesis,
+    scene: Scene,
+    lab: np.ndarray,
+    sigmas: tuple[float, ...],
+    names: tuple[str, ...],
+    values: np.ndarray,
 ) -> tuple[Scene, list[dict]]:
-    """``scene`` with the light direction among ``directions`` (N, 2) and its own that scores lowest on ``sigmas``,
-    the rest of the scene held; each scored by every frame's motion from its nearest render in a :class:`Library`
-    refined by :data:`LIGHT_EVALUATIONS` least-squares evaluations. Returns the scene and every direction's cost."""
-    light = scene.light
+    """``scene`` with the parameters ``names`` set to the row of ``values`` (N, len(names), file units), or kept at
+    its own, that scores lowest on ``sigmas``, the rest of the scene held; each scored by every frame's motion from
+    its nearest render in a :class:`Library` refined by :data:`LIGHT_EVALUATIONS` least-squares evaluations.
+    Returns the scene and every row's values and cost (its own first)."""
+    params = [next(p for p in P.PARAMETERS if p.name == name) for name in names]
+    own = [p.from_fit(v) for p, v in zip(params, P.read(scene, tuple(params)))]
     tried = []
-    for azimuth, elevation in np.vstack([[light.azimuth_deg, light.elevation_deg], directions]):
-        x = _set(_set(P.read(scene), "light.azimuth_deg", azimuth), "light.elevation_deg", elevation)
+    for row in np.vstack([own, values]):
+        x = P.read(scene)
+        for p, v in zip(params, row):
+            x = _set(x, p.name, p.to_fit(float(v)))
         candidate = P.write(scene, x)
         problem = Problem(synth, candidate, lab, sigmas)
         start = Library(synth, candidate, sigmas).nearest(lab)[0]
         cost = 0.5 * float(refine_motion(problem, start, LIGHT_EVALUATIONS)[1].sum())
-        tried.append(({"azimuth_deg": float(azimuth), "elevation_deg": float(elevation), "cost": cost}, candidate))
+        tried.append(({**{n: float(v) for n, v in zip(names, row)}, "cost": cost}, candidate))
     best = min(tried, key=lambda t: t[0]["cost"])[1]
     return best, [t[0] for t in tried]
+
+
+def aim_scene(
+    synth: Synthesis, scene: Scene, lab: np.ndarray, sigmas: tuple[float, ...], directions: np.ndarray
+) -> tuple[Scene, dict]:
+    """The light's direction among ``directions`` (N, 2), then the fluid's roughness among :data:`AIM_ALPHAS` at that
+    light, then the direction again on a grid of half the step round the one chosen, each by :func:`aim` (a
+    near-mirror's sharp highlight scores well only where the light puts it, and the light's best direction moves
+    with the highlight's width). Returns the scene and what each search tried."""
+    light = ("light.azimuth_deg", "light.elevation_deg")
+    scene, lights = aim(synth, scene, lab, sigmas, light, directions)
+    scene, alphas = aim(synth, scene, lab, sigmas, ("fluid.roughness",), np.array(AIM_ALPHAS)[:, None])
+    finer = light_grid(scene, LIGHT_STEP_DEG / 2, LIGHT_STEP_DEG / 2)[1:]
+    scene, closer = aim(synth, scene, lab, sigmas, light, finer)
+    return scene, {"lights": lights, "alphas": alphas, "closer": closer}
 
 
 def library_motion(synth: Synthesis, scene: Scene, lab: np.ndarray, sigmas: tuple[float, ...]) -> np.ndarray:
@@ -370,7 +397,8 @@ def calibrate(
     """Fit ``guess`` to ``footage``: ROI, scene parameters, per-frame motion, noise, artifact spheres. Every start
     is fitted on the coarse stage and scored on the finest level; the best ``carry`` go through the finer stages,
     each from the light direction among ``light_directions`` (N, 2: azimuth, elevation; default
-    :func:`light_grid` of the guess) and its own that scores lowest on the finest level.
+    :func:`light_grid` of the guess) and its own that scores lowest on the finest level, then the roughness and the
+    direction again (:func:`aim_scene`).
     ``profiled``: parameters whose cost is profiled at the end, with their offsets (default :data:`.profile.PROFILED`)."""
     from service.calibration.profile import PROFILED, profile  # it builds on this module's Problem
 
@@ -430,8 +458,8 @@ def calibrate(
     for cand_scene, motion, info in ranked:
         scene = _with_roi(cand_scene, corner)
         synth.quality["supersample"] = finest.supersample
-        scene, info["lights"] = aim_light(synth, scene, crop(footage.frames, scene), finest.sigmas, light_directions)
-        info["light"] = [scene.light.azimuth_deg, scene.light.elevation_deg]
+        scene, tried = aim_scene(synth, scene, crop(footage.frames, scene), finest.sigmas, light_directions)
+        info.update(tried, light=[scene.light.azimuth_deg, scene.light.elevation_deg], aimed=scene.fluid.roughness)
         bar.update()
         for stage in schedule[1:]:
             synth.quality["supersample"] = stage.supersample
