@@ -61,17 +61,14 @@ START_ALPHAS = (0.004, 0.1)
 CARRY = 1
 #: The light directions tried before the finer stages: the guess's azimuth and elevation offset by multiples of
 #: ``LIGHT_STEP_DEG`` up to ``LIGHT_REACH_DEG`` either way (the issue's mismatch: up to 10 deg in each), each
-#: scored on the finest level (:func:`aim_scene`). The coarse levels cannot tell a light ``+x`` deg round from
+#: scored on the finest level (:func:`aim`, :func:`with_azimuth`). The coarse levels cannot tell a light ``+x`` deg round from
 #: one ``-x`` deg round when the guess's light faces the camera (the scene is mirror-symmetric about their plane):
-#: on Blender's light recording (true 188, -34 from 180, -40) they scored 172 and 188 within 1 %, and the fit went
-#: the wrong way; the finest level told them apart (277 against 397).
+#: on Blender's light recording (true 188, -34 from 180, -40) the middle level scored azimuth 172 and 188 within 1 %
+#: at elevation -40, and the fit went the wrong way; the finest level told them apart (397 against 277 at -34).
 LIGHT_STEP_DEG = 5.0
 LIGHT_REACH_DEG = 10.0
 #: Least-squares evaluations refining each frame's motion (from its nearest library render) to score a light.
 LIGHT_EVALUATIONS = 6
-#: Fluid roughness values scored at the light direction chosen (:func:`aim_scene`): the issue's 0.001-0.3 in steps
-#: of about x3.
-AIM_ALPHAS = (0.002, 0.006, 0.02, 0.06, 0.2)
 
 
 @dataclass
@@ -302,19 +299,13 @@ def aim(
     return best, [t[0] for t in tried]
 
 
-def aim_scene(
-    synth: Synthesis, scene: Scene, lab: np.ndarray, sigmas: tuple[float, ...], directions: np.ndarray
-) -> tuple[Scene, dict]:
-    """The light's direction among ``directions`` (N, 2), then the fluid's roughness among :data:`AIM_ALPHAS` at that
-    light, then the direction again on a grid of half the step round the one chosen, each by :func:`aim` (a
-    near-mirror's sharp highlight scores well only where the light puts it, and the light's best direction moves
-    with the highlight's width). Returns the scene and what each search tried."""
-    light = ("light.azimuth_deg", "light.elevation_deg")
-    scene, lights = aim(synth, scene, lab, sigmas, light, directions)
-    scene, alphas = aim(synth, scene, lab, sigmas, ("fluid.roughness",), np.array(AIM_ALPHAS)[:, None])
-    finer = light_grid(scene, LIGHT_STEP_DEG / 2, LIGHT_STEP_DEG / 2)[1:]
-    scene, closer = aim(synth, scene, lab, sigmas, light, finer)
-    return scene, {"lights": lights, "alphas": alphas, "closer": closer}
+def with_azimuth(start: Scene, aimed: Scene) -> Scene:
+    """``start`` with the light's azimuth of ``aimed`` (the light grid's best direction), its elevation left to the
+    finer stages: with each frame's curvature free, as :func:`aim` scores, a broad highlight trades the elevation
+    with it (on Blender's rough and angle recordings, light at -40 deg, the grid's best was -50, and the fit from
+    there ended 4.1 and 1.4 deg off), while the azimuth is the side of the camera's plane the coarse levels
+    cannot tell."""
+    return P.write(start, _set(P.read(start), "light.azimuth_deg", aimed.light.azimuth_deg))
 
 
 def library_motion(synth: Synthesis, scene: Scene, lab: np.ndarray, sigmas: tuple[float, ...]) -> np.ndarray:
@@ -397,8 +388,8 @@ def calibrate(
     """Fit ``guess`` to ``footage``: ROI, scene parameters, per-frame motion, noise, artifact spheres. Every start
     is fitted on the coarse stage and scored on the finest level; the best ``carry`` go through the finer stages,
     each from the light direction among ``light_directions`` (N, 2: azimuth, elevation; default
-    :func:`light_grid` of the guess) and its own that scores lowest on the finest level, then the roughness and the
-    direction again (:func:`aim_scene`).
+    :func:`light_grid` of the guess) and its own that scores lowest on the finest level: its azimuth, at the start's
+    elevation (:func:`with_azimuth`).
     ``profiled``: parameters whose cost is profiled at the end, with their offsets (default :data:`.profile.PROFILED`)."""
     from service.calibration.profile import PROFILED, profile  # it builds on this module's Problem
 
@@ -456,10 +447,12 @@ def calibrate(
     # lowest finest-level cost wins
     best = None
     for cand_scene, motion, info in ranked:
-        scene = _with_roi(cand_scene, corner)
+        start = _with_roi(cand_scene, corner)
         synth.quality["supersample"] = finest.supersample
-        scene, tried = aim_scene(synth, scene, crop(footage.frames, scene), finest.sigmas, light_directions)
-        info.update(tried, light=[scene.light.azimuth_deg, scene.light.elevation_deg], aimed=scene.fluid.roughness)
+        light = ("light.azimuth_deg", "light.elevation_deg")
+        aimed, info["lights"] = aim(synth, start, crop(footage.frames, start), finest.sigmas, light, light_directions)
+        scene = with_azimuth(start, aimed)
+        info["light"] = [scene.light.azimuth_deg, scene.light.elevation_deg]
         bar.update()
         for stage in schedule[1:]:
             synth.quality["supersample"] = stage.supersample
