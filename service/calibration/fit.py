@@ -6,7 +6,8 @@ ejection's transient bulge needs no model). Each stage is one bounded least-squa
 trust-region reflective) on the blurred pyramid of :mod:`.synthesis`, its Jacobian by finite differences
 with the sparsity declared (a frame's residuals depend on its window's d, p and its own a, b), so a step costs one renderer per scene parameter plus four
 renders of all frames. Before the first stage each frame's motion starts at its nearest neighbour in a
-library rendered with the candidate scene; the ROI is found before the first stage and again after it.
+library rendered with the candidate scene; the ROI is found before the first stage and again after it. Before the
+finer stages the light's azimuth is chosen from a grid of directions scored on the finest level (:func:`aim`).
 """
 
 from __future__ import annotations
@@ -61,8 +62,8 @@ START_ALPHAS = (0.004, 0.1)
 CARRY = 1
 #: The light directions tried before the finer stages: the guess's azimuth and elevation offset by multiples of
 #: ``LIGHT_STEP_DEG`` up to ``LIGHT_REACH_DEG`` either way (the issue's mismatch: up to 10 deg in each), each
-#: scored on the finest level (:func:`aim`, :func:`with_azimuth`). The coarse levels cannot tell a light ``+x`` deg round from
-#: one ``-x`` deg round when the guess's light faces the camera (the scene is mirror-symmetric about their plane):
+#: scored on the finest level (:func:`aim`, :func:`with_azimuth`). The coarse levels cannot tell a light ``+x`` deg
+#: round from one ``-x`` deg round when the guess's light faces the camera (the scene is mirror-symmetric about their plane):
 #: on Blender's light recording (true 188, -34 from 180, -40) the middle level scored azimuth 172 and 188 within 1 %
 #: at elevation -40, and the fit went the wrong way; the finest level told them apart (397 against 277 at -34).
 LIGHT_STEP_DEG = 5.0
