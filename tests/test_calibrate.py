@@ -18,6 +18,7 @@ from service.calibration.fit import (
     Motion,
     Stage,
     calibrate,
+    light_grid,
 )
 from service.calibration.footage import read_footage
 from service.calibration.parameters import PARAMETERS
@@ -26,11 +27,13 @@ from service.calibration.report import document
 from service.calibration.roi import refine_shift
 from service.calibration.synthesis import pyramid
 from service.camera_effects import CameraEffects
-from service.scene import Scene
+from service.scene import Scene, direction
 from service.simulate import simulate
 
 #: A small camera (40 px, coarse pixels) so that the whole calibration takes seconds.
 SMALL = {"width_px": 40, "height_px": 40, "fov_deg": 0.6, "roi": [0, 0]}
+#: More pixels over the nozzle (same field of view) for the test that asks for the light within 1 deg.
+SMALLER = {"width_px": 56, "height_px": 56, "fov_deg": 0.6, "roi": [0, 0]}
 
 
 def _scene(**changes: dict) -> Scene:
@@ -80,6 +83,35 @@ def test_a_known_mismatch_is_recovered(lab: Path) -> None:
     row = next(r for r in doc["parameters"] if r["name"] == "light.azimuth_deg")
     assert row["profile"]["interval"] == list(azimuth.interval)
     json.dumps(doc, allow_nan=False)
+
+
+def test_a_light_8_deg_round_on_the_far_side_of_the_camera_plane_is_found(tmp_path: Path) -> None:
+    """The guess's light faces the camera, where a light x deg round either way looks alike on the coarse levels;
+    the light grid scored on the finest level picks the right side and the fit lands within the issue's 1 deg."""
+    true = _scene(light={"azimuth_deg": 188.0, "elevation_deg": -34.0}, camera=SMALLER)
+    out = tmp_path / "light.cine"
+    camera = CameraEffects(offset=0.01, blur_sigma_px=0.5, full_well_e=40000, read_noise_dn=1.0, bit_depth=12)
+    simulate(true, out, windows=2, seed=4, ejection_hz=1000.0, effects=camera)
+    footage = read_footage(out, frames=8, stack=38, ejection_hz=1000.0)
+    guess = _scene(camera=SMALLER)
+    grid = light_grid(guess, step=8.0, reach=8.0)
+    cal = calibrate(footage, guess, start_alphas=(), progress=False, profiled={}, light_directions=grid)
+    aimed = cal.starts[0]["light"]
+    assert aimed[0] > 180.0  # the right side of the camera's plane
+    found = cal.scene.light
+    between = direction(found.azimuth_deg, found.elevation_deg) @ direction(188.0, -34.0)
+    assert np.degrees(np.arccos(min(between, 1.0))) < 1.0
+
+
+@given(st.floats(0.5, 10.0), st.integers(0, 4), st.floats(-720.0, 720.0), st.floats(-89.0, 89.0))
+def test_the_light_grid_starts_at_the_guess_and_stays_in_reach(step: float, steps: int, az: float, el: float) -> None:
+    guess = _scene(light={"azimuth_deg": az, "elevation_deg": el})
+    reach = step * steps
+    grid = light_grid(guess, step=step, reach=reach)
+    assert len(grid) == (2 * steps + 1) ** 2
+    np.testing.assert_allclose(grid[0], [az, el])  # nearest first: the guess itself
+    assert (np.abs(grid[:, 0] - az) <= reach + 1e-9).all() and (np.abs(grid[:, 1] - el) <= reach + 1e-9).all()
+    assert (np.abs(grid[:, 1]) <= 89.0).all()  # elevations stay in the parameter's bounds
 
 
 def test_a_larger_frame_shows_the_scene_around_the_roi() -> None:
