@@ -10,7 +10,7 @@ from hypothesis import strategies as st
 from service import DEFAULT_SCENE
 from service.bench.ejections import frame_measures, score
 from service.camera_effects import noise_preset
-from service.pipeline.ejections import PERIOD_WAIT_S, EjectionDetector, detect_ejections_streamed
+from service.pipeline.ejections import PERIOD_WAIT_S, EjectionDetector, _window_levels, detect_ejections_streamed
 from service.scene import Scene
 from service.simulate import simulate
 from service.validation.score import ejection_matches
@@ -284,3 +284,34 @@ def test_a_stream_that_starts_a_fifth_of_a_period_off_two_periods_before_does_no
     change = bursts([0, *true], 1200, np.random.default_rng(0))
     change[0] = np.nan
     assert detect_ejections_streamed(change, FPS, offline=offline).tolist() == true
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    history=st.integers(1, 40),
+    width=st.integers(1, 10),
+    size=st.integers(1, 120),
+    missing=st.sampled_from([0.0, 0.2, 0.7, 1.0]),
+    scale=st.sampled_from([1e-6, 1.0, 1e9]),
+    seed=st.integers(0, 2**32 - 1),
+)
+def test_the_compiled_window_levels_are_numpy_s_statistics(history, width, size, missing, scale, seed) -> None:
+    """Each start's burst (the highest change over the transient) and its baseline's median, 90th percentile and
+    count of finite values are numpy's nanmax, nanmedian and nanpercentile, NaN (not a warning) where a window holds
+    no finite value, at any scale and share of missing frames."""
+    rng = np.random.default_rng(seed)
+    core = rng.gamma(2.0, 3.0, size) * scale
+    core[rng.random(size) < missing] = np.nan
+    ext = np.concatenate([np.full(history, np.nan), core, np.full(width, np.nan)])
+    positions = np.arange(size + 1, dtype=np.int64)
+    burst, median, p90, known = _window_levels(ext, positions, history, width)
+    for i, p in enumerate(positions):
+        ahead, base = ext[history + p : history + p + width], ext[p : p + history]
+        finite = base[np.isfinite(base)]
+        assert known[i] == finite.size
+        want = np.max(ahead[np.isfinite(ahead)]) if np.isfinite(ahead).any() else np.nan
+        np.testing.assert_equal(burst[i], want)
+        if finite.size:
+            np.testing.assert_allclose([median[i], p90[i]], np.percentile(finite, [50, 90]), rtol=1e-12)
+        else:
+            assert np.isnan(median[i]) and np.isnan(p90[i])

@@ -42,7 +42,7 @@ from __future__ import annotations
 from collections import deque
 
 import numpy as np
-from numpy.lib.stride_tricks import sliding_window_view
+from numba import njit
 
 #: The transient an ejection shows, s: the droplet leaving and the surface's bulge (0.25 ms simulated).
 TRANSIENT_S = 0.3e-3
@@ -372,9 +372,7 @@ class EjectionDetector:
         baseline's median and its 90th percentile."""
         pad = np.full(self.history, np.nan)
         ext = np.concatenate([pad, self._changes, np.full(self.lookahead, np.nan)])  # ext[i + history] = change i
-        with np.errstate(all="ignore"), _quiet():
-            burst = np.nanmax(sliding_window_view(ext[self.history :], self.transient)[positions], axis=1)
-            base, top, known = _median_and_p90(sliding_window_view(ext, self.history)[positions])
+        burst, base, top, known = _window_levels(ext, positions, self.history, self.transient)
         level = np.nan_to_num(burst - top, nan=-np.inf)
         level[known < self.transient] = -np.inf  # too little history to judge against
         # nor in the stream's first ``history``: a baseline shorter than a slow ringing's period misses its peaks
@@ -403,10 +401,9 @@ class EjectionDetector:
         first half, while the bulge grows, so that the start nearest the bulge's first frame scores highest)."""
         pad = np.full(self.history, np.nan)
         ext = np.concatenate([pad, self._novelty, np.full(self.lookahead, np.nan)])
-        with np.errstate(all="ignore"), _quiet():
-            rise = max(1, (self.transient + 1) // 2)
-            burst = np.nanmax(sliding_window_view(ext[self.history :], rise)[positions], axis=1)
-            novel_base, novel_top, known = _median_and_p90(sliding_window_view(ext, self.history)[positions])
+        rise = max(1, (self.transient + 1) // 2)
+        burst, novel_base, novel_top, known = _window_levels(ext, positions, self.history, rise)
+        with np.errstate(all="ignore"):
             novel = np.where(known >= self.transient, (burst - novel_top) / novel_base, np.nan)
             change = level / base
         return np.nan_to_num(np.clip(change, 0, None) * np.clip(novel, 0, None), nan=0.0, posinf=0.0)
@@ -450,24 +447,48 @@ class EjectionDetector:
         return lo + int(np.argmax(span >= min(ONSET_FRACTION * span.max(), clear)))
 
 
-def _median_and_p90(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Each row's median and 90th percentile over its finite values (numpy's linear interpolation, NaN where a row
-    has none) and how many it has: one sort of all rows (``np.nanpercentile`` takes a Python loop over rows as
-    soon as one holds a NaN, and a stream's first and last rows always do: 37 us a frame)."""
-    ordered = np.sort(rows, axis=1)  # NaN last
-    known = np.isfinite(rows).sum(axis=1)
-    last = np.maximum(known - 1, 0)
+@njit(cache=True, nogil=True)
+def _window_levels(ext, positions, history, width):  # type: ignore[no-untyped-def]
+    """For each start ``p`` of ``positions``: the highest finite value of ``ext[history + p : history + p + width]``
+    (the burst), the median and 90th percentile of the finite values of ``ext[p : p + history]`` (the baseline
+    before it; numpy's linear interpolation) and how many those are; NaN where a window holds none.
 
-    def quantile(q: float) -> np.ndarray:
-        position = q * last
-        lo = np.floor(position).astype(np.int64)
-        hi = np.minimum(lo + 1, last)
-        a = np.take_along_axis(ordered, lo[:, None], axis=1)[:, 0]
-        b = np.take_along_axis(ordered, hi[:, None], axis=1)[:, 0]
-        value = a + (b - a) * (position - lo)
-        return np.where(known > 0, value, np.nan)
+    Compiled, one start at a time: numpy's version (a sort of every baseline row, ``take_along_axis``, ``nanmax``
+    and a warnings filter for the all-NaN rows) paid its per-call overhead on each of live's small batches, 8.5 us
+    a frame against 2 in batches of 256."""
+    count = positions.size
+    burst = np.full(count, np.nan)
+    median = np.full(count, np.nan)
+    p90 = np.full(count, np.nan)
+    known = np.zeros(count, np.int64)
+    window = np.empty(history)
+    for i in range(count):
+        p = positions[i]
+        for k in range(history + p, history + p + width):
+            v = ext[k]
+            if not np.isnan(v) and (np.isnan(burst[i]) or v > burst[i]):
+                burst[i] = v
+        n = 0
+        for k in range(p, p + history):
+            if not np.isnan(ext[k]):
+                window[n] = ext[k]
+                n += 1
+        known[i] = n
+        if n == 0:
+            continue
+        ordered = window[:n]
+        ordered.sort()
+        median[i], p90[i] = _quantile(ordered, 0.5), _quantile(ordered, 0.9)
+    return burst, median, p90, known
 
-    return quantile(0.5), quantile(0.9), known
+
+@njit(cache=True, nogil=True)
+def _quantile(ordered, q):  # type: ignore[no-untyped-def]
+    """The ``q`` quantile of sorted values (at least one), by numpy's linear interpolation."""
+    position = q * (ordered.size - 1)
+    lo = int(np.floor(position))
+    hi = min(lo + 1, ordered.size - 1)
+    return ordered[lo] + (ordered[hi] - ordered[lo]) * (position - lo)
 
 
 class _quiet:
