@@ -327,7 +327,7 @@ def step_z(n: np.ndarray, y: np.ndarray, scale: float, robust: bool, params: np.
 @njit(**_JIT)
 def median(values: np.ndarray) -> float:
     """``np.median`` of ``values`` (N,, N >= 1) to the last bit (the mean of the middle two where N is even; NaN
-    with a NaN), compiled: numpy's costs ~15 us a call, and a window's fit takes four to six."""
+    with a NaN), compiled: numpy's call overhead is most of its cost here, and a window's fit takes four to six."""
     for v in values:
         if np.isnan(v):  # numba's median, unlike numpy's, does not always propagate it
             return np.nan

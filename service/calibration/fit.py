@@ -68,6 +68,8 @@ CARRY = 1
 #: at elevation -40, and the fit went the wrong way; the finest level told them apart (397 against 277 at -34).
 LIGHT_STEP_DEG = 5.0
 LIGHT_REACH_DEG = 10.0
+#: The scene parameters the light grid sets.
+LIGHT = ("light.azimuth_deg", "light.elevation_deg")
 #: Least-squares evaluations refining each frame's motion (from its nearest library render) to score a light.
 LIGHT_EVALUATIONS = 6
 
@@ -450,8 +452,7 @@ def calibrate(
     for cand_scene, motion, info in ranked:
         start = _with_roi(cand_scene, corner)
         synth.quality["supersample"] = finest.supersample
-        light = ("light.azimuth_deg", "light.elevation_deg")
-        aimed, info["lights"] = aim(synth, start, crop(footage.frames, start), finest.sigmas, light, light_directions)
+        aimed, info["lights"] = aim(synth, start, crop(footage.frames, start), finest.sigmas, LIGHT, light_directions)
         scene = with_azimuth(start, aimed)
         info["light"] = [scene.light.azimuth_deg, scene.light.elevation_deg]
         bar.update()

@@ -370,14 +370,17 @@ class EjectionDetector:
         """For starts at ``positions`` (in the kept frames): the highest change over the transient, how far it
         stands above the baseline's 90th percentile (-inf where the baseline is too short to judge against), the
         baseline's median and its 90th percentile."""
-        pad = np.full(self.history, np.nan)
-        ext = np.concatenate([pad, self._changes, np.full(self.lookahead, np.nan)])  # ext[i + history] = change i
-        burst, base, top, known = _window_levels(ext, positions, self.history, self.transient)
+        burst, base, top, known = _window_levels(self._padded(self._changes), positions, self.history, self.transient)
         level = np.nan_to_num(burst - top, nan=-np.inf)
         level[known < self.transient] = -np.inf  # too little history to judge against
         # nor in the stream's first ``history``: a baseline shorter than a slow ringing's period misses its peaks
         level[positions + self._first < self._origin + self.history] = -np.inf
         return burst, level, base, top
+
+    def _padded(self, kept: np.ndarray) -> np.ndarray:
+        """A kept per-frame series with ``history`` NaN before it and ``lookahead`` after: ext[i + history] is
+        frame i's value, so that every start has a whole baseline and transient window."""
+        return np.concatenate([np.full(self.history, np.nan), kept, np.full(self.lookahead, np.nan)])
 
     def _stretches(self, lo: int, count: int) -> np.ndarray:
         """For frames ``lo .. lo + count - 1``: the first and last frame (from ``lo``) of the stretch about a
@@ -399,10 +402,8 @@ class EjectionDetector:
         the product of each one's burst above its baseline's 90th percentile, in baseline medians (0 where either
         is not above it; ``level`` and ``base`` are the change's, over the transient; the novelty's over its
         first half, while the bulge grows, so that the start nearest the bulge's first frame scores highest)."""
-        pad = np.full(self.history, np.nan)
-        ext = np.concatenate([pad, self._novelty, np.full(self.lookahead, np.nan)])
         rise = max(1, (self.transient + 1) // 2)
-        burst, novel_base, novel_top, known = _window_levels(ext, positions, self.history, rise)
+        burst, novel_base, novel_top, known = _window_levels(self._padded(self._novelty), positions, self.history, rise)
         with np.errstate(all="ignore"):
             novel = np.where(known >= self.transient, (burst - novel_top) / novel_base, np.nan)
             change = level / base
@@ -454,8 +455,8 @@ def _window_levels(ext, positions, history, width):  # type: ignore[no-untyped-d
     before it; numpy's linear interpolation) and how many those are; NaN where a window holds none.
 
     Compiled, one start at a time: numpy's version (a sort of every baseline row, ``take_along_axis``, ``nanmax``
-    and a warnings filter for the all-NaN rows) paid its per-call overhead on each of live's small batches, 8.5 us
-    a frame against 2 in batches of 256."""
+    and a warnings filter for the all-NaN rows) paid its per-call overhead on each of live's small batches
+    (docs/benchmarks.md)."""
     count = positions.size
     burst = np.full(count, np.nan)
     median = np.full(count, np.nan)
