@@ -197,18 +197,24 @@ class Dispatched(HeldFits):
         return super().submit(closed, fps, on_fitted)
 
 
-def test_a_read_larger_than_the_inference_cap_is_split_across_calls_losing_and_repeating_no_frame(
-    demo_cine: Path, scene: Scene
-) -> None:
-    # reads of 16 frames, calls of at most 5 (a budget no call of 5 frames comes near)
+def split_reads(recording: Path, scene: Scene, method: InverseMethod) -> tuple[PipelineStats, np.ndarray]:
+    """The pipeline's stats over ``recording`` read 16 frames at a time and inferred by ``method`` in calls of at most
+    5 (a budget no call of 5 frames comes near: calls join parts of reads and split others), and its frames."""
     settings = ServiceSettings(read_frames=16, batch=5, batch_ms=1000, queue_batches=1024)
-    stats, method = PipelineStats(), Calls()
-    with open_source(f"file://{demo_cine}?speed=max") as source:
+    stats = PipelineStats()
+    with open_source(f"file://{recording}?speed=max") as source:
         assert Pipeline(settings, scene, source, method, HeldFits(settings.fit), Collected(), stats).run(
             threading.Event()
         )
-    with open_recording(demo_cine) as demo:
-        everything = demo.read(0, len(demo))
+    with open_recording(recording) as demo:
+        return stats, demo.read(0, len(demo))
+
+
+def test_a_read_larger_than_the_inference_cap_is_split_across_calls_losing_and_repeating_no_frame(
+    demo_cine: Path, scene: Scene
+) -> None:
+    method = Calls()
+    stats, everything = split_reads(demo_cine, scene, method)
     assert max(len(c) for c in method.calls) == 5
     np.testing.assert_array_equal(np.concatenate(method.calls), everything)
     assert stats.frames_inferred == stats.frames_acquired == len(everything)
@@ -240,6 +246,39 @@ def test_a_window_goes_to_the_fit_with_at_most_one_call_of_frames_inferred_past_
             assert known < inferred <= known + latency + 8
         else:
             assert end + latency + 1 <= inferred <= end + latency + 8
+
+
+class Pooled(InverseMethod):
+    """An inverse method whose input is each frame's mean (its :meth:`prepare`), noting the threads that prepare and
+    the inputs each call infers."""
+
+    name = "pooled"
+
+    def __init__(self) -> None:
+        self.prepared_on: set[str] = set()
+        self.calls: list[np.ndarray] = []
+
+    def prepare(self, frames: np.ndarray) -> np.ndarray:
+        self.prepared_on.add(threading.current_thread().name)
+        return frames.mean(axis=(1, 2))
+
+    def infer_prepared(self, inputs: np.ndarray) -> InverseOutput:
+        self.calls.append(inputs.copy())
+        return InverseOutput(np.zeros((len(inputs), 4)), inputs * 1e-3)
+
+    def infer(self, frames: np.ndarray) -> InverseOutput:
+        return self.infer_prepared(self.prepare(frames))
+
+
+def test_the_inverse_input_is_prepared_where_frames_are_read_and_inference_takes_only_it(
+    demo_cine: Path, scene: Scene
+) -> None:
+    method = Pooled()
+    stats, everything = split_reads(demo_cine, scene, method)
+    assert method.prepared_on == {"meniscope-acquire"}
+    np.testing.assert_array_equal(np.concatenate(method.calls), everything.mean(axis=(1, 2)))
+    assert stats.latest.index == len(everything) - 1
+    np.testing.assert_array_equal(stats.latest.pixels, everything[-1])
 
 
 def test_the_inference_cap_is_the_frames_the_measured_cost_allows_within_the_budget() -> None:

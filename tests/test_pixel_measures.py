@@ -79,3 +79,38 @@ def test_measures_match_numpy_whatever_the_pixels_and_the_batching(
             np.testing.assert_allclose(g, w, rtol=1e-12, equal_nan=True)
         else:
             np.testing.assert_array_equal(g, w)
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    dtype=st.sampled_from([np.uint8, np.uint16]),
+    fill=st.sampled_from(["max", "zero", "random"]),
+    factor=st.integers(1, 4),
+    blocks=st.tuples(st.integers(1, 33), st.integers(1, 33)),
+    frames=st.integers(1, 9),
+    batch=st.integers(1, 9),
+    seed=st.integers(0, 2**16),
+)
+def test_block_means_made_in_the_same_pass_are_the_exact_means_rounded_once_and_change_nothing_else(
+    dtype, fill, factor, blocks, frames, batch, seed
+):
+    """A graph's input pooled in the measures' pass, at full scale, zero and random, any block size and batching:
+    each block's float64 mean rounded once to float32 (what :func:`service.inverse.pooling.block_means` and the
+    graphs' AveragePool make), and the measures the same as without it."""
+    shape = (frames, blocks[0] * factor, blocks[1] * factor)
+    top = np.iinfo(dtype).max
+    pixels = {
+        "max": np.full(shape, top, dtype),
+        "zero": np.zeros(shape, dtype),
+        "random": np.random.default_rng(seed).integers(0, top, shape, dtype, endpoint=True),
+    }[fill]
+    indices = np.arange(frames)
+    pooling, plain = PixelMeasures(1, 3), PixelMeasures(1, 3)
+    for lo in range(0, frames, batch):
+        part = slice(lo, lo + batch)
+        pooled = np.empty((len(pixels[part]), 1, *blocks), np.float32)
+        with_pooling = pooling.update(pixels[part], indices[part], pooled)
+        for got, want in zip(with_pooling, plain.update(pixels[part], indices[part])):
+            np.testing.assert_array_equal(got, want)
+        means = pixels[part].reshape(-1, blocks[0], factor, blocks[1], factor).mean(axis=(2, 4), dtype=np.float64)
+        np.testing.assert_array_equal(pooled[:, 0], means.astype(np.float32))

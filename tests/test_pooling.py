@@ -44,7 +44,7 @@ def test_the_shipped_graphs_run_from_their_pooling_with_the_whole_graphs_outputs
     eight_bit = rng.integers(0, 256, (100, 96, 96)).astype(np.uint8)
     for name, entry in manifest.methods.items():
         method = NetworkMethod(DEFAULT_MODELS, Scene.load(DEFAULT_SCENE), name, threads=1, batch=32)
-        assert method._pooling == manifest.input.downsample  # the split was taken
+        assert method.pooling == manifest.input.downsample  # the split was taken
         whole = ort.InferenceSession(str(DEFAULT_MODELS / entry.file), providers=["CPUExecutionProvider"])
         for frames in (twelve_bit, eight_bit):
             coefficients, centre = whole.run(list(OUTPUTS), {INPUT: frames.astype(np.uint16)})

@@ -95,7 +95,8 @@ def recording_records(path: Path, scene: Scene, models: Path) -> np.ndarray:
         stages = FrameStages(scene, source.format, str(path), method)
         while (batch := source.read(512)) is not None:
             batch = stages.roi(batch)
-            parts.append(stages.infer(batch.pixels, stages.measure(batch)))
+            records, inputs = stages.measure(batch)
+            parts.append(stages.infer(inputs, records))
     return np.concatenate(parts) if parts else np.empty(0, FRAME)
 
 

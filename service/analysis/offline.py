@@ -119,9 +119,9 @@ def analyse_recording(
         # one pass over the frames (each read once: reading was a fifth of the CPU)
         parts, found, closed, jobs = [], [], [], []
         with tqdm(total=frames, unit="frame", desc=f"{inverse.name} {path.name}", disable=not progress) as bar:
-            for stages, batch, part in _ahead(_measured(replay, scene, inverse)):
+            for stages, batch, part, inputs in _ahead(_measured(replay, scene, inverse)):
                 if db is None:
-                    stages.infer(batch.pixels, part)
+                    stages.infer(inputs, part)
                 else:  # the window fit picks every frame's values among these; one search serves
                     index = db.search(batch.pixels, k=CANDIDATES, exact=True).index
                     _set_coefficients(part, db.coeffs[index[:, 0]], db.centre[index[:, 0]])
@@ -185,13 +185,14 @@ def fps_of(path: Path) -> float:
 
 def _measured(
     source: ReplaySource, scene: Scene, inverse: InverseMethod
-) -> Iterator[tuple[FrameStages, FrameBatch, np.ndarray]]:
-    """The open replay ``source`` read at full speed in reads of :data:`READ_FRAMES`: each read's ROI and its records
-    as far as the pixels alone fill them (:meth:`FrameStages.measure`), with the stages of the stream."""
+) -> Iterator[tuple[FrameStages, FrameBatch, np.ndarray, np.ndarray]]:
+    """The open replay ``source`` read at full speed in reads of :data:`READ_FRAMES`: each read's ROI, its records
+    as far as the pixels alone fill them and the inverse method's input (:meth:`FrameStages.measure`), with the
+    stages of the stream."""
     stages = FrameStages(scene, source.format, str(source.path), inverse)
     while (batch := source.read(READ_FRAMES)) is not None:
         batch = stages.roi(batch)
-        yield stages, batch, stages.measure(batch)
+        yield stages, batch, *stages.measure(batch)
 
 
 _END = object()

@@ -203,7 +203,7 @@ def stage_costs(recording: Path, configs: list[tuple[int, int]], frames: int = 3
         costs[f"infer_{size_}x{threads}"], _ = cpu_us_per_frame(lambda: method.infer(batch.pixels), len(batch))
     parts = [batch.select(slice(lo, lo + 512)) for lo in range(0, len(batch), 512)]
     costs["measures"], measured = cpu_us_per_frame(lambda: [stages.measure(part) for part in parts], len(batch))
-    records = [stages.infer(part.pixels, m) for part, m in zip(parts, measured)]
+    records = [stages.infer(inputs, m) for m, inputs in measured]
     segmenter = segmenter_for(ServiceSettings(), fps)
     costs["segmentation"], closed = cpu_us_per_frame(
         lambda: [

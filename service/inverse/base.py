@@ -30,6 +30,9 @@ class InverseMethod(ABC):
 
     #: short stable name used in settings, REPORT.json "method" and benchmarks
     name: str
+    #: f > 0 where the method's input (:meth:`infer_prepared`'s) is its frames' f x f block means, float32 (N, 1, H/f,
+    #: W/f), so that the pass that measures the frames' pixels makes it too; 0 where :meth:`prepare` makes it.
+    pooling: int = 0
 
     @abstractmethod
     def infer(self, frames: np.ndarray) -> InverseOutput:
@@ -38,3 +41,18 @@ class InverseMethod(ABC):
         frames : uint8 or uint16 (N, H, W), the scene's ROI as stored (no scaling),
                  rows in display order; H, W = scene.camera.height_px, width_px.
         """
+
+    def check(self, frames: np.ndarray) -> None:
+        """Raise :class:`~service.errors.MeniscopeError` where ``frames`` (N, H, W) cannot be the method's frames;
+        any can by default."""
+        return None
+
+    def prepare(self, frames: np.ndarray) -> np.ndarray:
+        """The method's input made of a batch of ROI frames (N, ...), per frame: what can be done where the frames are
+        read and measured, so that the thread that infers takes less (a graph's pooled frames); the frames
+        themselves by default."""
+        return frames
+
+    def infer_prepared(self, inputs: np.ndarray) -> InverseOutput:
+        """:meth:`infer` of the frames :meth:`prepare` made ``inputs`` of (concatenated along their first axis)."""
+        return self.infer(inputs)

@@ -85,7 +85,7 @@ class NetworkMethod(InverseMethod):
         self.batch = batch
         self._dtype = np.dtype(manifest.input.dtype)
         self._shape = (manifest.input.height, manifest.input.width)
-        self._input, self._pooling = INPUT, 0
+        self._input, self.pooling = INPUT, 0
         self._pool_outside(path, manifest.input.downsample, options)
 
     def _pool_outside(self, path: Path, factor: int, options: ort.SessionOptions) -> None:
@@ -100,23 +100,34 @@ class NetworkMethod(InverseMethod):
         whole = self._session.run(list(OUTPUTS), {INPUT: frames})
         pooled = session.run(list(OUTPUTS), {split[1]: pooling.block_means(frames, factor)})
         if all(np.abs(a - b).max() <= pooling.PARITY_ABS for a, b in zip(whole, pooled)):
-            self._session, self._input, self._pooling = session, split[1], factor
+            self._session, self._input, self.pooling = session, split[1], factor
             pooling.block_means(frames[:1].astype(np.uint8), factor)  # the 8-bit kernel compiled now, not mid-stream
 
-    def infer(self, frames: np.ndarray) -> InverseOutput:
-        frames = np.asarray(frames)
+    def check(self, frames: np.ndarray) -> None:
         if frames.ndim != 3 or frames.shape[1:] != self._shape:
             raise MeniscopeError(
                 "frames", f"shape {frames.shape} is not (N, {self._shape[0]}, {self._shape[1]}), the scene's ROI"
             )
         if frames.dtype not in (np.uint8, np.uint16) or not np.can_cast(frames.dtype, self._dtype, "safe"):
             raise MeniscopeError("frames", f"pixel type {frames.dtype} cannot feed a {self._dtype} model")
-        # (N, H, W): the block means sum 8- or 16-bit pixels as they come (exactly); a graph fed whole gets its dtype
-        x = np.ascontiguousarray(frames) if self._pooling else np.ascontiguousarray(frames, dtype=self._dtype)
-        coefficients = np.empty((len(x), 4), np.float64)
-        centre = np.empty(len(x), np.float64)
-        for start in range(0, len(x), self.batch):
+
+    def prepare(self, frames: np.ndarray) -> np.ndarray:
+        """The graph's input of ROI frames (N, H, W): their block means (N, 1, H/f, W/f) float32 where the graph is run
+        from its pooling on (the sums of 8- or 16-bit pixels as they come, exact), the frames in the graph's dtype
+        otherwise."""
+        frames = np.asarray(frames)
+        self.check(frames)
+        if self.pooling:
+            return pooling.block_means(frames, self.pooling)
+        return np.ascontiguousarray(frames, dtype=self._dtype)
+
+    def infer_prepared(self, inputs: np.ndarray) -> InverseOutput:
+        coefficients = np.empty((len(inputs), 4), np.float64)
+        centre = np.empty(len(inputs), np.float64)
+        for start in range(0, len(inputs), self.batch):
             part = slice(start, start + self.batch)
-            feed = pooling.block_means(x[part], self._pooling) if self._pooling else x[part]
-            coefficients[part], centre[part] = self._session.run(list(OUTPUTS), {self._input: feed})
+            coefficients[part], centre[part] = self._session.run(list(OUTPUTS), {self._input: inputs[part]})
         return InverseOutput(coefficients=coefficients, centre=centre)
+
+    def infer(self, frames: np.ndarray) -> InverseOutput:
+        return self.infer_prepared(self.prepare(frames))

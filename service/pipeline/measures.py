@@ -22,15 +22,17 @@ GRID = 8
 
 
 @njit(cache=True, nogil=True)
-def _sums(frames, previous, zero, band, edges, total, peak, change, cells):  # type: ignore[no-untyped-def]
+def _sums(frames, previous, zero, band, edges, total, peak, change, cells, factor, pooled):  # type: ignore[no-untyped-def]
     """Per frame of ``frames`` (N, H * W): its pixels' sum, maximum and summed absolute difference from the frame
     before (``previous`` (H * W,) before frame 0), accumulated from ``zero`` (its type sets the sums'), and its
     sums over the cells (``cells`` (N, bands * columns)): row y in band ``band[y]``, columns cut at ``edges``
     (columns + 1,). A band's rows are summed column by column first (a plain loop over each row, as fast as the
-    three sums alone), then cut into its cells."""
+    three sums alone), then cut into its cells. With ``factor`` > 0, also the means of its ``factor`` x ``factor``
+    blocks into ``pooled`` (N, 1, H/f, W/f), summed the same way (exact sums of integer pixels, divided once)."""
     columns = edges.size - 1
     width = edges[columns]
     acc = np.full(width, zero)
+    block = np.full(width, zero)
     for i in range(frames.shape[0]):
         row = frames[i]
         before = previous if i == 0 else frames[i - 1]
@@ -43,6 +45,15 @@ def _sums(frames, previous, zero, band, edges, total, peak, change, cells):  # t
                 m = max(m, a)
                 d += max(a, b) - min(a, b)  # |a - b| without leaving the unsigned type
                 acc[x] += a
+                block[x] += a
+            if factor:
+                if (y + 1) % factor == 0:  # the block row's last row: its blocks
+                    for c in range(width // factor):
+                        t = zero
+                        for k in range(c * factor, c * factor + factor):
+                            t += block[k]
+                        pooled[i, 0, y // factor, c] = np.float64(t) / (factor * factor)
+                    block[:] = zero
             if y + 1 == band.size or band[y + 1] != band[y]:  # the band's last row: its cells
                 for c in range(columns):
                     cells[i, band[y] * columns + c] = acc[edges[c] : edges[c + 1]].sum()
@@ -86,10 +97,14 @@ class PixelMeasures:
         self._shape: tuple[int, int] | None = None  # the frames' size the cell numbers below are for
         self._band, self._edges, self._counts = np.empty(0, np.int64), np.empty(0, np.int64), np.empty(0)
 
-    def update(self, pixels: np.ndarray, indices: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    def update(
+        self, pixels: np.ndarray, indices: np.ndarray, pooled: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Of frames ``pixels`` (N, H, W) with frame ``indices`` (N,): each one's change (mean absolute difference
         from the frame before, NaN at the stream's first frame and after a gap), mean, maximum and novelty (NaN
-        until ``near`` frames are in since the start or a gap), (N,) float64 each, in pixel units."""
+        until ``near`` frames are in since the start or a gap), (N,) float64 each, in pixel units. Where given,
+        ``pooled`` (N, 1, H/f, W/f) float32 gets each frame's f x f block means in the same pass (an inverse graph's
+        input, :attr:`service.inverse.base.InverseMethod.pooling`), the exact means rounded once."""
         n, h, w = pixels.shape
         flat = pixels.reshape(n, -1)
         if not np.issubdtype(flat.dtype, np.unsignedinteger):  # an unsigned sum of signed pixels would wrap
@@ -99,7 +114,15 @@ class PixelMeasures:
         band, edges, counts = self._cells(h, w)
         total, change, peak = np.empty(n, zero.dtype), np.empty(n, zero.dtype), np.empty(n, flat.dtype)
         cells = np.zeros((n, counts.size))
-        _sums(flat, self._previous if follows else flat[0], zero, band, edges, total, peak, change, cells)
+        factor = 0 if pooled is None else h // pooled.shape[2]
+        if pooled is None:
+            pooled = np.empty((0, 1, 0, 0), np.float32)
+        elif pooled.shape != (n, 1, h // factor, w // factor) or pooled.dtype != np.float32 or h % factor or w % factor:
+            raise ValueError(
+                f"pooled must be float32 (N, 1, H/f, W/f) of whole blocks, got {pooled.dtype} {pooled.shape}"
+            )
+        previous = self._previous if follows else flat[0]
+        _sums(flat, previous, zero, band, edges, total, peak, change, cells, factor, pooled)
         size = flat.shape[1]
         steps = change / size
         if not follows:

@@ -1,10 +1,10 @@
 """The live pipeline: the stages of :mod:`service.pipeline.stages` behind two threads and the fit pool.
 
-source -> ROI -> per-frame measures -> bounded queue -> batched inference -> segmentation -> fits.
+source -> ROI -> per-frame measures, inverse's input -> bounded queue -> batched inference -> segmentation -> fits.
 The acquisition thread reads the source, cuts each batch down to the scene's region of interest at once
 (a sensor larger than the ROI costs no queue memory or copies beyond it), measures each frame's change,
-activity and mean brightness (cheap numpy that the inference thread, the busier of the two, need not
-wait for) and offers the read to a queue of ``queue_batches`` reads;
+activity and mean brightness and makes the inverse method's input (a graph's pooled frames): work the
+inference thread, the busier of the two, need not wait for; it offers the read to a queue of ``queue_batches`` reads;
 when the queue is full the read is dropped and counted, so a camera is never made to wait and memory
 never grows. The inference thread takes what is queued in one ONNX call, but no more frames than it
 infers within ``batch_ms`` at the cost per frame measured so far (:class:`BatchBudget`; a read that
@@ -46,29 +46,46 @@ DROP_REPORT_S = 10.0
 
 @dataclass(frozen=True)
 class Acquired:
-    """A read's ROI frames, when each was read (monotonic s) and their records (N,) as acquisition measured them
-    (:meth:`FrameStages.measure`)."""
+    """A read's ROI frames, when each was read (monotonic s), their records (N,) as acquisition measured them
+    and the inverse method's input made of them (:meth:`FrameStages.measure`)."""
 
     batch: FrameBatch
     arrival: np.ndarray
     records: np.ndarray
+    inputs: np.ndarray
 
     def __len__(self) -> int:
         return len(self.batch)
 
     def select(self, which: slice) -> Acquired:
-        """The frames ``which`` picks, with what was measured of them."""
-        return Acquired(self.batch.select(which), self.arrival[which], self.records[which])
+        """The frames ``which`` picks, with what was measured and prepared of them."""
+        return Acquired(self.batch.select(which), self.arrival[which], self.records[which], self.inputs[which])
+
+
+@dataclass(frozen=True)
+class Taken:
+    """The frames of one inference call, from one or more reads: their indices, arrival times, records and the inverse
+    method's input, in order, and the last frame's ROI pixels (the latest frame; no other pixels are joined: the
+    input was prepared where they were read)."""
+
+    indices: np.ndarray
+    arrival: np.ndarray
+    records: np.ndarray
+    inputs: np.ndarray
+    last_pixels: np.ndarray
+
+    def __len__(self) -> int:
+        return len(self.indices)
 
     @classmethod
-    def concatenate(cls, parts: list[Acquired]) -> Acquired:
-        """One of several (at least one), in order."""
-        if len(parts) == 1:
-            return parts[0]
-        return cls(
-            FrameBatch.concatenate([p.batch for p in parts]),
-            *(np.concatenate([getattr(p, f) for p in parts]) for f in ("arrival", "records")),
-        )
+    def of(cls, parts: list[Acquired]) -> Taken:
+        """The frames of ``parts`` (at least one, none empty)."""
+        joined = [
+            getattr(parts[0], f) if len(parts) == 1 else np.concatenate([getattr(p, f) for p in parts])
+            for f in ("arrival", "records", "inputs")
+        ]
+        indices = parts[0].batch.indices if len(parts) == 1 else np.concatenate([p.batch.indices for p in parts])
+        return cls(indices, *joined, parts[-1].batch.pixels[-1])
 
 
 @dataclass(frozen=True)
@@ -259,7 +276,7 @@ class Pipeline:
                 stats.frame_gaps += seen.gaps - lost.gaps
                 stats.frames_lost_upstream += seen.dropped - lost.dropped
                 lost = seen
-                acquired = Acquired(batch, np.full(len(batch), now), self.stages.measure(batch))
+                acquired = Acquired(batch, np.full(len(batch), now), *self.stages.measure(batch))
                 try:
                     self._queue.put_nowait(acquired)
                 except queue.Full:
@@ -281,9 +298,9 @@ class Pipeline:
                     return self._error is None
                 self.stats.fps_out = meter.add(0, time.monotonic())
                 continue
-            acquired = Acquired.concatenate(taken)
-            self._process(acquired)
-            self.stats.fps_out = meter.add(len(acquired), time.monotonic())
+            frames = Taken.of(taken)
+            self._process(frames)
+            self.stats.fps_out = meter.add(len(frames), time.monotonic())
             self._report_drops()
         return False
 
@@ -326,28 +343,26 @@ class Pipeline:
             )
         self._reported = (now, s.frames_dropped, s.windows_skipped)
 
-    def _process(self, acquired: Acquired) -> None:
-        """Infer one batch of ROI frames, cut windows and hand them to the fits; update the trace and the latest
-        frame."""
-        batch = acquired.batch
-        pixels = batch.pixels
+    def _process(self, taken: Taken) -> None:
+        """Infer one call's frames, cut windows and hand them to the fits; update the trace and the latest frame."""
+        indices = taken.indices
         t0 = time.perf_counter()
-        records = self.stages.infer(pixels, acquired.records)
+        records = self.stages.infer(taken.inputs, taken.records)
         seconds = time.perf_counter() - t0
-        self.budget.record(seconds, len(batch))
-        self.sink.on_inference(seconds, len(batch))
-        self.stats.frames_inferred += len(batch)
+        self.budget.record(seconds, len(taken))
+        self.sink.on_inference(seconds, len(taken))
+        self.stats.frames_inferred += len(taken)
         self._dispatch(
-            self.segmenter.push(batch.indices, records, records["change"], acquired.arrival, novelty=records["novelty"])
+            self.segmenter.push(indices, records, records["change"], taken.arrival, novelty=records["novelty"])
         )
         last = records[-1]
         self.stats.latest = LatestFrame(
-            int(batch.indices[-1]),
-            pixels[-1].copy(),
+            int(indices[-1]),
+            taken.last_pixels.copy(),
             (float(last["d"]), float(last["p"]), float(last["a"]), float(last["b"])),
             float(last["centre"]),
         )
-        self._update_trace(batch.indices, records["centre"])
+        self._update_trace(indices, records["centre"])
 
     def _dispatch(self, closed: list[ClosedWindow]) -> None:
         """Each closed window's job (:func:`job_for`, as ``meniscope analyze`` makes it) to the fit workers."""

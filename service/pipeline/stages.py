@@ -1,4 +1,5 @@
-"""The per-frame stages every front door runs a batch of frames through: ROI -> measures -> inverse.
+"""The per-frame stages every front door runs a batch of frames through: ROI -> measures (and the inverse's input) ->
+inverse.
 
 ``meniscope serve`` calls them from its acquisition and inference threads, ``meniscope analyze`` one
 after the other on a replay read at full speed, ``meniscope bench`` either way: a change to how a
@@ -41,20 +42,28 @@ class FrameStages:
             return batch
         return FrameBatch(batch.pixels[self._roi].copy(), batch.indices, batch.timestamps)
 
-    def measure(self, batch: FrameBatch) -> np.ndarray:
+    def measure(self, batch: FrameBatch) -> tuple[np.ndarray, np.ndarray]:
         """Records (N,) of a batch of ROI frames with what the pixels alone say (change from the frame before,
-        activity, mean brightness, novelty); the inverse's fields NaN until :meth:`infer`."""
+        activity, mean brightness, novelty; the inverse's fields NaN until :meth:`infer`), and the inverse method's
+        input made of them (a graph's pooled frames: in the same pass over the pixels where it pools them), so
+        that the thread that infers takes only that."""
         records = np.full(len(batch), np.nan, FRAME)
-        change, brightness, peak, records["novelty"] = self.pixels.update(batch.pixels, batch.indices)
+        n, h, w = batch.pixels.shape
+        factor = self.method.pooling
+        inputs = None
+        if factor:
+            self.method.check(batch.pixels)
+            inputs = np.empty((n, 1, h // factor, w // factor), np.float32)
+        change, brightness, peak, records["novelty"] = self.pixels.update(batch.pixels, batch.indices, inputs)
         records["change"], records["activity"] = change, self.activity.score(change)
         records["brightness"] = brightness
         records["highlight"] = (peak - brightness) / self._full_scale
-        return records
+        return records, self.method.prepare(batch.pixels) if inputs is None else inputs
 
-    def infer(self, pixels: np.ndarray, records: np.ndarray) -> np.ndarray:
-        """``records`` of ROI frames ``pixels`` (N, H, W) with the inverse method's coefficients and D(0, t) filled
-        in (in place; returned for convenience)."""
-        out = self.method.infer(pixels)
+    def infer(self, inputs: np.ndarray, records: np.ndarray) -> np.ndarray:
+        """``records`` of the frames :meth:`measure` made ``inputs`` of, with the inverse method's coefficients and
+        D(0, t) filled in (in place; returned for convenience)."""
+        out = self.method.infer_prepared(inputs)
         for name, column in zip(COEFFICIENTS, out.coefficients.T):
             records[name] = column
         records["centre"] = out.centre
