@@ -14,7 +14,7 @@ than the pipeline.
 
 Then, since wall-clock rates on a shared machine say more about the neighbours than about us, the
 CPU time (``time.thread_time``) each stage costs per frame, run one after another on one thread:
-reading the replay, inference per configuration, activity + segmentation, and the fit per window.
+reading the replay, inference per configuration, the measures, segmentation, and the fit per window.
 
 Writes ``serve.json`` and ``serve.md`` to ``--out`` and prints the tables.
 """

@@ -11,8 +11,7 @@ import numpy as np
 
 #: d, p, a, b (Eq. 1: mm, 1, mm, mm), D(0, t) (mm), mean brightness (stored pixel units), highlight (how far
 #: the brightest pixel stands above the mean, as a fraction of full scale: the meniscus is seen only through its
-#: highlights), change (mean absolute difference from the frame before, pixel units; NaN without one),
-#: activity (the change as a robust z-score against the stream's recent frames; 0 without one) and novelty (the
+#: highlights), change (mean absolute difference from the frame before, pixel units; NaN without one) and novelty (the
 #: coarse picture's distance from the nearest of the last few milliseconds' frames, pixel units; NaN without
 #: them: :mod:`service.pipeline.measures`) of one frame.
 FRAME = np.dtype(
@@ -25,7 +24,6 @@ FRAME = np.dtype(
         ("brightness", "f8"),
         ("highlight", "f8"),
         ("change", "f8"),
-        ("activity", "f8"),
         ("novelty", "f8"),
     ]
 )

@@ -3,7 +3,7 @@
 source -> ROI -> per-frame measures, inverse's input -> bounded queue -> batched inference -> segmentation -> fits.
 The acquisition thread reads the source, cuts each batch down to the scene's region of interest at once
 (a sensor larger than the ROI costs no queue memory or copies beyond it), measures each frame's change,
-activity and mean brightness and makes the inverse method's input (a graph's pooled frames): work the
+mean brightness and novelty and makes the inverse method's input (a graph's pooled frames): work the
 inference thread, the busier of the two, need not wait for; it offers the read to a queue of ``queue_batches`` reads;
 when the queue is full the read is dropped and counted, so a camera is never made to wait and memory
 never grows. The inference thread takes what is queued in one ONNX call, but no more frames than it

@@ -13,7 +13,6 @@ from __future__ import annotations
 import numpy as np
 
 from service.inverse.base import InverseMethod
-from service.pipeline.activity import ActivityTracker
 from service.pipeline.ejections import novelty_lags
 from service.pipeline.measures import PixelMeasures
 from service.pipeline.records import COEFFICIENTS, FRAME
@@ -33,7 +32,6 @@ class FrameStages:
         self._roi_is_frame = (height, width) == (h, w)
         self.method = method
         self.pixels = PixelMeasures(*novelty_lags(stream.fps))
-        self.activity = ActivityTracker()
 
     def roi(self, batch: FrameBatch) -> FrameBatch:
         """The batch's region of interest, copied out so that whole sensor frames are freed at once; a batch whose
@@ -43,8 +41,8 @@ class FrameStages:
         return FrameBatch(batch.pixels[self._roi].copy(), batch.indices, batch.timestamps)
 
     def measure(self, batch: FrameBatch) -> tuple[np.ndarray, np.ndarray]:
-        """Records (N,) of a batch of ROI frames with what the pixels alone say (change from the frame before,
-        activity, mean brightness, novelty; the inverse's fields NaN until :meth:`infer`), and the inverse method's
+        """Records (N,) of a batch of ROI frames with what the pixels alone say (change from the frame before, mean
+        brightness, highlight, novelty; the inverse's fields NaN until :meth:`infer`), and the inverse method's
         input made of them (a graph's pooled frames: in the same pass over the pixels where it pools them), so
         that the thread that infers takes only that."""
         records = np.full(len(batch), np.nan, FRAME)
@@ -55,7 +53,7 @@ class FrameStages:
             self.method.check(batch.pixels)
             inputs = np.empty((n, 1, h // factor, w // factor), np.float32)
         change, brightness, peak, records["novelty"] = self.pixels.update(batch.pixels, batch.indices, inputs)
-        records["change"], records["activity"] = change, self.activity.score(change)
+        records["change"] = change
         records["brightness"] = brightness
         records["highlight"] = (peak - brightness) / self._full_scale
         return records, self.method.prepare(batch.pixels) if inputs is None else inputs
