@@ -114,7 +114,7 @@ def analyse_recording(
         streamed = db is None and not refine  # the window-level methods need every window's frames first
         model = window_model_for(settings, models, method)
         runner = stack.enter_context(JobRunner(settings, scheduler, workers))
-        hasher = stack.enter_context(ThreadPoolExecutor(1))
+        hasher = stack.enter_context(ThreadPoolExecutor(1, "meniscope-hash"))
         digest = hasher.submit(blake3_file, path)  # the hash lets go of the interpreter lock: read while it hashes
         # one pass over the frames (each read once: reading was a fifth of the CPU)
         parts, found, closed, jobs = [], [], [], []
@@ -202,7 +202,7 @@ def _ahead(items: Iterator[_T], depth: int = 2) -> Iterator[_T]:
     """``items``, each made on a thread of its own up to ``depth`` ahead, in order: reading and measuring the next
     frames overlaps the inference of these on two cores (the file reads, numpy, OpenCV and onnxruntime let go of
     the interpreter lock)."""
-    with ThreadPoolExecutor(1) as thread:  # one thread: ``items`` is advanced by it alone, one step at a time
+    with ThreadPoolExecutor(1, "meniscope-read-ahead") as thread:  # one thread: ``items`` advanced by it alone
         pending = deque(thread.submit(next, items, _END) for _ in range(depth))
         while (item := pending.popleft().result()) is not _END:
             pending.append(thread.submit(next, items, _END))

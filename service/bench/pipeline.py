@@ -7,7 +7,8 @@
 
 Each ``--repeat`` times, alternating, so that both see the same load; medians and the ratio to the camera's rate,
 and the CPU each spent per frame (this process and its fit processes; the fit processes' share beside it), which a loaded machine changes less than it
-changes frames/s.
+changes frames/s, and where it went: each thread's CPU per frame (sampled from ``/proc`` while it runs, Linux only),
+the live fit workers' from after they started (their start, importing the service, is no cost per frame).
 """
 
 from __future__ import annotations
@@ -38,6 +39,94 @@ def cpu_seconds() -> tuple[float, float]:
     return own.ru_utime + own.ru_stime, children.ru_utime + children.ru_stime
 
 
+class ThreadCpu:
+    """CPU seconds of this process's threads, by thread name, and of ``processes`` added as they start, sampled every
+    ``period`` s while in use (a thread that ends keeps its last sample): where a pipeline's CPU goes. Threads
+    Python did not start (onnxruntime's) are counted together; empty where ``/proc`` is missing."""
+
+    NATIVE = "native threads (onnxruntime)"
+
+    def __init__(self, period: float = 0.02) -> None:
+        import threading
+
+        self.period = period
+        self._names: dict[int, str] = {}
+        self._start: dict[int, float] = {}
+        self._last: dict[int, float] = {}
+        self._processes: dict[int, tuple[float, float]] = {}  # pid -> (at start, last)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._sample_until_stopped, name="bench-sampler", daemon=True)
+
+    @staticmethod
+    def _cpu(stat: str) -> float:
+        import os
+
+        fields = stat[stat.rindex(")") + 2 :].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")  # utime + stime
+
+    def _threads(self) -> dict[int, float]:
+        import os
+
+        seconds = {}
+        for tid in os.listdir("/proc/self/task") if os.path.isdir("/proc/self/task") else []:
+            try:
+                with open(f"/proc/self/task/{tid}/stat") as f:
+                    seconds[int(tid)] = self._cpu(f.read())
+            except OSError:  # ended meanwhile
+                pass
+        return seconds
+
+    def add_processes(self, pids: list[int]) -> None:
+        """Count ``pids``' CPU from now on."""
+        for pid in pids:
+            try:
+                with open(f"/proc/{pid}/stat") as f:
+                    now = self._cpu(f.read())
+            except OSError:
+                continue
+            self._processes[pid] = (now, now)
+
+    def _sample(self) -> None:
+        import re
+        import threading
+
+        for thread in threading.enumerate():
+            if thread.native_id is not None:  # an executor's threads by its prefix ("meniscope-hash", not "..._0")
+                self._names.setdefault(thread.native_id, re.sub(r"_\d+$", "", thread.name))
+        self._last.update(self._threads())
+        for pid, (start, _) in list(self._processes.items()):
+            try:
+                with open(f"/proc/{pid}/stat") as f:
+                    self._processes[pid] = (start, self._cpu(f.read()))
+            except OSError:  # ended: its last sample stays
+                pass
+
+    def _sample_until_stopped(self) -> None:
+        while not self._stop.wait(self.period):
+            self._sample()
+
+    def __enter__(self) -> ThreadCpu:
+        self._start = self._threads()
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        self._thread.join()
+        self._sample()
+
+    def per_frame(self, frames: int, processes: str = "processes") -> dict[str, float]:
+        """CPU us per frame by thread name (this sampler's own left out), and of the processes under ``processes``."""
+        by: dict[str, float] = {}
+        for tid, seconds in self._last.items():
+            name = self._names.get(tid, self.NATIVE)
+            if name != self._thread.name:
+                by[name] = by.get(name, 0.0) + seconds - self._start.get(tid, 0.0)
+        if self._processes:
+            by[processes] = sum(last - start for start, last in self._processes.values())
+        return {name: 1e6 * seconds / max(frames, 1) for name, seconds in by.items()}
+
+
 def cpu_per_frame(before: tuple[float, float], frames: int) -> dict:
     """CPU us per frame since ``before`` (:func:`cpu_seconds`): in all, and of it the fit processes'."""
     own, fits = (now - then for now, then in zip(cpu_seconds(), before))
@@ -55,16 +144,19 @@ def measure_offline(recording: Path, scene, opened, workers: int | None) -> dict
     from service.analysis.offline import analyse_recording
 
     t0, cpu0 = time.perf_counter(), cpu_seconds()
-    analysis = analyse_recording(
-        recording, scene, "network", DEFAULT_MODELS, progress=False, opened=opened, workers=workers
-    )
+    with ThreadCpu() as threads:
+        analysis = analyse_recording(
+            recording, scene, "network", DEFAULT_MODELS, progress=False, opened=opened, workers=workers
+        )
     seconds = time.perf_counter() - t0
     frames = analysis.report.source.frames
+    cpu = cpu_per_frame(cpu0, frames)  # the fit pool has ended: its CPU is counted
     return {
         "seconds": seconds,
         "frames_per_s": frames / seconds,
-        **cpu_per_frame(cpu0, frames),  # the fit pool has ended: its CPU is counted
+        **cpu,
         "windows": len(analysis.report.windows),
+        "threads_us_per_frame": {**threads.per_frame(frames), "fit processes": cpu["fit_cpu_us_per_frame"]},
     }
 
 
@@ -106,7 +198,8 @@ def measure_live(recording: Path, scene, method, workers: int | None) -> dict:  
     cpu0 = cpu_seconds()
     pool = FitPool(settings.fit_workers, settings.fit, settings.fit_nice)
     try:
-        with open_source(settings.source) as source:
+        with open_source(settings.source) as source, ThreadCpu() as threads:
+            threads.add_processes(pool.pids)
             t0 = time.perf_counter()
             Pipeline(settings, scene, source, method, pool, Count(), stats).run(threading.Event())
             inferred = time.perf_counter() - t0
@@ -125,11 +218,14 @@ def measure_live(recording: Path, scene, method, workers: int | None) -> dict:  
         "frames_dropped": stats.frames_dropped,
         "windows": len(fitted),
         "windows_skipped": stats.windows_skipped,
+        "threads_us_per_frame": threads.per_frame(stats.frames_inferred, "fit workers (after their start)"),
     }
 
 
 def markdown(results: dict) -> str:
-    """The side-by-side table."""
+    """The side-by-side table, and each thread's CPU per frame."""
+    import statistics
+
     fps = results["camera_fps"]
     lines = [
         "| pipeline | frames/s (median) | x camera | CPU us/frame (median) | of it fit processes | windows "
@@ -148,7 +244,16 @@ def markdown(results: dict) -> str:
         f"\noffline / live: {results['offline_over_live']:.2f} (medians of {len(results['offline'])} "
         f"alternating runs on {results['recording']})\n"
     )
-    return "\n".join(lines)
+    lines += ["| thread | pipeline | CPU us/frame (median) | runs |", "|---|---|---:|---|"]
+    for name in ("offline", "live"):
+        threads: dict[str, list[float]] = {}
+        for run in results[name]:
+            for thread, us in run.get("threads_us_per_frame", {}).items():
+                threads.setdefault(thread, []).append(us)
+        for thread, runs in sorted(threads.items(), key=lambda item: -statistics.median(item[1])):
+            each = ", ".join(f"{us:.1f}" for us in runs)
+            lines.append(f"| {thread} | {name} | {statistics.median(runs):.1f} | {each} |")
+    return "\n".join(lines) + "\n"
 
 
 def run(args: argparse.Namespace) -> int:

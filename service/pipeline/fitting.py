@@ -103,6 +103,11 @@ class FitPool:
             threading.Thread(target=self._receive, args=(worker,), name="meniscope-fit-results", daemon=True).start()
             self._idle.append(worker)
 
+    @property
+    def pids(self) -> list[int]:
+        """The worker processes' ids."""
+        return [worker.process.pid for worker in self._all]
+
     def submit(self, closed: WindowJob, fps: float, on_fitted: OnFitted) -> bool:
         """Start fitting ``closed`` (sampled at ``fps``), or queue it behind the fits in flight; False (and
         nothing done) when every worker is busy and ``BACKLOG`` windows already wait."""
