@@ -4,6 +4,7 @@ are batched."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -114,3 +115,16 @@ def test_block_means_made_in_the_same_pass_are_the_exact_means_rounded_once_and_
             np.testing.assert_array_equal(got, want)
         means = pixels[part].reshape(-1, blocks[0], factor, blocks[1], factor).mean(axis=(2, 4), dtype=np.float64)
         np.testing.assert_array_equal(pooled[:, 0], means.astype(np.float32))
+
+
+def test_a_pooled_output_that_does_not_fit_the_frames_is_refused() -> None:
+    frames = np.zeros((2, 6, 6), np.uint16)
+    for pooled in (
+        np.empty((2, 1, 4, 4), np.float32),
+        np.empty((2, 1, 0, 0), np.float32),
+        np.empty((2, 2, 2), np.float32),
+    ):
+        with pytest.raises(ValueError, match="whole blocks"):
+            PixelMeasures(1, 3).update(frames, np.arange(2), pooled)
+    with pytest.raises(ValueError, match="float32"):
+        PixelMeasures(1, 3).update(frames, np.arange(2), np.empty((2, 1, 2, 2)))

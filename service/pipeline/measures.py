@@ -114,13 +114,15 @@ class PixelMeasures:
         band, edges, counts = self._cells(h, w)
         total, change, peak = np.empty(n, zero.dtype), np.empty(n, zero.dtype), np.empty(n, flat.dtype)
         cells = np.zeros((n, counts.size))
-        factor = 0 if pooled is None else h // pooled.shape[2]
+        factor = 0
         if pooled is None:
             pooled = np.empty((0, 1, 0, 0), np.float32)
-        elif pooled.shape != (n, 1, h // factor, w // factor) or pooled.dtype != np.float32 or h % factor or w % factor:
-            raise ValueError(
-                f"pooled must be float32 (N, 1, H/f, W/f) of whole blocks, got {pooled.dtype} {pooled.shape}"
-            )
+        else:
+            factor = h // pooled.shape[2] if pooled.ndim == 4 and pooled.shape[2] else 0
+            if not factor or pooled.shape != (n, 1, h // factor, w // factor) or h % factor or w % factor:
+                raise ValueError(f"pooled must be (N, 1, H/f, W/f) of whole blocks, got {pooled.shape} for {h} x {w}")
+            if pooled.dtype != np.float32:
+                raise ValueError(f"pooled must be float32, got {pooled.dtype}")
         previous = self._previous if follows else flat[0]
         _sums(flat, previous, zero, band, edges, total, peak, change, cells, factor, pooled)
         size = flat.shape[1]
