@@ -275,6 +275,33 @@ def test_a_faint_droplets_first_frames_start_the_ejection_though_the_bulge_chang
 
 
 @pytest.mark.parametrize("offline", [False, True])
+def test_a_faint_droplets_first_frames_in_high_noise_start_the_ejection_by_their_new_shape(offline: bool) -> None:
+    """Our renderer, faint high seed 4 at 1710: the droplet's two frames stand 17-20 above the noise's 90th percentile
+    (half a noise median, under the ratio a burst must stand), but each shows a new shape (novelty 22-28 where the
+    noise's is 3): the ejection starts there, not at the bulge 4 frames on."""
+    rng = np.random.default_rng(8)
+    true = list(range(100, 1900, 190))
+    change, novelty = rng.normal(35.1, 0.38, 2000), np.abs(rng.normal(3.0, 0.5, 2000))
+    for e in true:
+        change[e : e + 12] = [52.4, 55.5, 34.7, 40.5, 88.3, 166.0, 97.0, 112.1, 73.7, 160.9, 62.3, 82.1]
+        novelty[e : e + 10] = [21.6, 27.5, 26.8, 29.9, 47.2, 182.4, 214.4, 164.9, 123.5, 28.7]
+    assert score(detect_ejections_streamed(change, FPS, offline=offline, novelty=novelty), true) == (9, 9, 9)
+
+
+@pytest.mark.parametrize("offline", [False, True])
+def test_a_single_frame_speck_before_a_burst_does_not_start_it_early(offline: bool) -> None:
+    """Spatter: a speck changes one frame and shows a new shape; the ejection still starts at its own first frame."""
+    rng = np.random.default_rng(9)
+    true = list(range(100, 1900, 190))
+    change, novelty = rng.normal(35.1, 0.38, 2000), np.abs(rng.normal(3.0, 0.5, 2000))
+    for e in true:
+        change[e - 3], novelty[e - 3] = 45.0, 30.0
+        change[e : e + 6] = [140.0, 300.0, 420.0, 300.0, 150.0, 90.0]
+        novelty[e : e + 6] = [60.0, 150.0, 200.0, 160.0, 90.0, 40.0]
+    assert score(detect_ejections_streamed(change, FPS, offline=offline, novelty=novelty), true) == (9, 9, 9)
+
+
+@pytest.mark.parametrize("offline", [False, True])
 def test_a_stream_that_starts_a_fifth_of_a_period_off_two_periods_before_does_not_start_with_an_ejection(
     offline: bool,
 ) -> None:

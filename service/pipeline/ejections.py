@@ -323,7 +323,7 @@ class EjectionDetector:
                 stronger = span[i] + int(np.argmax(ahead))
                 if ahead.max() > level[i] and not self._newer(span[i], stronger):
                     continue  # a stronger start follows within the look-ahead, showing no older shape: decide there
-                onset = self._onset(c, at(frame), top[i], at(self._run), self.ratio * bases[i])
+                onset = self._onset(at(frame), top[i], at(self._run), self.ratio * bases[i])
             elif stretch_of[i, 0] >= 0 and levels[i] > 0:  # where the rate puts the next ejection
                 self._run = None
                 a, b = int(stretch_of[i, 0]), int(stretch_of[i, 1])
@@ -432,20 +432,30 @@ class EjectionDetector:
         """The median burst level of the recent ejections (0 before the first)."""
         return float(np.median(self._bursts)) if self._bursts else 0.0
 
-    def _onset(self, c: np.ndarray, peak: int, top: float, run: int, clear: float) -> int:
+    def _onset(self, peak: int, top: float, run: int, clear: float) -> int:
         """Position of the burst's first frame: the earliest of the frames from the ``transient`` before ``peak``, or
         from ``run`` (the first of the unbroken run of passing starts it ends: the ringing an ejection starts can
         change the frame more than its bulge, and the look-ahead then decides at the ringing), whose change above
         ``top`` (the baseline's 90th percentile) reaches ONSET_FRACTION of the burst's highest, or ``clear`` (as far above
-        it as a burst must stand: a faint droplet's first frames can change the frame less than a fifth of the bulge)."""
+        it as a burst must stand: a faint droplet's first frames can change the frame less than a fifth of the bulge),
+        or which starts two frames that each change the frame ONSET_FRACTION of ``clear`` above ``top`` and show a
+        new shape (novelty ``ratio`` novelty medians above its baseline's 90th percentile: a faint droplet's first
+        frames in high noise; a speck of spatter is one frame)."""
         lo = max(
             min(peak - self.transient + 1, run),
             0,
             (self._last - self._first + self.refractory) if self._last is not None else 0,
         )
         lo = min(lo, peak)
-        span = np.nan_to_num(c[lo : peak + self.transient] - top, nan=0.0)
-        return lo + int(np.argmax(span >= min(ONSET_FRACTION * span.max(), clear)))
+        span = np.nan_to_num(self._changes[lo : peak + self.transient] - top, nan=0.0)
+        onset = span >= min(ONSET_FRACTION * span.max(), clear)
+        _, novel_base, novel_top, _ = _window_levels(self._padded(self._novelty), np.array([peak]), self.history, 1)
+        with np.errstate(invalid="ignore"):
+            new = (span >= ONSET_FRACTION * clear) & (
+                self._novelty[lo : peak + self.transient] >= novel_top[0] + self.ratio * novel_base[0]
+            )
+        onset[:-1] |= new[:-1] & new[1:]
+        return lo + int(np.argmax(onset))
 
 
 @njit(cache=True, nogil=True)
