@@ -25,7 +25,7 @@ stretch's end). The rate is learned from the video, not assumed, and a skipped e
 keeps it. The stream's first ejections into such ringing come before any period is known: the stream's first frames
 wait (their change and novelty, at most :data:`PERIOD_WAIT_S`) until two intervals agree on one (the longest of which
 each is about a multiple), and the stretches it then puts between, before and after the ejections found are judged as
-above. No start in the stream's first ``history`` frames is judged by its burst (a baseline shorter than a slow
+above, narrowed to the held intervals' own scatter (and :data:`LOOK_BACK_MARGIN`), from :data:`LOOK_BACK_SCORE` on. No start in the stream's first ``history`` frames is judged by its burst (a baseline shorter than a slow
 ringing's period misses its peaks), and a held one whose burst falls under ``floor`` times the held ones' median (the
 floor those set later: ringing that beats passes ``ratio`` against its own quiet frames) is dropped; the stream's first
 frame counts towards the period only where it fits it, or where a shorter period that it fits finds more ejections. A stretch's ejection starts at the first peak of that product before its highest (the ringing an
@@ -81,6 +81,14 @@ NOVELTY_SPAN_S = 3e-3
 #: together (the product of how far each stands above its baseline, in baselines: the ringing's strongest change
 #: repeats shapes, its newest shapes change little) once that product passes this.
 STRETCH_SCORE = 0.5
+#: The stream's first ejections, held until the period is known, measure it to a frame or two: the stretches looked
+#: back at are as wide as the held intervals' own scatter about their multiples of it and this (frames, the scoring
+#: tolerance), not EXPECTED_SPREAD of the period. Light ringing scores above STRETCH_SCORE somewhere within 10 % of the
+#: period of a point where no ejection is 43 % of the time, above LOOK_BACK_SCORE within 2 frames 20 %: so a
+#: looked-back stretch's start is taken from this score on (a light window's ejection scoring 0.15-0.19 in change
+#: times novelty, with ringing scoring 1.4 eighteen frames later).
+LOOK_BACK_MARGIN = 2.0
+LOOK_BACK_SCORE = 0.1
 
 
 def novelty_lags(fps: float) -> tuple[int, int]:
@@ -235,11 +243,15 @@ class EjectionDetector:
 
     def _look_back(self, held: list[int], period: float | None) -> list[int]:
         """The ejections in the stretches that ``period`` puts between the ``held`` ejections (each gap about a
-        multiple of it) and before the first (back to the stream's start, up to EXPECTED_PERIODS): the start
-        where change and novelty stand out most together, where it passes STRETCH_SCORE."""
+        multiple of it) and before the first (back to the stream's start, up to EXPECTED_PERIODS), each as wide as the
+        ``held`` intervals' scatter about their multiples of ``period`` and LOOK_BACK_MARGIN (at most EXPECTED_SPREAD of
+        it): the start where change and novelty stand out most together, where it passes LOOK_BACK_SCORE."""
         if period is None:
             return []
-        spread = max(2.0, EXPECTED_SPREAD * period)
+        intervals = np.diff(held)
+        multiples = np.maximum(np.round(intervals / period), 1)
+        scatter = float(np.max(np.abs(intervals - multiples * period) / multiples))
+        spread = max(2.0, min(EXPECTED_SPREAD * period, scatter + LOOK_BACK_MARGIN))
         stretches = [
             (a + j * (b - a) / n, spread)
             for a, b in zip(held, held[1:])
@@ -261,7 +273,7 @@ class EjectionDetector:
             _, level, base, _ = self._levels(positions)
             score = self._scores(level, base, positions)
             best = int(frames[self._first_peak(score, int(np.argmax(score)))])
-            if score.max() > STRETCH_SCORE and min(abs(best - f) for f in held + found) >= self.refractory:
+            if score.max() > LOOK_BACK_SCORE and min(abs(best - f) for f in held + found) >= self.refractory:
                 found.append(best)
         return found
 
