@@ -184,7 +184,8 @@ class EjectionDetector:
     def _release(self, found: list[int], final: bool) -> list[int]:
         """The ejections ``found`` once the stream's period is known; before, they are held, and once it is (two
         intervals agree on one, the stream has run PERIOD_WAIT_S or ended) returned with those the period finds
-        between and before them."""
+        between and before them: a third or half of it where that finds one in every stretch it puts between them
+        (a 4 kHz stream whose every other ejection does not stand out by its burst agrees on two periods)."""
         if not self._learning:
             return found
         self._held += found
@@ -198,7 +199,19 @@ class EjectionDetector:
         if len(held) < 3:
             return held
         # those looked back at are not bursts: the floor stays the clear bursts'
-        found = held + self._look_back(held, self._unit(np.diff(held)))
+        unit = self._unit(np.diff(held))
+        found = held + self._look_back(held, unit)
+        # every other ejection buried in ringing, the held ones agree on two (or three) periods: a third or half of it
+        # is the period where it finds an ejection in every stretch it puts between them
+        for k in (3, 2) if unit is not None else ():
+            sub = unit / k
+            if sub < self.refractory:
+                continue
+            more = self._look_back(held, sub)
+            between = sum(round((b - a) / sub) - 1 for a, b in zip(held, held[1:]))
+            if 0 < between == sum(held[0] < f < held[-1] for f in more):
+                found = held + more
+                break
         if len(held) < len(clear):  # the first, off the period: kept where a shorter one fits it and finds an
             unit = self._unit(np.diff(clear))  # ejection in every stretch it puts between the others
             more = self._look_back(clear, unit) if unit is not None else []
