@@ -83,10 +83,9 @@ NOVELTY_SPAN_S = 3e-3
 STRETCH_SCORE = 0.5
 #: The stream's first ejections, held until the period is known, measure it to a frame or two: the stretches looked
 #: back at are as wide as the held intervals' own scatter about their multiples of it and this (frames, the scoring
-#: tolerance), not EXPECTED_SPREAD of the period. Light ringing scores above STRETCH_SCORE somewhere within 10 % of the
-#: period of a point where no ejection is 43 % of the time, above LOOK_BACK_SCORE within 2 frames 20 %: so a
-#: looked-back stretch's start is taken from this score on (a light window's ejection scoring 0.15-0.19 in change
-#: times novelty, with ringing scoring 1.4 eighteen frames later).
+#: tolerance), not EXPECTED_SPREAD of the period. Ringing passes a lower score within so few frames less often than
+#: STRETCH_SCORE within the wider stretch (docs/ejections.md), so a looked-back stretch's start is taken from this
+#: score on: an ejection buried in light ringing scores under STRETCH_SCORE, the ringing it starts above it.
 LOOK_BACK_MARGIN = 2.0
 LOOK_BACK_SCORE = 0.1
 
