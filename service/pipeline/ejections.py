@@ -257,35 +257,46 @@ class EjectionDetector:
         """The ejections in the stretches that ``period`` puts between the ``held`` ejections (each gap about a
         multiple of it) and before the first (back to the stream's start, up to EXPECTED_PERIODS), each as wide as the
         ``held`` intervals' scatter about their multiples of ``period`` and LOOK_BACK_MARGIN (at most EXPECTED_SPREAD of
-        it): the start where change and novelty stand out most together, where it passes LOOK_BACK_SCORE."""
+        it): the start where change and novelty stand out most together, where it passes LOOK_BACK_SCORE. The start
+        the wider stretch (EXPECTED_SPREAD) would take stays where it lies in the narrow one: its first peak is sought
+        from the ringing an ejection starts, which the narrow stretch can cut off."""
         if period is None:
             return []
         intervals = np.diff(held)
         multiples = np.maximum(np.round(intervals / period), 1)
         scatter = float(np.max(np.abs(intervals - multiples * period) / multiples))
-        spread = max(2.0, min(EXPECTED_SPREAD * period, scatter + LOOK_BACK_MARGIN))
+        wide = max(2.0, EXPECTED_SPREAD * period)
+        narrow = min(wide, scatter + LOOK_BACK_MARGIN)
         stretches = [
-            (a + j * (b - a) / n, spread)
+            (a + j * (b - a) / n, 1)
             for a, b in zip(held, held[1:])
             for n in [int(round((b - a) / period))]
             for j in range(1, n)
         ]
         if held[0] != self._origin:
-            stretches += [(held[0] - k * period, k * spread) for k in range(1, EXPECTED_PERIODS + 1)]
+            stretches += [(held[0] - k * period, k) for k in range(1, EXPECTED_PERIODS + 1)]
         # and after the last, where already decided (held, no stretch was looked at)
-        stretches += [(held[-1] + k * period, k * spread) for k in range(1, EXPECTED_PERIODS + 1)]
-        stretches = [(centre, half) for centre, half in stretches if centre < self._decided]
+        stretches += [(held[-1] + k * period, k) for k in range(1, EXPECTED_PERIODS + 1)]
         lo, hi = self._origin + self.history, self._first + self._changes.size - self.transient
         found: list[int] = []
-        for centre, half in stretches:
-            frames = np.arange(max(int(np.ceil(centre - half)), lo), min(int(np.floor(centre + half)), hi - 1) + 1)
-            if frames.size == 0:
+        for centre, k in stretches:
+            if centre >= self._decided:
+                continue
+            frames = np.arange(
+                max(int(np.ceil(centre - k * wide)), lo), min(int(np.floor(centre + k * wide)), hi - 1) + 1
+            )
+            inside = np.abs(frames - centre) <= k * narrow
+            if not inside.any():
                 continue
             positions = frames - self._first
             _, level, base, _ = self._levels(positions)
             score = self._scores(level, base, positions)
             best = int(frames[self._first_peak(score, int(np.argmax(score)))])
-            if score.max() > LOOK_BACK_SCORE and min(abs(best - f) for f in held + found) >= self.refractory:
+            if abs(best - centre) > k * narrow:
+                score, frames = score[inside], frames[inside]
+                best = int(frames[self._first_peak(score, int(np.argmax(score)))])
+            top = score[np.abs(frames - centre) <= k * narrow].max()
+            if top > LOOK_BACK_SCORE and min(abs(best - f) for f in held + found) >= self.refractory:
                 found.append(best)
         return found
 
