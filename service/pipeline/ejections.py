@@ -25,7 +25,7 @@ stretch's end). The rate is learned from the video, not assumed, and a skipped e
 keeps it. The stream's first ejections into such ringing come before any period is known: the stream's first frames
 wait (their change and novelty, at most :data:`PERIOD_WAIT_S`) until two intervals agree on one (the longest of which
 each is about a multiple), and the stretches it then puts between, before and after the ejections found are judged as
-above. No start in the stream's first ``history`` frames is judged by its burst (a baseline shorter than a slow
+above, narrowed to the held intervals' own scatter (and :data:`LOOK_BACK_MARGIN`), from :data:`LOOK_BACK_SCORE` on. No start in the stream's first ``history`` frames is judged by its burst (a baseline shorter than a slow
 ringing's period misses its peaks), and a held one whose burst falls under ``floor`` times the held ones' median (the
 floor those set later: ringing that beats passes ``ratio`` against its own quiet frames) is dropped; the stream's first
 frame counts towards the period only where it fits it, or where a shorter period that it fits finds more ejections. A stretch's ejection starts at the first peak of that product before its highest (the ringing an
@@ -81,6 +81,13 @@ NOVELTY_SPAN_S = 3e-3
 #: together (the product of how far each stands above its baseline, in baselines: the ringing's strongest change
 #: repeats shapes, its newest shapes change little) once that product passes this.
 STRETCH_SCORE = 0.5
+#: The stream's first ejections, held until the period is known, measure it to a frame or two: the stretches looked
+#: back at are as wide as the held intervals' own scatter about their multiples of it and this (frames, the scoring
+#: tolerance), not EXPECTED_SPREAD of the period. Ringing passes a lower score within so few frames less often than
+#: STRETCH_SCORE within the wider stretch (docs/ejections.md), so a looked-back stretch's start is taken from this
+#: score on: an ejection buried in light ringing scores under STRETCH_SCORE, the ringing it starts above it.
+LOOK_BACK_MARGIN = 2.0
+LOOK_BACK_SCORE = 0.1
 
 
 def novelty_lags(fps: float) -> tuple[int, int]:
@@ -176,7 +183,8 @@ class EjectionDetector:
     def _release(self, found: list[int], final: bool) -> list[int]:
         """The ejections ``found`` once the stream's period is known; before, they are held, and once it is (two
         intervals agree on one, the stream has run PERIOD_WAIT_S or ended) returned with those the period finds
-        between and before them."""
+        between and before them: a third or half of it where that finds one in every stretch it puts between them
+        (a 4 kHz stream whose every other ejection does not stand out by its burst agrees on two periods)."""
         if not self._learning:
             return found
         self._held += found
@@ -190,7 +198,19 @@ class EjectionDetector:
         if len(held) < 3:
             return held
         # those looked back at are not bursts: the floor stays the clear bursts'
-        found = held + self._look_back(held, self._unit(np.diff(held)))
+        unit = self._unit(np.diff(held))
+        found = held + self._look_back(held, unit)
+        # every other ejection buried in ringing, the held ones agree on two (or three) periods: a third or half of it
+        # is the period where it finds an ejection in every stretch it puts between them
+        for k in (3, 2) if unit is not None else ():
+            sub = unit / k
+            if sub < self.refractory:
+                continue
+            more = self._look_back(held, sub)
+            between = sum(round((b - a) / sub) - 1 for a, b in zip(held, held[1:]))
+            if 0 < between == sum(held[0] < f < held[-1] for f in more):
+                found = held + more
+                break
         if len(held) < len(clear):  # the first, off the period: kept where a shorter one fits it and finds an
             unit = self._unit(np.diff(clear))  # ejection in every stretch it puts between the others
             more = self._look_back(clear, unit) if unit is not None else []
@@ -235,33 +255,48 @@ class EjectionDetector:
 
     def _look_back(self, held: list[int], period: float | None) -> list[int]:
         """The ejections in the stretches that ``period`` puts between the ``held`` ejections (each gap about a
-        multiple of it) and before the first (back to the stream's start, up to EXPECTED_PERIODS): the start
-        where change and novelty stand out most together, where it passes STRETCH_SCORE."""
+        multiple of it) and before the first (back to the stream's start, up to EXPECTED_PERIODS), each as wide as the
+        ``held`` intervals' scatter about their multiples of ``period`` and LOOK_BACK_MARGIN (at most EXPECTED_SPREAD of
+        it): the start where change and novelty stand out most together, where it passes LOOK_BACK_SCORE. The start
+        the wider stretch (EXPECTED_SPREAD) would take stays where it lies in the narrow one: its first peak is sought
+        from the ringing an ejection starts, which the narrow stretch can cut off."""
         if period is None:
             return []
-        spread = max(2.0, EXPECTED_SPREAD * period)
+        intervals = np.diff(held)
+        multiples = np.maximum(np.round(intervals / period), 1)
+        scatter = float(np.max(np.abs(intervals - multiples * period) / multiples))
+        wide = max(2.0, EXPECTED_SPREAD * period)
+        narrow = min(wide, scatter + LOOK_BACK_MARGIN)
         stretches = [
-            (a + j * (b - a) / n, spread)
+            (a + j * (b - a) / n, 1)
             for a, b in zip(held, held[1:])
             for n in [int(round((b - a) / period))]
             for j in range(1, n)
         ]
         if held[0] != self._origin:
-            stretches += [(held[0] - k * period, k * spread) for k in range(1, EXPECTED_PERIODS + 1)]
+            stretches += [(held[0] - k * period, k) for k in range(1, EXPECTED_PERIODS + 1)]
         # and after the last, where already decided (held, no stretch was looked at)
-        stretches += [(held[-1] + k * period, k * spread) for k in range(1, EXPECTED_PERIODS + 1)]
-        stretches = [(centre, half) for centre, half in stretches if centre < self._decided]
+        stretches += [(held[-1] + k * period, k) for k in range(1, EXPECTED_PERIODS + 1)]
         lo, hi = self._origin + self.history, self._first + self._changes.size - self.transient
         found: list[int] = []
-        for centre, half in stretches:
-            frames = np.arange(max(int(np.ceil(centre - half)), lo), min(int(np.floor(centre + half)), hi - 1) + 1)
-            if frames.size == 0:
+        for centre, k in stretches:
+            if centre >= self._decided:
+                continue
+            frames = np.arange(
+                max(int(np.ceil(centre - k * wide)), lo), min(int(np.floor(centre + k * wide)), hi - 1) + 1
+            )
+            inside = np.abs(frames - centre) <= k * narrow
+            if not inside.any():
                 continue
             positions = frames - self._first
             _, level, base, _ = self._levels(positions)
             score = self._scores(level, base, positions)
             best = int(frames[self._first_peak(score, int(np.argmax(score)))])
-            if score.max() > STRETCH_SCORE and min(abs(best - f) for f in held + found) >= self.refractory:
+            if abs(best - centre) > k * narrow:
+                score, frames = score[inside], frames[inside]
+                best = int(frames[self._first_peak(score, int(np.argmax(score)))])
+            top = score[np.abs(frames - centre) <= k * narrow].max()
+            if top > LOOK_BACK_SCORE and min(abs(best - f) for f in held + found) >= self.refractory:
                 found.append(best)
         return found
 
@@ -323,7 +358,7 @@ class EjectionDetector:
                 stronger = span[i] + int(np.argmax(ahead))
                 if ahead.max() > level[i] and not self._newer(span[i], stronger):
                     continue  # a stronger start follows within the look-ahead, showing no older shape: decide there
-                onset = self._onset(c, at(frame), top[i], at(self._run), self.ratio * bases[i])
+                onset = self._onset(at(frame), top[i], at(self._run), self.ratio * bases[i])
             elif stretch_of[i, 0] >= 0 and levels[i] > 0:  # where the rate puts the next ejection
                 self._run = None
                 a, b = int(stretch_of[i, 0]), int(stretch_of[i, 1])
@@ -432,20 +467,30 @@ class EjectionDetector:
         """The median burst level of the recent ejections (0 before the first)."""
         return float(np.median(self._bursts)) if self._bursts else 0.0
 
-    def _onset(self, c: np.ndarray, peak: int, top: float, run: int, clear: float) -> int:
+    def _onset(self, peak: int, top: float, run: int, clear: float) -> int:
         """Position of the burst's first frame: the earliest of the frames from the ``transient`` before ``peak``, or
         from ``run`` (the first of the unbroken run of passing starts it ends: the ringing an ejection starts can
         change the frame more than its bulge, and the look-ahead then decides at the ringing), whose change above
         ``top`` (the baseline's 90th percentile) reaches ONSET_FRACTION of the burst's highest, or ``clear`` (as far above
-        it as a burst must stand: a faint droplet's first frames can change the frame less than a fifth of the bulge)."""
+        it as a burst must stand: a faint droplet's first frames can change the frame less than a fifth of the bulge),
+        or which starts two frames that each change the frame ONSET_FRACTION of ``clear`` above ``top`` and show a
+        new shape (novelty ``ratio`` novelty medians above its baseline's 90th percentile: a faint droplet's first
+        frames in high noise; a speck of spatter is one frame)."""
         lo = max(
             min(peak - self.transient + 1, run),
             0,
             (self._last - self._first + self.refractory) if self._last is not None else 0,
         )
         lo = min(lo, peak)
-        span = np.nan_to_num(c[lo : peak + self.transient] - top, nan=0.0)
-        return lo + int(np.argmax(span >= min(ONSET_FRACTION * span.max(), clear)))
+        span = np.nan_to_num(self._changes[lo : peak + self.transient] - top, nan=0.0)
+        onset = span >= min(ONSET_FRACTION * span.max(), clear)
+        _, novel_base, novel_top, _ = _window_levels(self._padded(self._novelty), np.array([peak]), self.history, 1)
+        with np.errstate(invalid="ignore"):
+            new = (span >= ONSET_FRACTION * clear) & (
+                self._novelty[lo : peak + self.transient] >= novel_top[0] + self.ratio * novel_base[0]
+            )
+        onset[:-1] |= new[:-1] & new[1:]
+        return lo + int(np.argmax(onset))
 
 
 @njit(cache=True, nogil=True)
