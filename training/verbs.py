@@ -26,7 +26,7 @@ if TYPE_CHECKING:
 #: ``train``'s window model: windows per noise preset it is trained on (half at the nominal motion, half widened:
 #: ``training.window.render_mix``), its epochs, and the windows per preset that calibrate its intervals
 #: (docs/window_model.md: its error fell with the windows trained on).
-WINDOW_WINDOWS, WINDOW_EPOCHS, WINDOW_CALIBRATION = 1300, 40, 80
+WINDOW_WINDOWS, WINDOW_EPOCHS, WINDOW_CALIBRATION = 1300, 80, 80
 #: Top-level modules of the train extra -> the extra (the scale extra's Dask is checked where --scheduler is read).
 EXTRA_OF = {"torch": "train", "onnx": "train"}
 
