@@ -20,7 +20,9 @@ from service.inverse import window_model as wm
 from service.inverse.manifest import sha256_file
 from service.pipeline.records import FRAME
 from service.pipeline.windows import WindowJob, fit_job, job_for, window_model_for
+from service.simulate import WindowRanges
 from service.validation.score import QUANTITIES
+from training import window as tw
 from training.window import WindowNet, export
 from training.window_intervals import calibrate
 
@@ -256,3 +258,31 @@ def test_a_window_whose_steady_series_oscillates_keeps_the_window_models_fit() -
     job = WindowJob(Window(0, 0, 190, True, True), _wandering(steady, 0.003, 30.0), None, 0.5, steady=steady)
     result = fit_job(job, 19_000.0, FitSettings())
     assert result.status != "settled" and any(abs(m.frequency_hz - 1000) < 20 for m in result.modes)
+
+
+@settings(max_examples=30, deadline=None)
+@given(windows=st.integers(1, 5000), seed=st.integers(0, 10**6))
+def test_training_windows_are_half_nominal_half_widened_at_seeds_of_their_own(windows: int, seed: int) -> None:
+    """``train``'s training windows (:func:`training.window.render_mix`): per noise preset, half at the simulator's
+    nominal motion (like the held-out recordings and the calibration) and the rest at the widened ranges, each
+    half at seeds that neither the other half nor the calibration (``seed + CALIBRATION_SEEDS``) uses."""
+    asked: list[tuple[int, int, WindowRanges, str]] = []
+
+    def render(
+        folder: Path, scene: object, n: int, s: int, ranges: WindowRanges = tw.TRAINING_RANGES, name: str = "window"
+    ) -> list[Path]:
+        asked.append((n, s, ranges, name))
+        return [folder / f"{name}-{noise}-{s + k}.cine" for k, noise in enumerate(tw.TRAINING_NOISE)]
+
+    original, tw.render_training = tw.render_training, render
+    try:
+        paths = tw.render_mix(Path("data"), None, windows, seed)  # type: ignore[arg-type]
+    finally:
+        tw.render_training = original
+    assert sum(n for n, *_ in asked) == windows and all(n > 0 for n, *_ in asked)
+    assert {r for _, _, r, _ in asked} <= {tw.TRAINING_RANGES, WindowRanges()}
+    assert sum(n for n, _, r, _ in asked if r == WindowRanges()) == windows // 2
+    used = [s + k for _, s, _, _ in asked for k in range(len(tw.TRAINING_NOISE))]
+    calibration = {seed + tw.CALIBRATION_SEEDS + k for k in range(len(tw.TRAINING_NOISE))}
+    assert len(set(used)) == len(used) and not calibration & set(used)
+    assert len(set(paths)) == len(paths) == len(tw.TRAINING_NOISE) * len(asked)
