@@ -11,21 +11,23 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from service import DEFAULT_SCENE
+from service.calibration import parameters as P
 from service.calibration.fit import (
     MOTION_HIGH,
     MOTION_LOW,
     SCHEDULE,
     Motion,
+    Problem,
     Stage,
     calibrate,
     light_grid,
 )
 from service.calibration.footage import read_footage
 from service.calibration.parameters import PARAMETERS
-from service.calibration.profile import indistinct
-from service.calibration.report import document
+from service.calibration.profile import PARTNERS, Profile, indistinct
+from service.calibration.report import document, profile_verdicts
 from service.calibration.roi import refine_shift
-from service.calibration.synthesis import pyramid
+from service.calibration.synthesis import Synthesis, pyramid
 from service.camera_effects import CameraEffects
 from service.scene import Scene, direction
 from service.simulate import simulate
@@ -60,18 +62,23 @@ def test_a_known_mismatch_is_recovered(lab: Path) -> None:
     footage = read_footage(lab, frames=8, stack=38, ejection_hz=1000.0)
     assert len(np.unique(footage.windows)) == 2  # the frames fall in both windows; d, p are fitted once in each
     quick = tuple(Stage(stage.sigmas, 1, 10) for stage in SCHEDULE)
-    profiled = {"light.azimuth_deg": (-3.0, 3.0)}
+    profiled = {"light.azimuth_deg": (-3.0, 3.0), "fluid.roughness": (-0.3, 0.3)}
     cal = calibrate(footage, _scene(), schedule=quick, start_alphas=(0.3,), progress=False, profiled=profiled)
     found = cal.scene
     # every start is scored on the finest level; the one carried through the finer stages scored lowest there
     carried = [s for s in cal.starts if "final_cost" in s]
     assert len(carried) == 1 and carried[0]["fine_cost"] == min(s["fine_cost"] for s in cal.starts)
+    assert "lights" in carried[0] and found.fluid.roughness == pytest.approx(carried[0]["final_roughness"])
     azimuth = cal.profiles["light.azimuth_deg"]
     assert azimuth.values[0] == pytest.approx(found.light.azimuth_deg - 3.0)
     # the truth lies in the interval the report gives (on 40 px the frames tell the azimuth to a few degrees)
     assert azimuth.interval[0] <= azimuth.best <= azimuth.interval[1]
     assert azimuth.interval[0] <= 185.0 <= azimuth.interval[1]
     assert azimuth.bracket[0] <= azimuth.interval[0] <= azimuth.interval[1] <= azimuth.bracket[1]
+    # alpha is profiled with the light's angle and the reflectance refitted at each value: the truth (the guess's
+    # 0.06) is not told apart from the best, or lies inside the bracket
+    alpha = cal.profiles["fluid.roughness"]
+    assert alpha.bracket[0] <= 0.06 <= alpha.bracket[1]
     assert found.camera.roi == (5, 3)
     assert found.light.azimuth_deg == pytest.approx(185.0, abs=1.5)
     assert found.camera.exposure == pytest.approx(1.5, rel=0.15)
@@ -196,3 +203,43 @@ def test_the_loss_has_a_slope_in_the_blur_coordinate_at_zero_blur() -> None:
     first, second = at(1e-3) - at(0.0), at(2e-3) - at(0.0)
     assert np.abs(first).max() > 0
     np.testing.assert_allclose(second, 2 * first, rtol=0.05, atol=1e-6)
+
+
+@given(st.sets(st.sampled_from([p.name for p in PARAMETERS]), min_size=1), st.integers(0, 2**31))
+def test_a_problem_fits_its_parameters_and_holds_the_rest(names: set[str], seed: int) -> None:
+    """A profile refits a parameter's partners with the rest of the scene held: a problem over a subset of the scene's
+    parameters writes those and leaves every other one at the base scene's value."""
+    fitted = tuple(p for p in PARAMETERS if p.name in names)
+    base = _scene()
+    problem = Problem(Synthesis(), base, np.zeros((3, 40, 40), np.float32), (3.0,), fitted=fitted)
+    assert len(problem.x0) == problem.n_scene == len(fitted)
+    x = np.random.default_rng(seed).uniform(problem.low, problem.high)
+    scene, motion = problem.unpack(x)
+    assert motion.shape == (3, 4)
+    now, held = P.read(scene), P.read(base)
+    for i, p in enumerate(PARAMETERS):
+        expected = x[fitted.index(p)] if p in fitted else held[i]
+        assert now[i] == pytest.approx(expected, rel=1e-9, abs=1e-12), p.name
+
+
+def _profile(name: str, value: float, half_width: float, open_low: bool) -> Profile:
+    bracket = (value - half_width, value + half_width)
+    return Profile(name, np.array(bracket), np.zeros((2, 3)), value, (value, value), bracket, open_low, False)
+
+
+@given(st.floats(0.001, 0.3), st.sampled_from([0.1, 0.2, 0.3, 0.6]), st.booleans())
+def test_what_trades_with_an_unpinned_parameter_is_not_identified_either(
+    alpha: float, half: float, opened: bool
+) -> None:
+    """alpha, the light's angle and the reflectance trade on a highlight's width and brightness: when alpha's profile
+    (its partners refitted) does not pin it, its partners do not count as identified either, whatever their own."""
+    values = {"fluid.roughness": alpha, "light.angle_deg": 4.0}
+    profiles = {
+        "fluid.roughness": _profile("fluid.roughness", alpha, half * alpha, opened),
+        "light.angle_deg": _profile("light.angle_deg", 4.0, 0.1, False),  # pinned on its own
+    }
+    verdict = profile_verdicts(profiles, values)
+    pinned = not opened and half <= 0.25  # the report's precision for alpha: 25 %
+    assert verdict["fluid.roughness"] == pinned
+    assert all(verdict[partner] == pinned for partner in PARTNERS["fluid.roughness"])
+    assert verdict["light.azimuth_deg"] and verdict["camera.exposure"]  # no profile, no ridge: left to their sigma

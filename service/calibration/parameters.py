@@ -94,7 +94,7 @@ def write(scene: Scene, x: np.ndarray, params: tuple[Parameter, ...] = PARAMETER
 def bounds(scene: Scene, params: tuple[Parameter, ...] = PARAMETERS) -> tuple[np.ndarray, np.ndarray]:
     """Lower and upper bounds (fitted coordinates) around ``scene``'s values."""
     data = _with_sensor(scene.as_dict())
-    lohi = np.array([p.bounds(float(data[p.path[0]][p.path[1]])) for p in params])
+    lohi = np.array([p.bounds(float(data[p.path[0]][p.path[1]])) for p in params]).reshape(-1, 2)
     return lohi[:, 0], lohi[:, 1]
 
 

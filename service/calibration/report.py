@@ -14,6 +14,7 @@ import numpy as np
 from service.calibration import parameters as P
 from service.calibration.fit import Calibration, crop
 from service.calibration.footage import Footage
+from service.calibration.profile import PARTNERS, Profile
 from service.calibration.synthesis import Synthesis
 from service.calibration.truth import load_truth, score
 from service.plotting import pyplot
@@ -46,20 +47,34 @@ def _value(scene_dict: dict, name: str) -> float:
     return float((scene_dict.get(section) or {}).get(key, 0.0))
 
 
+def profile_verdicts(profiles: dict[str, Profile], values: dict[str, float]) -> dict[str, bool]:
+    """Whether the profiles let each parameter count as identified at its calibrated ``values``: its own profile, if
+    any, has neither end open and a bracket's half-width within the precision needed, and so has every profile it
+    was refitted along (:data:`.profile.PARTNERS`): parameters that trade on a ridge are pinned no better than it."""
+    own = {}
+    for name, prof in profiles.items():
+        tol, kind = PRECISION[name]
+        allowed = tol * abs(values[name]) if kind == "rel" else tol
+        own[name] = not (prof.open_low or prof.open_high) and (prof.bracket[1] - prof.bracket[0]) / 2 <= allowed
+    return {
+        p.name: own.get(p.name, True)
+        and all(own[name] for name, partners in PARTNERS.items() if p.name in partners and name in own)
+        for p in P.PARAMETERS
+    }
+
+
 def document(cal: Calibration, footage: Footage) -> dict[str, Any]:
     """The report's content: JSON-safe, finite numbers; scored against the truth when the recording is synthetic."""
     before, after = cal.guess.as_dict(), cal.scene.as_dict()
     truth = load_truth(footage.path)
+    pinned = profile_verdicts(cal.profiles, {name: _value(after, name) for name in cal.profiles})
     rows = []
     for p in P.PARAMETERS:
         value, sigma = _value(after, p.name), cal.sigma.get(p.name, math.inf)
         tol, kind = PRECISION[p.name]
         allowed = tol * abs(value) if kind == "rel" else tol
         prof = cal.profiles.get(p.name)
-        pinned = prof is None or (
-            not (prof.open_low or prof.open_high) and (prof.bracket[1] - prof.bracket[0]) / 2 <= allowed
-        )
-        identified = math.isfinite(sigma) and sigma <= allowed and pinned
+        identified = math.isfinite(sigma) and sigma <= allowed and pinned[p.name]
         rows.append(
             {
                 "name": p.name,
@@ -110,10 +125,11 @@ def document(cal: Calibration, footage: Footage) -> dict[str, Any]:
         "versus_truth": None if truth is None else score(cal.scene, truth),
         "uncertainty_note": "1 sigma from the final stage's Gauss-Newton covariance with the motion marginalised; "
         "blurred pixels are correlated, so read these as lower bounds. A profiled parameter's 'interval' is the "
-        "range of profiled values whose finest-level cost (each frame's motion refitted, the rest of the scene held) "
-        "the frames cannot tell from the best at 2 standard errors, its 'bracket' the nearest values told apart "
-        "either side; 'open' ends may reach further; it counts as identified only when neither end is open and "
-        "the bracket's half-width is within the precision needed",
+        "range of profiled values whose finest-level cost (each frame's motion refitted, and the parameters it trades "
+        "with, profile.PARTNERS; the rest of the scene held) the frames cannot tell from the best at 2 standard "
+        "errors, its 'bracket' the nearest values told apart either side; 'open' ends may reach further; it counts "
+        "as identified only when neither end is open and the bracket's half-width is within the precision needed, "
+        "and a partner only when the parameter it was refitted along counts too",
     }
 
 
