@@ -15,7 +15,14 @@ from service import DEFAULT_SCENE
 from service.analysis.fit import fit_window
 from service.analysis.offline import _with_pixel_intervals
 from service.camera_effects import CameraEffects
-from service.inverse.synthesis import frames_start, plausible, refine_window, standard_errors, start_motion
+from service.inverse.synthesis import (
+    frames_start,
+    moving_pixels,
+    plausible,
+    refine_window,
+    standard_errors,
+    start_motion,
+)
 from service.physics import WindowMotion
 from service.render.renderer import Renderer
 from service.scene import Scene
@@ -152,3 +159,15 @@ def test_a_refined_window_is_the_same_bits_whatever_blas_threads_its_process_has
             refined = refine_window(renderer, frames, t, start)
             found.append((refined, standard_errors(renderer, frames, t, refined).tobytes()))
     assert found[0] == found[1]
+
+
+def test_the_search_reads_the_pixels_the_motion_moves_with_a_margin_and_every_pixel_of_a_still_window(renderer):
+    """The search's pixels: every pixel the true motion changes (seen through noise) and a margin about them, not
+    the static nozzle and bore; a noiseless window where nothing moves keeps every pixel (nothing tells them apart)."""
+    camera = CameraEffects(full_well_e=20000.0, read_noise_dn=2.0, bit_depth=12)
+    clean = renderer.render(TRUE.coefficients(T).to_array())
+    pixels = moving_pixels(frames_of(renderer, TRUE, camera).astype(np.float64))
+    changed = clean.std(axis=0) > 0.05 * clean.std(axis=0).max()
+    assert pixels[changed].all() and 0.02 < pixels.mean() < 0.5
+    still = frames_of(renderer, replace(TRUE, A1=0.0, A2=0.0), CameraEffects(bit_depth=12))
+    assert moving_pixels(still.astype(np.float64)).all()
