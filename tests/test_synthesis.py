@@ -14,8 +14,17 @@ from threadpoolctl import threadpool_limits
 from service import DEFAULT_SCENE
 from service.analysis.fit import fit_window
 from service.analysis.offline import _with_pixel_intervals
+from service.analysis.results import ModeEstimate, WindowResult
 from service.camera_effects import CameraEffects
-from service.inverse.synthesis import frames_start, plausible, refine_window, standard_errors, start_motion
+from service.inverse.synthesis import (
+    frames_start,
+    moving_pixels,
+    plausible,
+    refine_window,
+    standard_errors,
+    start_motion,
+    window_start,
+)
 from service.physics import WindowMotion
 from service.render.renderer import Renderer
 from service.scene import Scene
@@ -152,3 +161,51 @@ def test_a_refined_window_is_the_same_bits_whatever_blas_threads_its_process_has
             refined = refine_window(renderer, frames, t, start)
             found.append((refined, standard_errors(renderer, frames, t, refined).tobytes()))
     assert found[0] == found[1]
+
+
+def test_the_search_reads_the_pixels_the_motion_moves_with_a_margin_and_every_pixel_of_a_still_window(renderer):
+    """The search's pixels: every pixel the true motion changes (seen through noise) and a margin about them, not
+    the static nozzle and bore; a noiseless window where nothing moves keeps every pixel (nothing tells them apart)."""
+    camera = CameraEffects(full_well_e=20000.0, read_noise_dn=2.0, bit_depth=12)
+    clean = renderer.render(TRUE.coefficients(T).to_array())
+    pixels = moving_pixels(frames_of(renderer, TRUE, camera).astype(np.float64))
+    changed = clean.std(axis=0) > 0.05 * clean.std(axis=0).max()
+    assert pixels[changed].all() and 0.02 < pixels.mean() < 0.5
+    still = frames_of(renderer, replace(TRUE, A1=0.0, A2=0.0), CameraEffects(bit_depth=12))
+    assert moving_pixels(still.astype(np.float64)).all()
+
+
+def fitted_result(modes: list[tuple[float, float, float, float]], offset_mm: float | None) -> WindowResult:
+    """A window fit's result with ``modes`` (amplitude, decay, frequency, phase), dominant first."""
+    return WindowResult(
+        index=0,
+        start_frame=0,
+        end_frame=190,
+        status="ok",
+        offset_mm=offset_mm,
+        modes=[
+            ModeEstimate(amplitude_mm=a, decay_rate_per_s=g, frequency_hz=f, phase_rad=phi) for a, g, f, phi in modes
+        ],
+    )
+
+
+def test_the_start_from_a_window_fit_takes_its_modes_by_frequency_and_its_offset_with_the_per_frame_sag():
+    """Mode 1 is the fit's lower mode whichever it found dominant (slower to decay); d is the fitted offset d + p R less the per-frame
+    sag's p R; a fit of one mode gets mode 2 at the membrane's ratio; a fit without a mode gives no start."""
+    R, p = 0.25, -0.08
+    coefficients = np.tile([0.0, p, 0.0, 0.0], (40, 1))
+    two = fitted_result([(0.007, 300.0, 3200.0, 4.0), (0.018, 400.0, 1400.0, 1.0)], offset_mm=TRUE.d + p * R)
+    assert window_start(two, coefficients, R) == pytest.approx(replace(TRUE, g2=300.0))
+    one = window_start(fitted_result([(0.018, 400.0, 1400.0, 1.0)], 0.0), coefficients, R)
+    assert one.f2 == pytest.approx(1400.0 * 5.520078110286311 / 2.404825557695773) and one.A2 < one.A1
+    assert window_start(fitted_result([], 0.0), coefficients, R) is None
+
+
+def test_from_a_window_fit_s_start_the_search_finds_the_motion_where_the_per_frame_start_is_shrunk(renderer):
+    """The window model's fit is not shrunk, and is searched as it is (no amplified variants): from it the search
+    ends at the truth although the per-frame start's amplitudes are a third of the truth's."""
+    frames = frames_of(renderer, TRUE, CameraEffects(bit_depth=12, blur_sigma_px=0.7, full_well_e=16000.0))
+    fitted = replace(TRUE, A1=0.016, g1=430.0, f1=1402.0, d=0.012)
+    refined = refine_window(renderer, frames, T, replace(TRUE, A1=0.006, A2=0.002), fitted).motion
+    assert relative(refined.f1, TRUE.f1) < 1e-3 and relative(refined.g1, TRUE.g1) < 0.02
+    assert relative(refined.A1, TRUE.A1) < 0.03 and abs(refined.d - TRUE.d) < 1e-3

@@ -4,7 +4,8 @@ A recording is streamed in chunks (any length fits in memory): each chunk's ROI 
 activity (ejection detection) and the per-frame inverse method. The window-level ``regularised``
 method then replaces each window's per-frame values by the neighbour candidates its damped
 sinusoid passes through. With ``refine``, each window's motion is then refined on its frames through the
-renderer (:mod:`service.inverse.synthesis`), starting from the per-frame values, and replaces them. Every
+renderer (:mod:`service.inverse.synthesis`), starting from the window's fit where the network method's window
+model made it (else from the per-frame values), and replaces them. Every
 window's steady D(0, t) (:mod:`service.analysis.steady`) is fitted on the runner's processes
 (:class:`~service.pipeline.windows.JobRunner`); with the per-frame methods alone, as soon as the window closes.
 """
@@ -93,12 +94,15 @@ def analyse_recording(
 
     ``opened``: the method and database :func:`open_method` returned, when analysing several
     recordings with one (they are opened here otherwise). With ``refine`` the windows keep their own poles
-    (``settings.poles`` becomes "series"): the refined motion is the window's inversion.
+    (``settings.poles`` becomes "series"): the refined motion is the window's inversion. The network method's
+    windows are fitted first as without ``refine`` (window model, the frames' poles) and searched from that fit.
     """
-    if refine:
-        settings = settings.model_copy(update={"poles": "series"})
-    if refine or method != "network":  # the window model reads the network's per-frame values, not refined ones
+    fitted_first = refine and method == "network"  # the window model's fit: the refinement's start
+    if method != "network":  # the window model reads the network's per-frame values
         settings = settings.model_copy(update={"series_model": "steady"})
+    first_settings = settings
+    if refine:  # the window model reads the network's per-frame values, not refined ones
+        settings = settings.model_copy(update={"poles": "series", "series_model": "steady"})
     # the recording opened once (its header and every image's offset read: ~1 us of CPU per frame), then replayed
     with ReplaySource(path, speed=0.0) as replay, ExitStack() as stack:
         fps, frames, width, height = replay.fps, replay.frames, replay.width, replay.height
@@ -111,9 +115,10 @@ def analyse_recording(
         segmenter = StreamingSegmenter(
             frames, EjectionDetector(fps, lookahead=int(round(OFFLINE_LOOKAHEAD_S * fps))) if detecting else None
         )
-        streamed = db is None and not refine  # the window-level methods need every window's frames first
-        model = window_model_for(settings, models, method)
-        runner = stack.enter_context(JobRunner(settings, scheduler, workers))
+        # the window-level methods need every window's frames first
+        streamed = db is None and (not refine or fitted_first)
+        model = window_model_for(first_settings, models, method)
+        runner = stack.enter_context(JobRunner(first_settings, scheduler, workers))
         hasher = stack.enter_context(ThreadPoolExecutor(1, "meniscope-hash"))
         digest = hasher.submit(blake3_file, path)  # the hash lets go of the interpreter lock: read while it hashes
         # one pass over the frames (each read once: reading was a fifth of the CPU)
@@ -154,11 +159,13 @@ def analyse_recording(
             _set_coefficients(records, *_regularise(db, np.concatenate(found), windows, fps, settings, progress))
         motions = {}
         if refine:
+            fitted = {r.index: r for r in runner.results(progress)} if fitted_first else {}
             coefficients, centre, motions = _refine(
-                path, scene, coefficients_of(records), windows, fps, settings, runner, progress
+                path, scene, coefficients_of(records), windows, fps, settings, runner, progress, fitted
             )
             _set_coefficients(records, coefficients, centre)
-        if not streamed:
+            runner.settings, model = settings, None  # the refined motion's own series and poles are fitted now
+        if not streamed or refine:
             jobs = _send(runner, [(w, records[w.start : w.end]) for w in windows], radius, transient, model, fps)
         results = runner.results(progress)
         source = Source(path=str(path), frames=n, fps=fps, width=width, height=height, blake3=digest.result())
@@ -263,9 +270,11 @@ def _refine(
     settings: FitSettings,
     runner: JobRunner,
     progress: bool,
+    fitted: dict[int, WindowResult],
 ) -> tuple[np.ndarray, np.ndarray, dict[int, tuple[WindowMotion, np.ndarray]]]:
     """Per frame, the coefficients of its window's motion refined on the window's frames (after the ejection's
-    transient; windows too short for the search keep their per-frame values), and per refined window (by index)
+    transient; windows too short for the search keep their per-frame values), searched from the window's result in
+    ``fitted`` (by index) where it has one (:func:`synthesis.window_start`), and per refined window (by index)
     its motion and the standard errors of the pixel fit (:func:`synthesis.standard_errors`). Each window is an
     independent task on ``runner``."""
     coefficients = coefficients.copy()
@@ -278,10 +287,15 @@ def _refine(
                 continue
             t = (np.arange(lo, w.end) - w.start) / fps
             start = synthesis.start_motion(coefficients[lo : w.end], t, fps)
-            spans.append((w.index, lo, w.end))
-            futures.append(
-                runner.call(refine_task, scene, roi_frames(rec, scene, lo, w.end - lo), t, start, runner.threads)
+            result = fitted.get(w.index)
+            from_fit = (
+                None
+                if result is None
+                else synthesis.window_start(result, coefficients[lo : w.end], scene.nozzle.radius_mm)
             )
+            spans.append((w.index, lo, w.end))
+            frames = roi_frames(rec, scene, lo, w.end - lo)
+            futures.append(runner.call(refine_task, scene, frames, t, start, runner.threads, from_fit))
     motions = {}
     for (index, lo, end), future in zip(
         spans, tqdm(futures, desc="refine by synthesis", unit="window", disable=not progress)
@@ -297,14 +311,19 @@ _RENDERERS: dict[tuple[str, int], Renderer] = {}
 
 
 def refine_task(
-    scene: Scene, frames: np.ndarray, t: np.ndarray, start: WindowMotion, threads: int = 1
+    scene: Scene,
+    frames: np.ndarray,
+    t: np.ndarray,
+    start: WindowMotion,
+    threads: int = 1,
+    fitted: WindowMotion | None = None,
 ) -> tuple[np.ndarray, WindowMotion, np.ndarray]:
     """One window's refinement by synthesis (a task that runs wherever the runner sends it, rendering on ``threads``,
     :attr:`JobRunner.threads`; the result does not depend on them): the refined motion's coefficients at times
     ``t`` (m, 4), the motion, and the pixel fit's standard errors."""
     key = scene.model_dump_json(), threads
     renderer = _RENDERERS.get(key) or _RENDERERS.setdefault(key, Renderer(scene, threads=threads))
-    refined = synthesis.refine_window(renderer, frames, t, start)
+    refined = synthesis.refine_window(renderer, frames, t, start, fitted)
     return (
         refined.motion.coefficients(t).to_array(),
         refined.motion,

@@ -24,12 +24,12 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 
 import numpy as np
-from scipy.ndimage import gaussian_filter
+from scipy.ndimage import binary_dilation, gaussian_filter
 from scipy.optimize import least_squares
 from threadpoolctl import ThreadpoolController
 
 from service.analysis.fit import fit_window
-from service.analysis.results import FitSettings
+from service.analysis.results import FitSettings, WindowResult
 from service.physics import L1, L2, CoefficientRanges, WindowMotion
 from service.render.renderer import Renderer
 
@@ -61,6 +61,16 @@ _PAD = 16
 _TYPICAL_MODE_1 = (0.015, 500.0, 1500.0, 0.0)
 #: Frames a window needs for the search (ten parameters and the blur, with room to spare).
 MIN_FRAMES = 24
+#: A pixel moves with the window where its value's spread over the window exceeds this many times the frames'
+#: median spread (the noise's, where most pixels are still), ...
+_MOVING = 3.0
+#: ... or lies within this many pixels of one that does.
+_REACH = 3
+#: LM stops where a step changes the search's point by less than this (relative) or the cost by less than _FTOL: at
+#: 1e-6 and 1e-8 it ran to its last evaluation on a noiseless test window (its Jacobian, by finite differences of
+#: blurred renders, is rough at those scales), at 2.3 times the renders of these for the same motion within 0.06 %.
+_XTOL = 1e-4
+_FTOL = 1e-5
 #: Evaluations LM may spend per window (each one render of the window, each Jacobian four more).
 _EVALUATIONS = 100
 #: The search runs its BLAS on one thread wherever it runs: a BLAS on several threads sums a long dot product (the
@@ -75,7 +85,7 @@ class Refined:
 
     motion: WindowMotion
     blur_sigma_px: float
-    rms_start: float  # pixel residual RMS at the start, in stored pixel units
+    rms_start: float  # pixel residual RMS at the start over the moving pixels, in stored pixel units
     rms: float  # and at the end
     evaluations: int  # renders of the window the search made
 
@@ -104,11 +114,31 @@ def start_motion(coefficients: np.ndarray, t: np.ndarray, fps: float) -> WindowM
     one, two = found
     if one is None and two is None:
         one = _TYPICAL_MODE_1
-    if two is None:
-        two = (0.4 * one[0], 2.0 * one[1], one[2] * _BESSEL_RATIO, 0.0)
     if one is None:
         one = (2.5 * two[0], 0.5 * two[1], two[2] / _BESSEL_RATIO, 0.0)
-    return _canonical(np.array([d, p, *one, *two], np.float64))
+    return _canonical(np.array([d, p, *one, *(two or _mode_2_of(one))], np.float64))
+
+
+def _mode_2_of(one: tuple[float, ...]) -> tuple[float, ...]:
+    """Mode 2 (amplitude, decay, frequency, phase) where only mode 1 is known: at the membrane's frequency ratio
+    l2 / l1 above it, decaying twice as fast, 0.4 of its amplitude."""
+    return (0.4 * one[0], 2.0 * one[1], one[2] * _BESSEL_RATIO, 0.0)
+
+
+def window_start(result: WindowResult, coefficients: np.ndarray, radius_mm: float) -> WindowMotion | None:
+    """The search's start from a window's fit (its modes, t from the window start, by frequency: mode 1 the lower;
+    mode 2 as :func:`_mode_2_of` where the fit found one) and the per-frame estimates' median sag p, its rim d
+    the fitted offset d + p R less p R; None where the fit found no mode. With the window model the fit's amplitude
+    and offset are not shrunk as the per-frame a(t) and b(t) are: no amplified variants are needed from it."""
+    if not result.modes or result.offset_mm is None:
+        return None
+    modes = [
+        (m.amplitude_mm, m.decay_rate_per_s, m.frequency_hz, m.phase_rad)
+        for m in sorted(result.modes, key=lambda m: m.frequency_hz)
+    ]
+    p = float(np.nanmedian(coefficients[:, 1]))
+    two = modes[1] if len(modes) > 1 else _mode_2_of(modes[0])
+    return _canonical(np.array([result.offset_mm - p * radius_mm, p, *modes[0], *two], np.float64))
 
 
 def frames_start(start: WindowMotion, frames: np.ndarray, t: np.ndarray) -> WindowMotion:
@@ -161,18 +191,37 @@ def _decay_and_phase(y: np.ndarray, t: np.ndarray, frequency: float, near: float
     return decay, float(np.mod(phase, 2 * np.pi))
 
 
+def moving_pixels(frames: np.ndarray) -> np.ndarray:
+    """The pixels (H, W) bool of a window's frames (m, H, W) that its motion can move: those whose value varies
+    over the window by more than :data:`_MOVING` times the frames' typical (median) temporal spread, and within
+    :data:`_REACH` px of them (a highlight moves between frames, and a rendered one off by a few pixels must still
+    be seen). Every pixel where none varies (a settled window). The rest are the static nozzle and the dark bore:
+    their residuals do not depend on the motion, yet carried nine tenths of the search's arithmetic."""
+    spread = frames.std(axis=0)
+    moving = spread > _MOVING * np.median(spread)
+    if not moving.any():
+        return np.ones(spread.shape, bool)
+    return binary_dilation(moving, iterations=_REACH)
+
+
 class _Problem:
-    """Residuals and Jacobian of one window's frames, in search units x = parameters / _SCALE."""
+    """Residuals and Jacobian of one window's frames at its :func:`moving_pixels`, in search units
+    x = parameters / _SCALE."""
 
     def __init__(self, renderer: Renderer, frames: np.ndarray, t: np.ndarray) -> None:
         self.renderer, self.t = renderer, t
-        self.y = frames.reshape(len(t), -1).astype(np.float64)
+        self.pixels = moving_pixels(frames.astype(np.float64)).ravel()
+        self.y = frames.reshape(len(t), -1)[:, self.pixels].astype(np.float64)
         self.renders, self._key = 0, b""
 
     def _render(self, coefficients: np.ndarray) -> np.ndarray:
         """Linear renders (k m, H, W) of stacked per-frame coefficients (k m, 4)."""
         self.renders += len(coefficients) // len(self.t)
         return self.renderer.render(coefficients)
+
+    def _seen(self, frames: np.ndarray) -> np.ndarray:
+        """Frames (..., m, H, W) at the problem's pixels: (..., m, P)."""
+        return frames.reshape(*frames.shape[:-2], -1)[..., self.pixels]
 
     def cost(self, motion: WindowMotion, blur: float) -> float:
         """Mean squared residual of ``motion`` seen through ``blur`` (px): one render."""
@@ -190,7 +239,7 @@ class _Problem:
         if not np.all(np.isfinite(coefficients)):  # a step to absurd amplitudes: as bad as a black window, not a crash
             return np.abs(self.y).ravel() + np.abs(self.y).max()
         self._sharp = self._render(coefficients)
-        model = gaussian_filter(self._sharp, (0, abs(params[10]), abs(params[10]))).reshape(len(self.t), -1)
+        model = self._seen(gaussian_filter(self._sharp, (0, abs(params[10]), abs(params[10]))))
         design = np.stack([model.ravel(), np.ones(model.size)], axis=1)
         self._gain, offset = np.linalg.lstsq(design, self.y.ravel(), rcond=None)[0]
         self._model, self._key = model, x.tobytes()
@@ -205,10 +254,10 @@ class _Problem:
         base = _coefficients(params, self.t)
         stepped = np.concatenate([base + np.eye(4)[j] * _COEFFICIENT_STEP[j] for j in range(4)])
         models = gaussian_filter(self._render(stepped).reshape(4, m, *self.renderer.shape), (0, 0, sigma, sigma))
-        per_coefficient = (models.reshape(4, m, -1) - self._model) * (self._gain / _COEFFICIENT_STEP[:, None, None])
+        per_coefficient = (self._seen(models) - self._model) * (self._gain / _COEFFICIENT_STEP[:, None, None])
         chain = _coefficient_derivatives(params, self.t)  # (m, 10, 4)
         motion = np.einsum("jmp,mkj->mpk", per_coefficient, chain).reshape(-1, 10)
-        blurred = gaussian_filter(self._sharp, (0, sigma + _BLUR_STEP, sigma + _BLUR_STEP)).reshape(m, -1)
+        blurred = self._seen(gaussian_filter(self._sharp, (0, sigma + _BLUR_STEP, sigma + _BLUR_STEP)))
         blur = (self._gain * (blurred - self._model) / _BLUR_STEP).reshape(-1, 1)
         return np.hstack([motion, blur]) * _SCALE
 
@@ -249,14 +298,14 @@ def _canonical(params: np.ndarray) -> WindowMotion:
     return WindowMotion(*map(float, p))
 
 
-def _variants(start: WindowMotion) -> list[WindowMotion]:
-    """``start`` with both mode amplitudes times each of :data:`_AMPLIFY`, mode 1 as it is and turned over
+def _variants(start: WindowMotion, amplify: tuple[float, ...] = _AMPLIFY) -> list[WindowMotion]:
+    """``start`` with both mode amplitudes times each of ``amplify``, mode 1 as it is and turned over
     (phase + pi), p moved by each of :data:`_SHIFT_P`: per-frame estimates of a and b shrink towards 0 (a
     regressor given an ambiguous image returns the mean of its possible shapes), a bulge and a dip of the
     same size can look alike from below, and the sag p trades against mode 1 near the centre (both curve it)."""
     return [
         replace(start, p=start.p + sag, A1=start.A1 * k, A2=start.A2 * k, phi1=start.phi1 + turn)
-        for k in _AMPLIFY
+        for k in amplify
         for turn in (0.0, np.pi)
         for sag in _SHIFT_P
     ]
@@ -306,8 +355,8 @@ def _levenberg_marquardt(problem: _Problem, motion: WindowMotion, blur: float) -
         _point(motion, blur),
         jac=problem.jacobian,
         method="lm",
-        xtol=1e-6,
-        ftol=1e-8,
+        xtol=_XTOL,
+        ftol=_FTOL,
         max_nfev=_EVALUATIONS,
     )
     params = found.x * _SCALE
@@ -315,16 +364,21 @@ def _levenberg_marquardt(problem: _Problem, motion: WindowMotion, blur: float) -
 
 
 @_BLAS.wrap(limits=1, user_api="blas")
-def refine_window(renderer: Renderer, frames: np.ndarray, t: np.ndarray, start: WindowMotion) -> Refined:
+def refine_window(
+    renderer: Renderer, frames: np.ndarray, t: np.ndarray, start: WindowMotion, fitted: WindowMotion | None = None
+) -> Refined:
     """Refine ``start`` on a window's ROI frames (m, H, W) at times ``t`` (m,) s since the window start. Two
-    starts: ``start`` and :func:`frames_start` of it; each one's :func:`_variants` are rendered once and
+    starts: ``start`` (or the window fit's ``fitted``, :func:`window_start`, where given: its amplitudes as they
+    are) and :func:`frames_start` of it; each one's :func:`_variants` are rendered once and
     :func:`_search` runs from the best-fitting variant of the better start, then (where it ends in an
     implausible motion, see :func:`plausible`) from the other's. The plausible result is returned, else the one
     that fits best."""
     t = np.asarray(t, np.float64)
     problem = _Problem(renderer, frames, t)
+    base, amplify = (start, _AMPLIFY) if fitted is None else (fitted, (1.0,))
     starts = sorted(
-        (problem.best(_variants(base)) for base in (start, frames_start(start, frames, t))), key=lambda pair: pair[0]
+        (problem.best(_variants(motion, amplify)) for motion in (base, frames_start(base, frames, t))),
+        key=lambda pair: pair[0],
     )
     ends = []
     for cost, motion in starts:

@@ -67,8 +67,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--refine",
         action="store_true",
-        help="refine each window's motion on its frames through the renderer, starting from the method's "
-        "per-frame values: seconds per window instead of milliseconds, far more accurate decay and amplitude",
+        help="refine each window's motion on its frames through the renderer, starting from the window model's "
+        "fit (network) or the method's per-frame values: seconds per window instead of milliseconds, far more "
+        "accurate decay, amplitude and offset",
     )
     p.add_argument(
         "--scheduler",
