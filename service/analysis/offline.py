@@ -100,8 +100,8 @@ def analyse_recording(
     fitted_first = refine and method == "network"  # the window model's fit: the refinement's start
     if method != "network":  # the window model reads the network's per-frame values
         settings = settings.model_copy(update={"series_model": "steady"})
-    first_settings = settings
-    if refine:  # the window model reads the network's per-frame values, not refined ones
+    first_settings = settings  # the windows' first fit: the report's, or with ``refine`` the search's start
+    if refine:  # the refined motion's own series and poles (the window model reads per-frame values, not refined ones)
         settings = settings.model_copy(update={"poles": "series", "series_model": "steady"})
     # the recording opened once (its header and every image's offset read: ~1 us of CPU per frame), then replayed
     with ReplaySource(path, speed=0.0) as replay, ExitStack() as stack:
