@@ -244,8 +244,7 @@ NOMINAL_SEEDS = 200
 def render_mix(data: Path, scene: Scene, windows: int, seed: int) -> list[Path]:
     """``windows`` training windows per noise preset: half at the simulator's nominal motion (what the held-out
     recordings and the calibration are), half at the widened :data:`TRAINING_RANGES` (windows that barely move or
-    settle). Trained on the widened ones alone, the model's held-out amplitude error was twice as large
-    (docs/window_model.md)."""
+    settle). Trained on the widened ones alone, the model's held-out amplitude error was larger (docs/window_model.md)."""
     nominal = windows // 2
     paths = render_training(data, scene, windows - nominal, seed)
     if nominal:

@@ -66,9 +66,9 @@ MIN_FRAMES = 24
 _MOVING = 3.0
 #: ... or lies within this many pixels of one that does.
 _REACH = 3
-#: LM stops where a step changes the search's point by less than this (relative) or the cost by less than _FTOL: at
-#: 1e-6 and 1e-8 it ran to its last evaluation on a noiseless test window (its Jacobian, by finite differences of
-#: blurred renders, is rough at those scales), at 2.3 times the renders of these for the same motion within 0.06 %.
+#: LM stops where a step changes the search's point by less than this (relative) or the cost by less than _FTOL:
+#: tighter, it ran to its last evaluation (its Jacobian, by finite differences of blurred renders, is rough at those
+#: scales) for the same motion (docs/benchmarks.md).
 _XTOL = 1e-4
 _FTOL = 1e-5
 #: Evaluations LM may spend per window (each one render of the window, each Jacobian four more).
@@ -127,7 +127,7 @@ def _mode_2_of(one: tuple[float, ...]) -> tuple[float, ...]:
 
 def window_start(result: WindowResult, coefficients: np.ndarray, radius_mm: float) -> WindowMotion | None:
     """The search's start from a window's fit (its modes, t from the window start, by frequency: mode 1 the lower;
-    mode 2 as :func:`_mode_2_of` where the fit found one) and the per-frame estimates' median sag p, its rim d
+    mode 2 as :func:`_mode_2_of` where the fit found only one) and the per-frame estimates' median sag p, its rim d
     the fitted offset d + p R less p R; None where the fit found no mode. With the window model the fit's amplitude
     and offset are not shrunk as the per-frame a(t) and b(t) are: no amplified variants are needed from it."""
     if not result.modes or result.offset_mm is None:
@@ -196,7 +196,7 @@ def moving_pixels(frames: np.ndarray) -> np.ndarray:
     over the window by more than :data:`_MOVING` times the frames' typical (median) temporal spread, and within
     :data:`_REACH` px of them (a highlight moves between frames, and a rendered one off by a few pixels must still
     be seen). Every pixel where none varies (a settled window). The rest are the static nozzle and the dark bore:
-    their residuals do not depend on the motion, yet carried nine tenths of the search's arithmetic."""
+    their residuals do not depend on the motion, yet carried most of the search's arithmetic (docs/benchmarks.md)."""
     spread = frames.std(axis=0)
     moving = spread > _MOVING * np.median(spread)
     if not moving.any():
@@ -210,8 +210,9 @@ class _Problem:
 
     def __init__(self, renderer: Renderer, frames: np.ndarray, t: np.ndarray) -> None:
         self.renderer, self.t = renderer, t
-        self.pixels = moving_pixels(frames.astype(np.float64)).ravel()
-        self.y = frames.reshape(len(t), -1)[:, self.pixels].astype(np.float64)
+        frames = frames.astype(np.float64)
+        self.pixels = moving_pixels(frames).ravel()
+        self.y = frames.reshape(len(t), -1)[:, self.pixels]
         self.renders, self._key = 0, b""
 
     def _render(self, coefficients: np.ndarray) -> np.ndarray:
