@@ -59,6 +59,12 @@ def test_the_regularised_method_misses_one_second_per_window_above_it() -> None:
     assert misses({**row, "ms_per_window": 1500.0}) == ["1.50 s/window > 1 s"]
 
 
+def test_a_refinement_misses_a_windows_ten_milliseconds_above_them_and_not_the_camera_rate() -> None:
+    row = {**AT_TARGETS, "refine": True, "frames_per_s": 9.0}
+    assert misses({**row, "ms_per_window": 10.0}) == []
+    assert misses({**row, "ms_per_window": 21_500.0}) == ["21,500 ms/window > a window's 10 ms"]
+
+
 @pytest.mark.parametrize("method", ["nearest", "nearest-approx"])
 def test_the_nearest_methods_have_no_speed_target(method: str) -> None:
     assert misses({**AT_TARGETS, "method": method, "frames_per_s": 1.0, "ms_per_window": 1e6}) == []
@@ -88,7 +94,9 @@ def test_every_method_is_measured_at_both_noise_levels_with_the_targets_it_misse
     results = json.loads((tradeoff / "tradeoff.json").read_text())
     labels = {(r["label"], r["noise"]) for r in results["methods"]}
     expected = {
+        "network 32px + window model",  # what analyze runs by default
         "network 32px",
+        "network 32px + synthesis",  # analyze --refine
         "direct 32px",
         "network 32px int8 static",
         "direct 32px int8 static",
@@ -101,6 +109,8 @@ def test_every_method_is_measured_at_both_noise_levels_with_the_targets_it_misse
         assert row["frames_per_s"] > 0 and row["ms_per_window"] > 0 and row["peak_memory_mb"] > 50
         assert row["precision"] == row["recall"] == 1.0  # the same ejections, whatever the method
         assert row["misses"] == misses(row)  # exactly the targets its own figures miss
+    refined = [r for r in results["methods"] if r["refine"]]
+    assert [len(r["recordings"]) for r in refined] == [1, 1] and all(r["series"] == "window" for r in refined)
     table = (tradeoff / "tradeoff.md").read_text()
     assert table.count("| regularised db600 |") == 2 and "Beside them" in table
     for row in results["methods"]:  # the table's last column says the same, or "none"
@@ -114,3 +124,14 @@ def test_renderer_fit_and_pipeline_are_measured_in_the_same_run(tradeoff: Path):
     assert results["render"]["cycles"]["frames_per_s"] > 0 and results["render"]["ours"]
     assert 0 < results["realtime_factor"] <= 1.1
     assert (tradeoff / "tradeoff.png").stat().st_size > 10_000
+
+
+def test_a_set_of_recordings_is_given_as_label_and_folder(tmp_path: Path) -> None:
+    for spec, problem in [
+        ("blender", "give LABEL=FOLDER"),
+        ("low=" + str(tmp_path), "the label 'low' is taken"),
+        ("blender=" + str(tmp_path), "no recordings with a .truth.json"),
+    ]:
+        done = meniscope("bench", "tradeoff", "--recordings", spec, "--out", tmp_path / "out")
+        assert done.returncode != 0 and problem in done.stderr and "Traceback" not in done.stderr
+        assert not (tmp_path / "out").exists()  # refused before anything is simulated
