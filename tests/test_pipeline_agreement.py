@@ -102,7 +102,10 @@ def test_a_live_start_publishes_no_failed_fragment_before_the_first_ejection(liv
 
 def test_an_analysis_opens_its_recording_once(demo_cine: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """Opening a .cine reads every image's offset, ~1 us of CPU per frame: ``analyze`` opens it once and replays
-    that (its digest maps the file apart)."""
+    that; its digest, the file's BLAKE3, is hashed from that opening's mapping of the file, not a second one."""
+    from blake3 import blake3
+
+    from service.analysis import offline
     from service.recordings import cine
 
     opened: list[Path] = []
@@ -113,8 +116,17 @@ def test_an_analysis_opens_its_recording_once(demo_cine: Path, monkeypatch: pyte
         original(self, path, *args, **kwargs)
 
     monkeypatch.setattr(cine.CineRecording, "__init__", counted)
+    hashed: list[bool] = []
+    digest = offline.blake3_file
+
+    def from_mapping(path: Path, mapped: np.ndarray | None = None) -> str:
+        hashed.append(mapped is not None)
+        return digest(path, mapped)
+
+    monkeypatch.setattr(offline, "blake3_file", from_mapping)
     scene = Scene.load(DEFAULT_SCENE)
     analysis = analyse_recording(
         demo_cine, scene, "network", DEFAULT_MODELS, progress=False, opened=(NetworkMethod(DEFAULT_MODELS, scene), None)
     )
     assert analysis.report.windows and opened == [demo_cine]
+    assert hashed == [True] and analysis.report.source.blake3 == blake3(demo_cine.read_bytes()).hexdigest()

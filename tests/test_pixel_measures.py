@@ -128,3 +128,26 @@ def test_a_pooled_output_that_does_not_fit_the_frames_is_refused() -> None:
             PixelMeasures(1, 3).update(frames, np.arange(2), pooled)
     with pytest.raises(ValueError, match="float32"):
         PixelMeasures(1, 3).update(frames, np.arange(2), np.empty((2, 1, 2, 2)))
+
+
+@settings(max_examples=12, deadline=None)
+@given(
+    dtype=st.sampled_from([np.uint8, np.uint16, np.uint32]),
+    beyond=st.integers(-1, 1),
+    frames=st.integers(1, 3),
+    seed=st.integers(0, 2**16),
+)
+def test_sums_at_full_scale_either_side_of_32_bits_are_exact(dtype, beyond, frames, seed) -> None:
+    """Frames of as many pixels as keep a full-scale frame's sum just within 32 bits, one pixel row more (the sums
+    then kept in 64 bits) or fewer: every pixel at full scale, the means, change and peak the exact ones; with a
+    random frame between, its change from a full-scale frame exact too."""
+    top = int(np.iinfo(dtype).max)
+    width = 64
+    rows = max(1, (2**32 - 1) // top // width + beyond)  # rows * width * top crosses 2**32 at beyond = 1
+    rows = min(rows, 2**20 // width)  # 8-bit frames that large would take a gigabyte: a mebipixel is plenty
+    pixels = np.full((frames, rows, width), top, dtype)
+    pixels[frames // 2] = np.random.default_rng(seed).integers(0, top, (rows, width), dtype, endpoint=True)
+    change, mean, peak, _ = PixelMeasures(1, 2).update(pixels, np.arange(frames))
+    want = reference(pixels, np.arange(frames), 1, 2)
+    for got, expected in zip((change, mean, peak), want):
+        np.testing.assert_array_equal(got, expected)

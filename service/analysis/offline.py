@@ -120,7 +120,8 @@ def analyse_recording(
         model = window_model_for(first_settings, models, method)
         runner = stack.enter_context(JobRunner(first_settings, scheduler, workers))
         hasher = stack.enter_context(ThreadPoolExecutor(1, "meniscope-hash"))
-        digest = hasher.submit(blake3_file, path)  # the hash lets go of the interpreter lock: read while it hashes
+        # the hash lets go of the interpreter lock: read while it hashes, from the replay's own mapping of the file
+        digest = hasher.submit(blake3_file, path, replay.mapped)
         # one pass over the frames (each read once: reading was a fifth of the CPU)
         parts, found, closed, jobs = [], [], [], []
         with tqdm(total=frames, unit="frame", desc=f"{inverse.name} {path.name}", disable=not progress) as bar:

@@ -501,31 +501,54 @@ def _window_levels(ext, positions, history, width):  # type: ignore[no-untyped-d
 
     Compiled, one start at a time: numpy's version (a sort of every baseline row, ``take_along_axis``, ``nanmax``
     and a warnings filter for the all-NaN rows) paid its per-call overhead on each of live's small batches
-    (docs/benchmarks.md)."""
+    (docs/benchmarks.md). A start one after the last keeps its sorted baseline, less the value that left it and
+    with the one that entered (the same values in the same order as sorting it afresh, so the same quantiles);
+    any other is sorted afresh."""
     count = positions.size
     burst = np.full(count, np.nan)
     median = np.full(count, np.nan)
     p90 = np.full(count, np.nan)
     known = np.zeros(count, np.int64)
     window = np.empty(history)
+    n, last = 0, -2  # window[:n]: the finite values of the baseline of start ``last``, sorted
     for i in range(count):
         p = positions[i]
         for k in range(history + p, history + p + width):
             v = ext[k]
             if not np.isnan(v) and (np.isnan(burst[i]) or v > burst[i]):
                 burst[i] = v
-        n = 0
-        for k in range(p, p + history):
-            if not np.isnan(ext[k]):
-                window[n] = ext[k]
-                n += 1
+        if p == last + 1:
+            n = _slide(window, n, ext[p - 1], ext[p + history - 1])
+        else:
+            n = 0
+            for k in range(p, p + history):
+                if not np.isnan(ext[k]):
+                    window[n] = ext[k]
+                    n += 1
+            window[:n].sort()
+        last = p
         known[i] = n
         if n == 0:
             continue
         ordered = window[:n]
-        ordered.sort()
         median[i], p90[i] = _quantile(ordered, 0.5), _quantile(ordered, 0.9)
     return burst, median, p90, known
+
+
+@njit(cache=True, nogil=True)
+def _slide(window, n, leaving, entering):  # type: ignore[no-untyped-def]
+    """Sorted ``window[:n]`` less one value equal to ``leaving`` and with ``entering`` in its place in the order
+    (either skipped where NaN); returns the new count. ``window`` has room for the entering value."""
+    if not np.isnan(leaving):
+        at = np.searchsorted(window[:n], leaving)
+        window[at : n - 1] = window[at + 1 : n].copy()
+        n -= 1
+    if not np.isnan(entering):
+        at = np.searchsorted(window[:n], entering)
+        window[at + 1 : n + 1] = window[at:n].copy()
+        window[at] = entering
+        n += 1
+    return n
 
 
 @njit(cache=True, nogil=True)

@@ -3,7 +3,8 @@ mean brightness, its brightest pixel, and how new its coarse picture is.
 
 One compiled loop (numba) reads each pixel once for all of them (three numpy reductions and OpenCV's difference
 read them four times: 9.3 us per 96 x 96 16-bit frame against 3.2 here), with exact sums: integer pixels are
-summed in 64-bit integers, so that the results are the same to the last bit as the exact means they replace.
+summed in 32-bit integers (64-bit where a frame's sum could pass 2**32), so that the results are the same to the
+last bit as the exact means they replace.
 
 Novelty is the distance (mean absolute difference of the :data:`GRID` x :data:`GRID` cells' means) from the
 frame to the nearest of the frames ``near .. far`` before it: ringing, however strong, keeps returning to the
@@ -82,6 +83,15 @@ def _novelty(cells, ring, filled, position, near, out):  # type: ignore[no-untyp
     return filled, position
 
 
+def _zero(flat: np.ndarray) -> np.generic:
+    """The zero the sums of frames ``flat`` (N, H * W) start from, whose type they are kept in: 32-bit unsigned where
+    a frame's pixels all at full scale sum below 2**32 (exact, and the compiled loop adds twice as many pixels an
+    instruction as in 64 bits), 64-bit unsigned where not, float64 for pixels that are not unsigned integers."""
+    if flat.dtype.kind != "u":
+        return np.float64(0.0)
+    return np.uint32(0) if flat.shape[1] * int(np.iinfo(flat.dtype).max) < 2**32 else np.uint64(0)
+
+
 class PixelMeasures:
     """Per-frame pixel measures across consecutive batches of one stream (the frame before a batch's first, and
     the novelty's last frames, are kept, so that a batch boundary changes nothing).
@@ -109,7 +119,7 @@ class PixelMeasures:
         flat = pixels.reshape(n, -1)
         if not np.issubdtype(flat.dtype, np.unsignedinteger):  # an unsigned sum of signed pixels would wrap
             flat = flat.astype(np.float64)
-        zero = np.uint64(0) if flat.dtype.kind == "u" else np.float64(0.0)
+        zero = _zero(flat)
         follows = self._previous is not None and self._last_index == indices[0] - 1
         band, edges, counts = self._cells(h, w)
         total, change, peak = np.empty(n, zero.dtype), np.empty(n, zero.dtype), np.empty(n, flat.dtype)

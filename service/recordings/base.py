@@ -184,6 +184,12 @@ class Recording(ABC):
     def _read(self, start: int, count: int) -> np.ndarray:
         """Frames ``start .. start + count - 1`` (range-checked, ``count >= 1``), shape (count, height, width)."""
 
+    @property
+    def mapped(self) -> np.ndarray | None:
+        """The whole file's bytes (uint8) as this reader holds them mapped in memory, or None where it does not map
+        the file: what a digest of the file can read without mapping it again."""
+        return None
+
     @abstractmethod
     def _release(self) -> None:
         """Let go of the file (frames already returned stay valid)."""

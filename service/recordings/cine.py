@@ -203,6 +203,9 @@ class CineRecording(Recording):
         setup, setup_length = _setup(path, data, off_setup)
         cfa = _cfa_pattern(path, setup, compression)
 
+        # the mapping kept for :attr:`mapped`: the gathers above have already mapped its pages, which a digest
+        # mapping the file afresh would map again (a page fault per 64 KiB)
+        self._data: np.ndarray | None = data
         self._frame_bytes = width * height * stored_bits // 8
         self._stored_bits = stored_bits
         self._starts = _image_starts(path, data, off_offsets, count, self._frame_bytes)
@@ -278,8 +281,14 @@ class CineRecording(Recording):
             raise MeniscopeError(self.path, f"the file shrank while open: bytes {offset}..{offset + size - 1} are gone")
         return data
 
+    @property
+    def mapped(self) -> np.ndarray | None:
+        """The file as mapped at opening (None once closed)."""
+        return self._data
+
     def _release(self) -> None:
         os.close(self._fd)
+        self._data = None  # unmapped once no digest still reads it
 
 
 def _unpack(path: Path, data: np.ndarray, offset: int, layout: struct.Struct, what: str) -> tuple:

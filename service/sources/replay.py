@@ -74,6 +74,11 @@ class ReplaySource(FrameSource):
         return StreamFormat(rec.width, rec.height, rec.dtype, rec.bit_depth, rec.fps)
 
     @property
+    def mapped(self) -> np.ndarray | None:
+        """The open recording's file as its reader holds it mapped in memory (:attr:`Recording.mapped`), or None."""
+        return None if self._recording is None else self._recording.mapped
+
+    @property
     def frames(self) -> int:
         """Frames in one pass of the recording."""
         if not self.is_open:
