@@ -402,7 +402,8 @@ def covariance(renderer: Renderer, frames: np.ndarray, t: np.ndarray, refined: R
     pixel fit at the optimum, and the number of clusters it was estimated from: :func:`cluster_covariance` with
     each :data:`TILE` x :data:`TILE` px image tile (all frames) one cluster. The error that matters is the
     renderer's mismatch with the camera, correlated across a highlight and over the window's frames, not the pixels'
-    noise: s^2 (J'J)^-1 was 5-100 times too narrow on Blender recordings (docs/benchmarks.md). Five renders."""
+    noise, which s^2 (J'J)^-1 assumes independent (docs/benchmarks.md, "Intervals of the refined windows"). Five
+    renders."""
     problem = _Problem(renderer, frames, np.asarray(t, np.float64))
     x = _point(refined.motion, refined.blur_sigma_px)
     residuals, jac = problem.residuals(x), problem.jacobian(x)
