@@ -67,7 +67,7 @@ def test_a_window_refined_on_a_dask_worker_is_the_bits_the_local_pool_gives(
 ) -> None:
     """``analyze --refine`` sends each window's refinement to the runner's processes, whose threads differ (a local
     pool of one process renders on every core and its BLAS has a thread per core; a Dask worker thread has one of
-    each): the refined coefficients, motion and standard errors, which the REPORT is made of, are the same bits
+    each): the refined coefficients, motion and the pixel fit's covariance, which the REPORT is made of, are the same bits
     from both (a short window seen by a half-size camera: seconds)."""
     default = Scene.load(DEFAULT_SCENE)
     camera = default.camera.model_copy(update={"width_px": 48, "height_px": 48, "fov_deg": default.camera.fov_deg / 2})
@@ -86,8 +86,10 @@ def test_a_window_refined_on_a_dask_worker_is_the_bits_the_local_pool_gives(
         windows.JobRunner(FitSettings(), cluster.scheduler_address),
     ):
         with runner:
-            coefficients, motion, errors = runner.call(refine_task, scene, frames, t, start, runner.threads).result()
-        found.append((coefficients.tobytes(), motion, errors.tobytes()))
+            coefficients, motion, covariance, clusters = runner.call(
+                refine_task, scene, frames, t, start, runner.threads
+            ).result()
+        found.append((coefficients.tobytes(), motion, covariance.tobytes(), clusters))
     assert found[0] == found[1]
 
 

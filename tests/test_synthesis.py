@@ -17,11 +17,11 @@ from service.analysis.offline import _with_pixel_intervals
 from service.analysis.results import ModeEstimate, WindowResult
 from service.camera_effects import CameraEffects
 from service.inverse.synthesis import (
+    covariance,
     frames_start,
     moving_pixels,
     plausible,
     refine_window,
-    standard_errors,
     start_motion,
     window_start,
 )
@@ -76,18 +76,19 @@ def test_refinement_lowers_the_pixel_residual_and_reports_its_search(renderer):
     assert refined.blur_sigma_px == pytest.approx(0.7, abs=0.1)
 
 
-def test_the_pixel_fit_s_standard_errors_grow_with_the_noise_and_cover_the_truth(renderer):
-    """A refined window's intervals come from its pixel fit (s^2 (J'J)^-1): wider on a noisier camera, and, where
+def test_the_pixel_fit_s_covariance_grows_with_the_noise_and_covers_the_truth(renderer):
+    """A refined window's intervals come from its pixel fit's covariance: wider on a noisier camera, and, where
     the noise dominates the search's own tolerance and the 12-bit rounding, the truth within a few standard errors
-    of what was found."""
+    of what was found; estimated from the image's tiles, dozens of them on this window."""
     errors = {}
     for read_noise in (2.0, 20.0):
         camera = CameraEffects(bit_depth=12, blur_sigma_px=0.7, full_well_e=16000.0, read_noise_dn=read_noise)
         frames = frames_of(renderer, TRUE, camera, seed=1)
         refined = refine_window(renderer, frames, T, TRUE)
-        errors[read_noise] = standard_errors(renderer, frames, T, refined)
+        found, clusters = covariance(renderer, frames, T, refined)
+        errors[read_noise] = np.sqrt(np.diag(found))
         f_error, g_error = errors[read_noise][4], errors[read_noise][3]
-        assert 0 < f_error < 0.01 * TRUE.f1 and 0 < g_error < 0.5 * TRUE.g1
+        assert 0 < f_error < 0.01 * TRUE.f1 and 0 < g_error < 0.5 * TRUE.g1 and clusters >= 10
     assert abs(refined.motion.f1 - TRUE.f1) < 4 * f_error and abs(refined.motion.g1 - TRUE.g1) < 4 * g_error
     assert np.all(errors[20.0][:10] > errors[2.0][:10])
 
@@ -126,30 +127,46 @@ def test_the_search_leaves_the_mirrored_surface_for_the_true_one(renderer):
     assert refined.p == pytest.approx(TRUE.p, abs=0.01) and relative(refined.f1, TRUE.f1) < 1e-3
 
 
-def test_a_refined_window_reports_the_pixel_fit_s_intervals_for_each_mode_and_null_where_unidentifiable():
-    """Each reported mode takes the interval of the motion's mode nearest in frequency, z = 1.96 standard errors
-    at 95 %; an unidentifiable direction (infinite error) gives the whole band 0 to Nyquist for a frequency, as the
-    window fit does, and no decay interval, which the reason names."""
+def test_a_refined_window_reports_the_pixel_fit_s_intervals_for_each_mode_and_the_offset_and_null_where_unidentifiable():
+    """Each reported mode takes the frequency, decay and amplitude intervals of the motion's mode nearest in
+    frequency, the offset d + p R its own with d's and p's covariance, at Student's t with clusters - 1 degrees of
+    freedom (2.093 for 20 clusters at 95 %); an unidentifiable direction (infinite covariance) gives the whole band
+    0 to Nyquist for a frequency, as the window fit does, and no other interval, which the reason names."""
     result = fit_window(TRUE.coefficients(T).centre(0.25), FPS)
-    errors = np.zeros(11)
-    errors[[3, 4, 7, 8]] = 2.0, 0.5, 6.0, 1.5  # g1, f1, g2, f2
-    intervals = _with_pixel_intervals(result, TRUE, errors, FPS, 0.95)
+    variances = np.zeros(11)
+    variances[[0, 1, 2, 3, 4, 6, 7, 8]] = 1e-6, 1e-4, 1e-8, 4.0, 0.25, 4e-8, 36.0, 2.25  # d p A1 g1 f1 A2 g2 f2
+    found = np.diag(variances)
+    found[0, 1] = found[1, 0] = -5e-6  # d and p trade against each other
+    intervals = _with_pixel_intervals(result, TRUE, found, 20, FPS, 0.95, 0.25)
     first, second = intervals.modes
-    assert first.frequency_ci_hz == pytest.approx((first.frequency_hz - 0.98, first.frequency_hz + 0.98), abs=1e-3)
-    assert first.decay_rate_ci_per_s == pytest.approx(
-        (first.decay_rate_per_s - 3.92, first.decay_rate_per_s + 3.92), abs=1e-3
+    z = 2.093
+    assert first.frequency_ci_hz == pytest.approx(
+        (first.frequency_hz - z * 0.5, first.frequency_hz + z * 0.5), abs=1e-3
     )
-    assert second.frequency_ci_hz == pytest.approx((second.frequency_hz - 2.94, second.frequency_hz + 2.94), abs=1e-3)
-    errors[[7, 8]] = np.inf
-    unknown = _with_pixel_intervals(result, TRUE, errors, FPS, 0.95)
+    assert first.decay_rate_ci_per_s == pytest.approx(
+        (first.decay_rate_per_s - z * 2, first.decay_rate_per_s + z * 2), abs=1e-2
+    )
+    assert first.amplitude_ci_mm == pytest.approx(
+        (first.amplitude_mm - z * 1e-4, first.amplitude_mm + z * 1e-4), abs=1e-6
+    )
+    assert second.frequency_ci_hz == pytest.approx(
+        (second.frequency_hz - z * 1.5, second.frequency_hz + z * 1.5), abs=1e-2
+    )
+    offset_error = np.sqrt(1e-6 + 0.25**2 * 1e-4 - 2 * 0.25 * 5e-6)
+    assert intervals.offset_ci_mm == pytest.approx(
+        (intervals.offset_mm - z * offset_error, intervals.offset_mm + z * offset_error), abs=1e-7
+    )
+    found[:, [6, 7, 8]] = found[[6, 7, 8], :] = np.inf
+    unknown = _with_pixel_intervals(result, TRUE, found, 20, FPS, 0.95, 0.25)
     assert unknown.modes[1].frequency_ci_hz == (0.0, FPS / 2) and unknown.modes[1].decay_rate_ci_per_s is None
+    assert unknown.modes[1].amplitude_ci_mm is None and unknown.modes[0].amplitude_ci_mm is not None
     assert "mode 2 decay_rate_ci_per_s not finite" in unknown.reason
 
 
 def test_a_refined_window_is_the_same_bits_whatever_blas_threads_its_process_has(renderer):
     """Each runner's processes have their own BLAS threads (a forked pool's one per core, Dask's workers one): a
     long dot product summed in per-thread pieces differs in its last bits, and the search's path and the pixel
-    fit's standard errors with it. A window refined where BLAS has one thread and where it has two is the same."""
+    fit's covariance with it. A window refined where BLAS has one thread and where it has two is the same."""
     frames, t = (
         frames_of(renderer, TRUE, CameraEffects(bit_depth=12, blur_sigma_px=0.7, full_well_e=16000.0))[:40],
         T[:40],
@@ -159,7 +176,7 @@ def test_a_refined_window_is_the_same_bits_whatever_blas_threads_its_process_has
     for threads in (1, 2):
         with threadpool_limits(threads, user_api="blas"):
             refined = refine_window(renderer, frames, t, start)
-            found.append((refined, standard_errors(renderer, frames, t, refined).tobytes()))
+            found.append((refined, covariance(renderer, frames, t, refined)[0].tobytes()))
     assert found[0] == found[1]
 
 

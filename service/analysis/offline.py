@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import TypeVar
 
 import numpy as np
-from scipy.stats import norm
+from scipy.stats import t as student
 from tqdm import tqdm
 
 from service.analysis.fit import fit_windows
@@ -171,7 +171,7 @@ def analyse_recording(
         results = runner.results(progress)
         source = Source(path=str(path), frames=n, fps=fps, width=width, height=height, blake3=digest.result())
     results = [
-        _with_pixel_intervals(r, *motions[r.index], fps, settings.confidence) if r.index in motions else r
+        _with_pixel_intervals(r, *motions[r.index], fps, settings.confidence, radius) if r.index in motions else r
         for r in results
     ]
     report = Report(
@@ -272,11 +272,11 @@ def _refine(
     runner: JobRunner,
     progress: bool,
     fitted: dict[int, WindowResult],
-) -> tuple[np.ndarray, np.ndarray, dict[int, tuple[WindowMotion, np.ndarray]]]:
+) -> tuple[np.ndarray, np.ndarray, dict[int, tuple[WindowMotion, np.ndarray, int]]]:
     """Per frame, the coefficients of its window's motion refined on the window's frames (after the ejection's
     transient; windows too short for the search keep their per-frame values), searched from the window's result in
     ``fitted`` (by index) where it has one (:func:`synthesis.window_start`), and per refined window (by index)
-    its motion and the standard errors of the pixel fit (:func:`synthesis.standard_errors`). Each window is an
+    its motion, the pixel fit's covariance and its clusters (:func:`synthesis.covariance`). Each window is an
     independent task on ``runner``."""
     coefficients = coefficients.copy()
     skip = settings.transient_frames(fps)
@@ -301,8 +301,8 @@ def _refine(
     for (index, lo, end), future in zip(
         spans, tqdm(futures, desc="refine by synthesis", unit="window", disable=not progress)
     ):
-        coefficients[lo:end], motion, errors = future.result()
-        motions[index] = motion, errors
+        coefficients[lo:end], motion, covariance, clusters = future.result()
+        motions[index] = motion, covariance, clusters
     return coefficients, centre_displacement(*coefficients.T, scene.nozzle.radius_mm), motions
 
 
@@ -318,40 +318,56 @@ def refine_task(
     start: WindowMotion,
     threads: int = 1,
     fitted: WindowMotion | None = None,
-) -> tuple[np.ndarray, WindowMotion, np.ndarray]:
+) -> tuple[np.ndarray, WindowMotion, np.ndarray, int]:
     """One window's refinement by synthesis (a task that runs wherever the runner sends it, rendering on ``threads``,
     :attr:`JobRunner.threads`; the result does not depend on them): the refined motion's coefficients at times
-    ``t`` (m, 4), the motion, and the pixel fit's standard errors."""
+    ``t`` (m, 4), the motion, and the pixel fit's covariance and clusters (:func:`synthesis.covariance`)."""
     key = scene.model_dump_json(), threads
     renderer = _RENDERERS.get(key) or _RENDERERS.setdefault(key, Renderer(scene, threads=threads))
     refined = synthesis.refine_window(renderer, frames, t, start, fitted)
     return (
         refined.motion.coefficients(t).to_array(),
         refined.motion,
-        synthesis.standard_errors(renderer, frames, t, refined),
+        *synthesis.covariance(renderer, frames, t, refined),
     )
 
 
 def _with_pixel_intervals(
-    result: WindowResult, motion: WindowMotion, errors: np.ndarray, fps: float, confidence: float
+    result: WindowResult,
+    motion: WindowMotion,
+    covariance: np.ndarray,
+    clusters: int,
+    fps: float,
+    confidence: float,
+    radius_mm: float,
 ) -> WindowResult:
-    """A refined window's result with each mode's frequency and decay intervals from the pixel fit's standard
-    errors (the mode of the motion nearest in frequency), not from the window fit of its noise-free D(0, t)."""
-    z = float(norm.ppf(0.5 + confidence / 2))  # ~10^5 pixel residuals: Student's t is the normal
+    """A refined window's result with each mode's frequency, decay and amplitude intervals and the offset's (d + p R)
+    from the pixel fit's cluster-robust covariance (:func:`synthesis.covariance`; the mode of the motion nearest in
+    frequency; Student's t with ``clusters`` - 1 degrees of freedom), not from the window fit of its noise-free
+    D(0, t), whose intervals are round-off."""
+    z = float(student.ppf(0.5 + confidence / 2, max(clusters - 1, 1)))
+    names = list(motion.as_dict())  # the covariance's order
+
+    def half(*weights: tuple[str, float]) -> float:
+        index, w = [names.index(n) for n, _ in weights], np.array([v for _, v in weights])
+        return z * float(np.sqrt(max(w @ covariance[np.ix_(index, index)] @ w, 0.0)))
+
     fields, modes = result.model_dump(), []
-    names = list(motion.as_dict())  # the errors' order
     for mode in fields["modes"]:
         k = int(np.argmin(np.abs(np.array([motion.f1, motion.f2]) - mode["frequency_hz"]))) + 1
-        f_error, g_error = errors[names.index(f"f{k}")], errors[names.index(f"g{k}")]
-        f, g = mode["frequency_hz"], mode["decay_rate_per_s"]
+        f, g, a = mode["frequency_hz"], mode["decay_rate_per_s"], mode["amplitude_mm"]
+        f_half, g_half, a_half = (half((f"{n}{k}", 1.0)) for n in "fgA")
         modes.append(
             {
                 **mode,
-                "frequency_ci_hz": (max(f - z * f_error, 0.0), min(f + z * f_error, fps / 2)),
-                "decay_rate_ci_per_s": (max(g - z * g_error, 0.0), g + z * g_error),
+                "frequency_ci_hz": (max(f - f_half, 0.0), min(f + f_half, fps / 2)),
+                "decay_rate_ci_per_s": (max(g - g_half, 0.0), g + g_half),
+                "amplitude_ci_mm": (max(a - a_half, 0.0), a + a_half),
             }
         )
-    return WindowResult.model_validate({**fields, "modes": modes})
+    offset, offset_half = fields["offset_mm"], half(("d", 1.0), ("p", radius_mm))
+    offset_ci = None if offset is None else (offset - offset_half, offset + offset_half)
+    return WindowResult.model_validate({**fields, "modes": modes, "offset_ci_mm": offset_ci})
 
 
 def analyse_series(

@@ -77,6 +77,10 @@ _EVALUATIONS = 100
 #: gain and offset of each evaluation, the pixel fit's J'J) in per-thread pieces, so its last bits, the search's
 #: path and the REPORT depended on the threads of the process (a forked pool's one per core, Dask's workers one).
 _BLAS = ThreadpoolController()
+#: Side (px) of the image tiles whose pixels are one cluster of the pixel fit's covariance (:func:`covariance`).
+TILE = 12
+#: A parameter takes part in a direction the pixel fit does not pin down where its weight in it exceeds this.
+_NULL = 1e-6
 
 
 @dataclass(frozen=True)
@@ -393,18 +397,46 @@ def refine_window(
 
 
 @_BLAS.wrap(limits=1, user_api="blas")
-def standard_errors(renderer: Renderer, frames: np.ndarray, t: np.ndarray, refined: Refined) -> np.ndarray:
-    """Standard errors of a refined window's motion (WindowMotion's order, d ... phi2) and blur (px), shape (11,),
-    from the pixel fit at its optimum: s^2 (J'J)^-1, s^2 the residual variance per pixel. The pixels'
-    errors are not independent (a renderer's mismatch is correlated across a highlight), so these are
-    lower bounds; still they say how sharply the window's frames pin each number down, where the window
-    fit of the refined, noise-free D(0, t) would give intervals of nothing but round-off. Five renders."""
+def covariance(renderer: Renderer, frames: np.ndarray, t: np.ndarray, refined: Refined) -> tuple[np.ndarray, int]:
+    """Covariance (11, 11) of a refined window's motion (WindowMotion's order, d ... phi2) and blur (px) from its
+    pixel fit at the optimum, and the number of clusters it was estimated from: :func:`cluster_covariance` with
+    each :data:`TILE` x :data:`TILE` px image tile (all frames) one cluster. The error that matters is the
+    renderer's mismatch with the camera, correlated across a highlight and over the window's frames, not the pixels'
+    noise, which s^2 (J'J)^-1 assumes independent (docs/benchmarks.md, "Intervals of the refined windows"). Five
+    renders."""
     problem = _Problem(renderer, frames, np.asarray(t, np.float64))
     x = _point(refined.motion, refined.blur_sigma_px)
     residuals, jac = problem.residuals(x), problem.jacobian(x)
-    variance = float(residuals @ residuals) / max(residuals.size - x.size, 1)
-    normal = jac.T @ jac
-    with np.errstate(divide="ignore", invalid="ignore"):
-        covariance = np.linalg.pinv(normal) * variance
-    errors = np.sqrt(np.clip(np.diag(covariance), 0.0, None)) * _SCALE
-    return np.where(np.linalg.matrix_rank(normal) == x.size, errors, np.inf)
+    clusters = np.tile(tile_clusters(problem.pixels, renderer.shape), len(t))
+    return cluster_covariance(jac, residuals, clusters) * np.outer(_SCALE, _SCALE), int(clusters.max()) + 1
+
+
+def tile_clusters(pixels: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """The tile (0 ... G - 1, numbered among the tiles that hold any) of each selected pixel of an image of
+    ``shape``, ``pixels`` (H W,) bool selecting them: square tiles of :data:`TILE` px from the top left corner."""
+    rows, columns = np.divmod(np.flatnonzero(pixels), shape[1])
+    tile = (rows // TILE) * -(-shape[1] // TILE) + columns // TILE
+    return np.unique(tile, return_inverse=True)[1].ravel()
+
+
+def cluster_covariance(jacobian: np.ndarray, residuals: np.ndarray, clusters: np.ndarray) -> np.ndarray:
+    """The cluster-robust (sandwich) covariance of a least-squares fit at its optimum, (k, k) for a ``jacobian``
+    (n, k) of the ``residuals`` (n,), observations in ``clusters`` (n,) labelled 0 ... G - 1: H^-1 (sum_c s_c
+    s_c') H^-1 G / (G - 1), H = J'J, s_c = J_c' r_c. Errors correlated within a cluster, independent between
+    clusters, of any variance: s^2 H^-1 holds only for independent ones. Infinite for the parameters of a direction
+    the observations do not pin down (H singular: a mode that has died out before the window's first frame), the
+    others' from the fit without them; everywhere where G < 2 (no spread between clusters to measure)."""
+    k = jacobian.shape[1]
+    count = int(clusters.max()) + 1 if clusters.size else 0
+    out = np.full((k, k), np.inf)
+    normal = jacobian.T @ jacobian
+    values, vectors = np.linalg.eigh(normal)
+    null = vectors[:, values <= max(values.max(), 0.0) * k * np.finfo(np.float64).eps]
+    kept = ~np.any(np.abs(null) > _NULL, axis=1)
+    if count < 2 or not kept.any():
+        return out
+    weighted = jacobian[:, kept] * residuals[:, None]
+    scores = np.stack([np.bincount(clusters, column, count) for column in weighted.T], axis=1)
+    bread = np.linalg.inv(normal[np.ix_(kept, kept)])
+    out[np.ix_(kept, kept)] = bread @ (scores.T @ scores) @ bread * count / (count - 1)
+    return out
