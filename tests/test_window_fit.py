@@ -539,6 +539,37 @@ def test_the_compiled_triangle_is_lapack_s_and_the_covariance_the_normal_matrix_
         assert kernels.covariance_diagonal(jac) == pytest.approx(np.diag(np.linalg.inv(jac.T @ jac)), rel=1e-8)
 
 
+@settings(max_examples=80, deadline=None)
+@given(
+    modes=st.integers(0, 2),
+    size=st.integers(12, 400),
+    drift=st.booleans(),
+    robust=st.booleans(),
+    level=st.floats(-12, 12),
+    seed=st.integers(0, 10_000),
+)
+def test_the_judge_s_compiled_intervals_are_the_numpy_ones_to_the_last_bit(modes, size, drift, robust, level, seed):
+    """Cost and half-widths of :func:`kernels.judged`: the residuals' dot product and t sqrt(diag((J'J)^-1) cost /
+    (N - k)) over the fitted columns, 0 for a drift held at 0, exactly as numpy composes them, for series from 1e-12
+    to 1e12, gaps, a singular Jacobian (a mode without amplitude) included."""
+    rng = np.random.default_rng(seed)
+    n = np.sort(rng.choice(2 * size, size, replace=False)).astype(np.float64)
+    params = np.r_[rng.normal(), rng.normal() * 1e-3 * drift]
+    for _ in range(modes):
+        params = np.r_[params, rng.normal(size=2) * (rng.random() > 0.1), rng.uniform(0.01, 3.0), rng.uniform(0, 0.1)]
+    y = rng.normal(size=size) * 10.0**level
+    cost, half = kernels.judged(n, y, 0.3, robust, params, drift, 2.0)
+    r, jac = kernels.weighted_jacobian(n, y, 0.3, robust, params)
+    fitted = np.ones(params.size, dtype=bool)
+    fitted[1] = drift
+    expected = np.zeros(params.size)
+    with np.errstate(all="ignore"):
+        variance = kernels.covariance_diagonal(np.ascontiguousarray(jac[:, fitted])) * (r @ r) / (size - fitted.sum())
+        expected[fitted] = 2.0 * np.sqrt(variance)
+    assert cost == r @ r
+    assert np.array_equal(half, expected, equal_nan=True)
+
+
 def test_a_singular_jacobian_has_no_interval():
     jac = np.random.default_rng(0).standard_normal((190, 6))
     jac[:, 3] = 2 * jac[:, 2]

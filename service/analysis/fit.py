@@ -253,18 +253,18 @@ class _Window:
     def _judge(self, order: int, params: np.ndarray, drift: bool = True) -> _OrderFit:
         """Cost, BIC, CI half-widths and (for modes) whether they are resolved; without ``drift`` its parameter
         (held at 0) is neither counted nor given an interval."""
-        r, j = kernels.weighted_jacobian(self.n, self.y, self.scale, self.robust, params)
-        fitted = np.ones(params.size, dtype=bool)
-        fitted[1] = drift
-        n, k = self.n.size, int(fitted.sum())
-        cost = float(r @ r)
-        bic = self.bic(cost, k)
-        half = np.zeros(params.size)
-        with np.errstate(all="ignore"):  # a singular Jacobian's infinite variance: the mode is judged unresolved
-            variance = kernels.covariance_diagonal(np.ascontiguousarray(j[:, fitted])) * cost / (n - k)
-        half[fitted] = _t_quantile(n - k, self.settings.confidence) * np.sqrt(variance)
+        n, k = self.n.size, params.size - (not drift)
+        t = _t_quantile(n - k, self.settings.confidence)
+        # a singular Jacobian's infinite variance: the mode is judged unresolved
+        cost, half = kernels.judged(self.n, self.y, self.scale, self.robust, params, drift, t)
         return _OrderFit(
-            order, params, half, cost, bic, _unresolved(params, half, self.n[-1] - self.n[0] + 1), drift=drift
+            order,
+            params,
+            half,
+            cost,
+            self.bic(cost, k),
+            _unresolved(params, half, self.n[-1] - self.n[0] + 1),
+            drift=drift,
         )
 
 

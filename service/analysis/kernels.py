@@ -311,6 +311,33 @@ def covariance_diagonal(jac: np.ndarray) -> np.ndarray:
 
 
 @njit(**_JIT)
+def judged(
+    n: np.ndarray, y: np.ndarray, scale: float, robust: bool, params: np.ndarray, drift: bool, t: float
+) -> tuple[float, np.ndarray]:
+    """A fit's cost (its residuals' sum of squares as minimised) and its parameters' confidence half-widths, ``t``
+    standard errors (residual variance over N - k); 0 for the drift where it was held at 0 (``drift`` False), inf
+    where a direction is unidentifiable. One call for what took the fit's judge six numpy round trips."""
+    r, jac = weighted_jacobian(n, y, scale, robust, params)
+    cost = r @ r
+    k = params.size
+    if not drift:  # the drift's column left out: it is neither counted nor given an interval
+        k -= 1
+        kept = np.empty((n.size, k))
+        kept[:, :1] = jac[:, :1]
+        kept[:, 1:] = jac[:, 2:]
+        jac = kept
+    variance = covariance_diagonal(jac) * cost / (n.size - k)
+    half = np.zeros(params.size)
+    offset = 0
+    for j in range(params.size):
+        if j == 1 and not drift:
+            offset = 1
+            continue
+        half[j] = t * np.sqrt(variance[j - offset])
+    return cost, half
+
+
+@njit(**_JIT)
 def step_z(n: np.ndarray, y: np.ndarray, scale: float, robust: bool, params: np.ndarray, index: int) -> float:
     """The Gauss-Newton step of parameter ``index`` from ``params``, in standard errors (residual variance over
     N - k): how far the optimum would move it, were it free; inf where the normal matrix is singular."""
