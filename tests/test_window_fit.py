@@ -539,6 +539,95 @@ def test_the_compiled_triangle_is_lapack_s_and_the_covariance_the_normal_matrix_
         assert kernels.covariance_diagonal(jac) == pytest.approx(np.diag(np.linalg.inv(jac.T @ jac)), rel=1e-8)
 
 
+@settings(max_examples=80, deadline=None)
+@given(
+    modes=st.integers(0, 2),
+    size=st.integers(12, 400),
+    drift=st.booleans(),
+    robust=st.booleans(),
+    level=st.floats(-12, 12),
+    seed=st.integers(0, 10_000),
+)
+def test_the_judge_s_compiled_intervals_are_the_numpy_ones_to_the_last_bit(modes, size, drift, robust, level, seed):
+    """Cost and half-widths of :func:`kernels.judged`: the residuals' dot product and t sqrt(diag((J'J)^-1) cost /
+    (N - k)) over the fitted columns, 0 for a drift held at 0, exactly as numpy composes them, for series from 1e-12
+    to 1e12, gaps, a singular Jacobian (a mode without amplitude) included."""
+    rng = np.random.default_rng(seed)
+    n = np.sort(rng.choice(2 * size, size, replace=False)).astype(np.float64)
+    params = np.r_[rng.normal(), rng.normal() * 1e-3 * drift]
+    for _ in range(modes):
+        params = np.r_[params, rng.normal(size=2) * (rng.random() > 0.1), rng.uniform(0.01, 3.0), rng.uniform(0, 0.1)]
+    y = rng.normal(size=size) * 10.0**level
+    cost, half = kernels.judged(n, y, 0.3, robust, params, drift, 2.0)
+    r, jac = kernels.weighted_jacobian(n, y, 0.3, robust, params)
+    fitted = np.ones(params.size, dtype=bool)
+    fitted[1] = drift
+    expected = np.zeros(params.size)
+    with np.errstate(all="ignore"):
+        variance = kernels.covariance_diagonal(np.ascontiguousarray(jac[:, fitted])) * (r @ r) / (size - fitted.sum())
+        expected[fitted] = 2.0 * np.sqrt(variance)
+    assert cost == r @ r
+    assert np.array_equal(half, expected, equal_nan=True)
+
+
+@settings(max_examples=80, deadline=None)
+@given(
+    w=arrays(
+        np.float64, st.integers(0, 3), elements=st.floats(-1e6, 1e6) | st.sampled_from([np.pi, -np.pi, 0.0, -0.0])
+    ),
+    seed=st.integers(0, 10_000),
+)
+def test_the_canonical_form_folds_each_frequency_into_0_pi_as_numpy_does(w, seed):
+    """w folded into [0, pi] with b's sign turned where it was negative, to the bit of the numpy composition, and the
+    model unchanged by it (cos even, sin odd)."""
+    rng = np.random.default_rng(seed)
+    params = np.r_[
+        rng.normal(size=2), np.column_stack([rng.normal(size=(w.size, 2)), w, rng.uniform(0, 1, w.size)]).ravel()
+    ]
+    folded = kernels.canonical(params)
+    expected = params.copy()
+    modes = expected[2:].reshape(-1, 4)
+    wrapped = np.mod(modes[:, 2] + np.pi, 2 * np.pi) - np.pi
+    modes[:, 1] *= np.where(wrapped < 0, -1.0, 1.0)
+    modes[:, 2] = np.abs(wrapped)
+    assert np.array_equal(folded, expected) and np.all((folded[4::4] >= 0) & (folded[4::4] <= np.pi))
+    n = np.arange(30.0)
+    scale = 1 + np.abs(kernels.columns(n, params)[0]).max()
+    assert np.allclose(
+        kernels.columns(n, folded)[0],
+        kernels.columns(n, params)[0],
+        atol=1e-9 * scale * (1 + np.abs(w).max(initial=0.0)),
+    )
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    order=st.integers(1, 2),
+    poles=st.integers(0, 3),
+    values=st.lists(st.floats(-10, 10) | st.sampled_from([np.nan, 0.0, 1e-9]), min_size=6, max_size=6),
+    size=st.integers(12, 300),
+    seed=st.integers(0, 10_000),
+)
+def test_a_start_takes_the_strongest_poles_clipped_and_fills_those_missing(order, poles, values, size, seed):
+    """:func:`kernels.mode_start` is :func:`kernels.linear_start` at the first ``order`` poles, those lacking at half
+    a cycle and an e-fold per window, w clipped to [1e-3, pi - 1e-3] and g to [1e-4, 1] (NaN kept), to the bit."""
+    rng = np.random.default_rng(seed)
+    n = np.sort(rng.choice(2 * size, size, replace=False)).astype(np.float64)
+    y = rng.normal(size=size)
+    w, g = np.array(values[:poles]), np.array(values[3 : 3 + poles])
+    span = max(n[-1], 1.0)
+    ws = np.clip(np.concatenate([w[:order], np.full(order - min(order, poles), np.pi / span)]), 1e-3, np.pi - 1e-3)
+    gs = np.clip(np.concatenate([g[:order], np.full(order - min(order, poles), 1.0 / span)]), 1e-4, 1.0)
+    with np.errstate(all="ignore"):
+        try:
+            expected = kernels.linear_start(n, y, ws, gs)
+        except np.linalg.LinAlgError:  # NaN poles: LAPACK refuses them, compiled or not
+            with pytest.raises(np.linalg.LinAlgError):
+                kernels.mode_start(n, y, w, g, order, 1.0)
+            return
+        assert np.array_equal(kernels.mode_start(n, y, w, g, order, 1.0), expected, equal_nan=True)
+
+
 def test_a_singular_jacobian_has_no_interval():
     jac = np.random.default_rng(0).standard_normal((190, 6))
     jac[:, 3] = 2 * jac[:, 2]

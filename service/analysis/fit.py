@@ -88,6 +88,10 @@ _IRLS_STEPS = 100  # at most; the order-0 cost settles to 1e-6 (relative) in ~5-
 _BLAS = ThreadpoolController()
 
 
+#: The linear parameters' indices (offset, drift and each mode's a and b) by number of modes.
+_LINEAR = [np.r_[0, 1, (_BASE + _PER_MODE * np.arange(m)[:, None] + np.array([0, 1])).ravel()] for m in range(3)]
+
+
 def min_samples(order: int) -> int:
     """Finite samples needed to fit ``order`` modes with at least 3 residual degrees of freedom."""
     return _BASE + _PER_MODE * order + _MIN_DOF
@@ -128,16 +132,11 @@ class _Window:
         self.n, self.y, self.settings = n, y, settings
         self.scale = max(_noise_from_differences(n, y), _EXACT)  # soft-L1 scale, normalised units
         self.robust = settings.loss == "soft_l1"
+        self.span, self.mean_n = n[-1] - n[0] + 1, n.mean()  # samples the window spans; their mean index
 
     def starts(self, order: int, pencil_modes: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
         """Start for ``order`` modes: the most energetic pencil pairs, linear coefficients by least squares."""
-        w, g = pencil_modes
-        missing = order - min(order, w.size)
-        span = max(self.n[-1], 1.0)
-        w = np.concatenate([w[:order], np.full(missing, np.pi / span)])  # half a cycle per window
-        g = np.concatenate([g[:order], np.full(missing, 1.0 / span)])
-        w, g = np.clip(w, 1e-3, np.pi - 1e-3), np.clip(g, 1e-4, _MAX_DECAY)
-        return kernels.linear_start(self.n, self.y, w, g)
+        return kernels.mode_start(self.n, self.y, *pencil_modes, order, _MAX_DECAY)
 
     def extended(self, fewer: _OrderFit, length: int) -> np.ndarray | None:
         """Start for one mode more than ``fewer``: its modes and the strongest pencil pair of what it leaves; None
@@ -156,7 +155,9 @@ class _Window:
         if w.size == 0:
             return None
         modes = fewer.params[_BASE:].reshape(-1, _PER_MODE)
-        return self.starts(fewer.order + 1, (np.r_[modes[:, 2], w[:1]], np.r_[modes[:, 3], g[:1]]))
+        return self.starts(
+            fewer.order + 1, (np.concatenate((modes[:, 2], w[:1])), np.concatenate((modes[:, 3], g[:1])))
+        )
 
     def without(self, samples: np.ndarray) -> _Window:
         """This window with the ``samples`` (mask over its finite ones) left out."""
@@ -170,7 +171,7 @@ class _Window:
         gaussian.robust = False
         free = np.ones(chosen.params.size, dtype=np.bool_)
         free[1] = chosen.drift
-        params = _canonical(gaussian._refine(chosen.params, free))
+        params = gaussian._refine(chosen.params, free)
         return gaussian._judge(chosen.order, params, drift=chosen.drift)
 
     def bic(self, cost: float, k: int) -> float:
@@ -190,7 +191,7 @@ class _Window:
         """Order 0: the offset alone, or offset and drift where the criterion prefers them."""
         offset, _ = self.linear_fit(np.ones((self.n.size, 1)))
         line, _ = self.linear_fit(np.stack([np.ones_like(self.n), self.n], axis=1))
-        return min(self._judge(0, np.r_[offset, 0.0], drift=False), self._judge(0, line), key=lambda f: f.bic)
+        return min(self._judge(0, np.append(offset, 0.0), drift=False), self._judge(0, line), key=lambda f: f.bic)
 
     def fit(self, order: int, start: np.ndarray, drift_first: bool) -> _OrderFit:
         """Refine ``start`` by LM (:func:`kernels.levenberg_marquardt`) with or without a drift, judged, and the
@@ -203,44 +204,47 @@ class _Window:
         where it is within ``_DRIFT_TEST`` standard errors of 0 or a mode turns under ``_SWING_CYCLES``."""
         free = np.ones(start.size, dtype=np.bool_)
         if drift_first:
-            with_drift = self._judge(order, _canonical(self._refine(start, free)))
+            with_drift = self._judge(order, self._refine(start, free))
             t = _t_quantile(max(self.n.size - start.size, 1), self.settings.confidence)
             evident = abs(with_drift.params[1]) * t >= _DRIFT_TEST * with_drift.half_width[1]
-            if evident and not _slow_swing(with_drift.params, self.n[-1] - self.n[0] + 1):
+            if evident and not _slow_swing(with_drift.params, self.span):
                 return with_drift
             start = with_drift.params
         flat = start.copy()
-        flat[0] += flat[1] * self.n.mean()
+        flat[0] += flat[1] * self.mean_n
         flat[1] = 0.0
         free[1] = False
-        without = self._judge(order, _canonical(self._refine(flat, free)), drift=False)
+        without = self._judge(order, self._refine(flat, free), drift=False)
         if drift_first:
             return min(without, with_drift, key=lambda f: f.bic)
-        slow = _slow_swing(without.params, self.n[-1] - self.n[0] + 1)
+        slow = _slow_swing(without.params, self.span)
         if not slow and kernels.step_z(self.n, self.y, self.scale, self.robust, without.params, 1) < _DRIFT_TEST:
             return without
-        with_drift = self._judge(order, _canonical(self._refine(without.params, np.ones(start.size, np.bool_))))
+        with_drift = self._judge(order, self._refine(without.params, np.ones(start.size, np.bool_)))
         return min(without, with_drift, key=lambda f: f.bic)
 
     def _refine(self, start: np.ndarray, free: np.ndarray) -> np.ndarray:
-        """The LM optimum from ``start`` over the ``free`` parameters."""
-        return kernels.levenberg_marquardt(
-            self.n,
-            self.y,
-            self.scale,
-            self.robust,
-            start,
-            _LM_TOLERANCE,
-            _LM_EVALUATIONS * (start.size + 1),
-            free,
-            _MAX_DECAY,
+        """The LM optimum from ``start`` over the ``free`` parameters, its modes in canonical form
+        (:func:`kernels.canonical`)."""
+        return kernels.canonical(
+            kernels.levenberg_marquardt(
+                self.n,
+                self.y,
+                self.scale,
+                self.robust,
+                start,
+                _LM_TOLERANCE,
+                _LM_EVALUATIONS * (start.size + 1),
+                free,
+                _MAX_DECAY,
+            )
         )
 
     def pinned(self, poles: _OrderFit) -> _OrderFit:
         """This window fitted with another series' poles (each mode's w and g, and their intervals): offset,
         drift and each mode's (a, b) by IRLS."""
         params = poles.params.copy()
-        linear = np.r_[0, 1, (_BASE + _PER_MODE * np.arange(poles.order)[:, None] + np.array([0, 1])).ravel()]
+        linear = _LINEAR[poles.order]
         _, design = kernels.columns(self.n, params)
         params[linear], cost = self.linear_fit(np.ascontiguousarray(design[:, linear]))
         _, j = kernels.weighted_jacobian(self.n, self.y, self.scale, self.robust, params)
@@ -253,18 +257,18 @@ class _Window:
     def _judge(self, order: int, params: np.ndarray, drift: bool = True) -> _OrderFit:
         """Cost, BIC, CI half-widths and (for modes) whether they are resolved; without ``drift`` its parameter
         (held at 0) is neither counted nor given an interval."""
-        r, j = kernels.weighted_jacobian(self.n, self.y, self.scale, self.robust, params)
-        fitted = np.ones(params.size, dtype=bool)
-        fitted[1] = drift
-        n, k = self.n.size, int(fitted.sum())
-        cost = float(r @ r)
-        bic = self.bic(cost, k)
-        half = np.zeros(params.size)
-        with np.errstate(all="ignore"):  # a singular Jacobian's infinite variance: the mode is judged unresolved
-            variance = kernels.covariance_diagonal(np.ascontiguousarray(j[:, fitted])) * cost / (n - k)
-        half[fitted] = _t_quantile(n - k, self.settings.confidence) * np.sqrt(variance)
+        n, k = self.n.size, params.size - (not drift)
+        t = _t_quantile(n - k, self.settings.confidence)
+        # a singular Jacobian's infinite variance: the mode is judged unresolved
+        cost, half = kernels.judged(self.n, self.y, self.scale, self.robust, params, drift, t)
         return _OrderFit(
-            order, params, half, cost, bic, _unresolved(params, half, self.n[-1] - self.n[0] + 1), drift=drift
+            order,
+            params,
+            half,
+            cost,
+            self.bic(cost, k),
+            _unresolved(params, half, self.span),
+            drift=drift,
         )
 
 
@@ -272,16 +276,6 @@ def _slow_swing(params: np.ndarray, span: float) -> bool:
     """Whether a mode of ``params`` turns less than ``_SWING_CYCLES`` over ``span`` samples: with a drift beside
     it, it may be a slower swing made into a cycle, or a swing standing in for a drift."""
     return bool(np.any(params[_BASE + 2 :: _PER_MODE] * span < 2 * np.pi * _SWING_CYCLES))
-
-
-def _canonical(params: np.ndarray) -> np.ndarray:
-    """Each mode with w folded into [0, pi] (cos even, sin odd: b changes sign) and g >= 0."""
-    p = params.copy()
-    modes = p[_BASE:].reshape(-1, _PER_MODE)  # a view
-    w = np.mod(modes[:, 2] + np.pi, 2 * np.pi) - np.pi
-    modes[:, 1] *= np.where(w < 0, -1.0, 1.0)
-    modes[:, 2] = np.abs(w)
-    return p
 
 
 def _unresolved(params: np.ndarray, half: np.ndarray, span: float) -> str | None:
