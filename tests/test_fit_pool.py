@@ -61,7 +61,9 @@ def test_a_window_is_fitted_in_its_worker_as_in_process_and_its_times_follow_eac
 def test_windows_finding_every_worker_busy_wait_in_order_up_to_the_backlog_and_one_more_is_refused(
     pool: FitPool,
 ) -> None:
-    jobs = [WindowJob(Window(k, 0, 190, True, True), damped()) for k in range(BACKLOG + 2)]
+    n = 10_000  # the first window a fit of tenths of a second: still in flight while the others are submitted
+    first = WindowJob(Window(0, 0, n, True, True), damped(n))
+    jobs = [first] + [WindowJob(Window(k, 0, 190, True, True), damped()) for k in range(1, BACKLOG + 2)]
     *accepted, refused = jobs
     results = Results(len(accepted))
     assert all(pool.submit(job, FPS, results) for job in accepted)  # one in flight, BACKLOG waiting
