@@ -653,6 +653,26 @@ def test_an_empty_window_is_failed_not_a_crash():
     json_clean(r)
 
 
+def test_a_fit_unresolved_by_its_least_squares_polish_says_why():
+    """The robust fit resolved one slow mode and its least-squares polish did not (the frequency's interval then
+    reaches below a cycle per window): an unresolved window with the polish's reason, where ``analyze --refine``'s
+    start from this b(t) (0.1 um steps; a near-mirror Blender recording's window) raised a validation error."""
+    b = 1e-4 * np.array(
+        (
+            "48 -5 -6 -4 86 48 54 20 46 60 76 51 55 25 29 27 63 80 68 61 59 60 65 70 76 70 57 43 37 39 49 55 58 "
+            "59 57 54 51 48 45 44 37 34 36 41 45 49 51 52 52 51 50 48 45 42 38 36 34 34 34 35 36 36 36 36 36 35 "
+            "34 34 34 34 35 36 37 38 38 39 38 38 38 37 37 36 35 35 34 34 34 34 34 34 34 34 34 34 34 34 35 35 35 "
+            "35 35 35 35 36 35 35 35 35 35 35 35 35 34 34 34 34 34 34 34 34 34 34 35 35 35 35 35 35 35 35 35 35 "
+            "35 35 35 35 35 35 35 35 34 35 35 34 34 34 35 35 35 35 35 35 35 35 35 35 35 35 35 35 35 35 35 35 35 "
+            "35 35 34 35 35 35 35 35 35 35 35 35 35 35 35 35 35 35 35"
+        ).split(),
+        float,
+    )
+    r = fit_window(b, FPS, FitSettings(max_modes=1))
+    assert r.status == "unresolved" and "cycles" in r.reason
+    json_clean(r)
+
+
 def test_warm_leaves_every_fit_kernel_in_numba_s_cache(tmp_path) -> None:
     """After one process has warmed the fit, a new process (a fit worker) loads every kernel and compiles none."""
     report = (

@@ -579,6 +579,7 @@ def _result(
     duration = (common["end_frame"] - common["start_frame"]) / fps
     s = settle(amp, decay, duration, settings.settle_fraction, settings.settle_floor_mm)
     status = "unresolved" if fit.problem else "ok"
+    problem = problem or fit.problem  # a polished or pinned fit's own, where the choice between orders had none
     if not s.settled:
         problem = "; ".join([p for p in [problem] if p] + [_still_running(s, common["ends_at_ejection"])])
     return WindowResult(

@@ -323,7 +323,9 @@ def refine_task(
     :attr:`JobRunner.threads`; the result does not depend on them): the refined motion's coefficients at times
     ``t`` (m, 4), the motion, and the pixel fit's covariance and clusters (:func:`synthesis.covariance`)."""
     key = scene.model_dump_json(), threads
-    renderer = _RENDERERS.get(key) or _RENDERERS.setdefault(key, Renderer(scene, threads=threads))
+    renderer = _RENDERERS.get(key) or _RENDERERS.setdefault(
+        key, Renderer(scene, sun_samples=synthesis.SUN_SAMPLES, threads=threads)
+    )
     refined = synthesis.refine_window(renderer, frames, t, start, fitted)
     return (
         refined.motion.coefficients(t).to_array(),
