@@ -15,6 +15,7 @@ frames gathered into one array, on the lane's own thread.
 
 from __future__ import annotations
 
+import logging
 import multiprocessing
 import os
 import threading
@@ -31,6 +32,8 @@ import numpy as np
 from service.analysis.results import FitSettings, WindowResult
 from service.analysis.segment import Window
 from service.sources import FrameBatch
+
+log = logging.getLogger(__name__)
 
 #: Niceness of the lane's process by default (the setting ``refine_nice``): the lowest priority there is, below the
 #: fits' and the web side's.
@@ -126,8 +129,9 @@ class Offered:
 @dataclass(frozen=True)
 class RefinedUpdate:
     """A window's refined result, for the publishers to send as an update of that window: the run and window it
-    belongs to (:attr:`Offered.run`, the window's index), the refined series (mm per frame), the source's name, and
-    when (monotonic s) its closing frame was read, the lane took it, its process started and finished it."""
+    belongs to (:attr:`Offered.run`, the window's index), the method that made it (``network+synthesis``), the
+    source's name, the refined series (mm per frame), and when (monotonic s) its closing frame was read, the lane took
+    it, its process started and finished it."""
 
     run: int
     result: WindowResult
@@ -190,9 +194,9 @@ def _serve(conn: Connection, config: LaneConfig, nice: int) -> None:
 
 
 class RefineLane:
-    """One process at ``nice`` (added to this process's) refining the newest closed window offered (:meth:`offer`), each result to
-    ``on_refined``; each window skipped (replaced while it waited, its frames incomplete, or its refinement
-    failed) to ``on_skipped``."""
+    """One process at ``nice`` (added to this process's niceness) refining the newest closed window offered
+    (:meth:`offer`), each result to ``on_refined``; each window skipped (replaced while it waited, its frames
+    incomplete, or its refinement failed: logged) to ``on_skipped``."""
 
     def __init__(
         self,
@@ -257,6 +261,7 @@ class RefineLane:
                 self._conn.send((w, offered.records, frames, offered.fps))
                 answer = self._conn.recv()
                 if isinstance(answer, str):
+                    log.warning("refining window %d (frames %d-%d) failed: %s", w.index, w.start, w.end, answer)
                     self.on_skipped("failed")
                     continue
                 result, series, started, finished = answer
