@@ -39,7 +39,7 @@ from service.pipeline.ejections import OFFLINE_LOOKAHEAD_S, EjectionDetector
 from service.pipeline.records import COEFFICIENTS, FRAME, coefficients_of
 from service.pipeline.segmenter import StreamingSegmenter
 from service.pipeline.stages import FrameStages
-from service.pipeline.windows import JobRunner, WindowJob, job_for, window_model_for
+from service.pipeline.windows import JobRunner, WindowJob, fit_or_failed, job_for, window_model_for
 from service.recordings import open_recording
 from service.recordings.digest import blake3_file
 from service.recordings.roi import roi_frames
@@ -101,8 +101,8 @@ def analyse_recording(
     if method != "network":  # the window model reads the network's per-frame values
         settings = settings.model_copy(update={"series_model": "steady"})
     first_settings = settings  # the windows' first fit: the report's, or with ``refine`` the search's start
-    if refine:  # the refined motion's own series and poles (the window model reads per-frame values, not refined ones)
-        settings = settings.model_copy(update={"poles": "series", "series_model": "steady"})
+    if refine:
+        settings = refined_settings(settings)
     # the recording opened once (its header and every image's offset read: ~1 us of CPU per frame), then replayed
     with ReplaySource(path, speed=0.0) as replay, ExitStack() as stack:
         fps, frames, width, height = replay.fps, replay.frames, replay.width, replay.height
@@ -158,28 +158,27 @@ def analyse_recording(
             cuts = np.array([w.start for w in windows if w.starts_at_ejection], np.int64)
         if db is not None:
             _set_coefficients(records, *_regularise(db, np.concatenate(found), windows, fps, settings, progress))
-        motions = {}
+        refined: dict[int, RefinedWindow] = {}
         if refine:
             fitted = {r.index: r for r in runner.results(progress)} if fitted_first else {}
-            coefficients, centre, motions = _refine(
-                path, scene, coefficients_of(records), windows, fps, settings, runner, progress, fitted
-            )
-            _set_coefficients(records, coefficients, centre)
+            refined = _refine(path, scene, records, windows, fps, settings, runner, progress, fitted)
+            for w in windows:
+                if w.index in refined:
+                    records[w.start : w.end] = refined[w.index].records
+            records["centre"] = centre_displacement(*coefficients_of(records).T, radius)
             runner.settings, model = settings, None  # the refined motion's own series and poles are fitted now
-        if not streamed or refine:
-            jobs = _send(runner, [(w, records[w.start : w.end]) for w in windows], radius, transient, model, fps)
-        results = runner.results(progress)
+        if not streamed or refine:  # (with ``refine``, the windows too short for the search: refitted alone)
+            rest = [w for w in windows if w.index not in refined]
+            jobs = _send(runner, [(w, records[w.start : w.end]) for w in rest], radius, transient, model, fps)
+        results = iter(runner.results(progress))
+        results = [refined[w.index].result if w.index in refined else next(results) for w in windows]
         source = Source(path=str(path), frames=n, fps=fps, width=width, height=height, blake3=digest.result())
-    results = [
-        _with_pixel_intervals(r, *motions[r.index], fps, settings.confidence, radius) if r.index in motions else r
-        for r in results
-    ]
     report = Report(
         source=source, method=method_label(method, refine), ejections=cuts.tolist(), windows=results, fit=settings
     )
     fitted = np.full(n, np.nan)
-    for job in jobs:
-        fitted[job.window.start : job.window.end] = job.series
+    for w, series in [(job.window, job.series) for job in jobs] + [(r.window, r.series) for r in refined.values()]:
+        fitted[w.start : w.end] = series
     return Analysis(
         report, InverseOutput(coefficients=coefficients_of(records), centre=records["centre"].copy()), fitted
     )
@@ -257,6 +256,12 @@ def _regularise(
     return db.coeffs[chosen], db.centre[chosen]
 
 
+def refined_settings(settings: FitSettings) -> FitSettings:
+    """The fit of a refined window: the refined motion's own series and poles (the window model reads per-frame
+    values, not refined ones)."""
+    return settings.model_copy(update={"poles": "series", "series_model": "steady"})
+
+
 def method_label(method: str, refine: bool) -> str:
     """The method a report names: the per-frame method, with ``+synthesis`` when its windows were refined."""
     return f"{method}+synthesis" if refine else method
@@ -265,45 +270,80 @@ def method_label(method: str, refine: bool) -> str:
 def _refine(
     path: Path,
     scene: Scene,
-    coefficients: np.ndarray,
+    records: np.ndarray,
     windows: list[Window],
     fps: float,
     settings: FitSettings,
     runner: JobRunner,
     progress: bool,
     fitted: dict[int, WindowResult],
-) -> tuple[np.ndarray, np.ndarray, dict[int, tuple[WindowMotion, np.ndarray, int]]]:
-    """Per frame, the coefficients of its window's motion refined on the window's frames (after the ejection's
-    transient; windows too short for the search keep their per-frame values), searched from the window's result in
-    ``fitted`` (by index) where it has one (:func:`synthesis.window_start`), and per refined window (by index)
-    its motion, the pixel fit's covariance and its clusters (:func:`synthesis.covariance`). Each window is an
-    independent task on ``runner``."""
-    coefficients = coefficients.copy()
-    skip = settings.transient_frames(fps)
-    spans, futures = [], []
+) -> dict[int, RefinedWindow]:
+    """Each window long enough for the search refined by :func:`refine_window` (from its result in ``fitted``, by
+    index, where it has one), by index; each window an independent task on ``runner``."""
+    futures = []
     with open_recording(path) as rec:
         for w in windows:
-            lo = w.oscillation_start(skip)
-            if w.end - lo < synthesis.MIN_FRAMES:
-                continue
-            t = (np.arange(lo, w.end) - w.start) / fps
-            start = synthesis.start_motion(coefficients[lo : w.end], t, fps)
-            result = fitted.get(w.index)
-            from_fit = (
-                None
-                if result is None
-                else synthesis.window_start(result, coefficients[lo : w.end], scene.nozzle.radius_mm)
-            )
-            spans.append((w.index, lo, w.end))
-            frames = roi_frames(rec, scene, lo, w.end - lo)
-            futures.append(runner.call(refine_task, scene, frames, t, start, runner.threads, from_fit))
-    motions = {}
-    for (index, lo, end), future in zip(
-        spans, tqdm(futures, desc="refine by synthesis", unit="window", disable=not progress)
-    ):
-        coefficients[lo:end], motion, covariance, clusters = future.result()
-        motions[index] = motion, covariance, clusters
-    return coefficients, centre_displacement(*coefficients.T, scene.nozzle.radius_mm), motions
+            if refined_from(w, fps, settings) is not None:
+                frames = roi_frames(rec, scene, w.start, w.end - w.start)
+                window = records[w.start : w.end]
+                futures.append(
+                    runner.call(
+                        refine_window, scene, w, window, frames, fps, settings, fitted.get(w.index), runner.threads
+                    )
+                )
+    refined = [f.result() for f in tqdm(futures, desc="refine by synthesis", unit="window", disable=not progress)]
+    return {r.window.index: r for r in refined}
+
+
+@dataclass(frozen=True)
+class RefinedWindow:
+    """A window refined by synthesis: its records with the refined motion's coefficients and D(0, t) (the
+    transient's frames keep their per-frame values), the refined series' fit with the pixel fit's intervals, and
+    that series (mm per frame)."""
+
+    window: Window
+    records: np.ndarray
+    result: WindowResult
+    series: np.ndarray
+
+
+def refined_from(window: Window, fps: float, settings: FitSettings) -> int | None:
+    """The first frame the search reads of ``window`` (after the ejection's transient), None where too few frames
+    remain for it (:data:`synthesis.MIN_FRAMES`)."""
+    lo = window.oscillation_start(settings.transient_frames(fps))
+    return lo if window.end - lo >= synthesis.MIN_FRAMES else None
+
+
+def refine_window(
+    scene: Scene,
+    window: Window,
+    records: np.ndarray,
+    frames: np.ndarray,
+    fps: float,
+    settings: FitSettings,
+    first: WindowResult | None = None,
+    threads: int = 1,
+) -> RefinedWindow:
+    """One window of ``meniscope analyze --refine`` (and of ``meniscope serve --refine``'s lane: the same numbers
+    from both): its motion refined on its ROI ``frames`` (as stored, one per record) through the renderer, searched
+    from its ``first`` fit where there is one (:func:`synthesis.window_start`), else from its per-frame values
+    (``records``, :data:`FRAME`), then the refined D(0, t)'s fit with ``settings`` (the refined motion's own series
+    and poles) and the pixel fit's intervals. ``window`` must be long enough (:func:`refined_from`)."""
+    lo = refined_from(window, fps, settings)
+    if lo is None:
+        raise MeniscopeError(f"window {window.index}", f"{window.end - window.start} frames: too short to refine")
+    k, radius = lo - window.start, scene.nozzle.radius_mm
+    coefficients = coefficients_of(records)
+    t = (np.arange(lo, window.end) - window.start) / fps
+    start = synthesis.start_motion(coefficients[k:], t, fps)
+    from_fit = None if first is None else synthesis.window_start(first, coefficients[k:], radius)
+    coefficients[k:], motion, covariance, clusters = refine_task(scene, frames[k:], t, start, threads, from_fit)
+    records = records.copy()
+    _set_coefficients(records, coefficients, centre_displacement(*coefficients.T, radius))
+    job = job_for(window, records, radius, settings.transient_frames(fps))
+    result = fit_or_failed(job, fps, settings)
+    intervals = _with_pixel_intervals(result, motion, covariance, clusters, fps, settings.confidence, radius)
+    return RefinedWindow(window, records, intervals, job.series)
 
 
 #: One renderer per scene and thread count in each process that refines windows (building one costs more than a

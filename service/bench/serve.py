@@ -16,6 +16,10 @@ Then, since wall-clock rates on a shared machine say more about the neighbours t
 CPU time (``time.thread_time``) each stage costs per frame, run one after another on one thread:
 reading the replay, inference per configuration, the measures, segmentation, and the fit per window.
 
+With ``--refine`` every run is made twice, one after the other: the refinement lane off, then on
+(``serve --refine``), with, for the lane, how long after a window closed its refined update was
+published (p50, p90), refined windows per minute, and the windows it skipped.
+
 Writes ``serve.json`` and ``serve.md`` to ``--out`` and prints the tables.
 """
 
@@ -68,21 +72,29 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="service settings to compare, KEY=VALUE pairs joined by ',', "
         "variants by ';' (default: one variant, the defaults)",
     )
+    p.add_argument(
+        "--refine",
+        action="store_true",
+        help="each run with the refinement lane off and then on (serve --refine): the lane's latency and what it "
+        "costs the frame path",
+    )
     p.add_argument("--out", type=Path, default=Path("bench-serve"), help="folder for the results")
     p.set_defaults(func=run)
 
 
 def measure(settings: ServiceSettings, seconds: float) -> dict:
     """One run: start the pipeline with publishers, wait until frames flow, count for ``seconds``."""
+    from service.pipeline.refining import RefinedUpdate
     from service.pipeline.runtime import FittedWindow, PipelineStats
     from service.pipeline.supervisor import Supervisor
     from service.server.history import History, StoredWindow
     from service.server.hub import Hub
-    from service.server.metrics import Metrics
+    from service.server.metrics import REFINE_SKIPPED, Metrics
     from service.server.publishers import Publishers
     from service.server.zmq_publisher import ZmqPublisher
 
     stages: list[tuple[float, ...]] = []  # per published window: its times from closed to published (s)
+    refined: list[tuple[float, ...]] = []  # per refined update: closed, taken by the lane, refined, published (s)
 
     class Timed(Publishers):
         def _send(self, fitted: FittedWindow) -> tuple[StoredWindow, float]:
@@ -98,6 +110,11 @@ def measure(settings: ServiceSettings, seconds: float) -> dict:
                 )
             )
             return stored, sent
+
+        def _send_refined(self, update: RefinedUpdate, window_id: int) -> StoredWindow:
+            stored = super()._send_refined(update, window_id)
+            refined.append((update.closed_at, update.taken_at, update.started_at, update.finished_at, time.monotonic()))
+            return stored
 
     stats = PipelineStats()
     supervisor: Supervisor | None = None
@@ -127,6 +144,12 @@ def measure(settings: ServiceSettings, seconds: float) -> dict:
                     stats.windows_closed,
                     stats.windows_skipped,
                     len(stages),
+                    len(refined),
+                    sum(
+                        metrics.registry.get_sample_value("meniscope_windows_refine_skipped_total", {"reason": r})
+                        or 0.0
+                        for r in REFINE_SKIPPED
+                    ),
                 )
 
             start = snapshot()
@@ -139,7 +162,12 @@ def measure(settings: ServiceSettings, seconds: float) -> dict:
             history.close()
             loop.close()
     elapsed = end[0] - start[0]
-    acquired, inferred, dropped, closed, skipped, published = (e - s for e, s in zip(end[2:], start[2:]))
+    acquired, inferred, dropped, closed, skipped, published, _, lane_skipped = (
+        e - s for e, s in zip(end[2:], start[2:])
+    )
+    lane = np.array(refined[start[8] : end[8]]).reshape(-1, 5)
+    refine_latency = lane[:, 4] - lane[:, 0]
+    refine_cpu = lane[:, 3] - lane[:, 2]
     times = np.array(stages[start[7] : end[7]]).reshape(-1, 6) * 1e3
     closed_at, dispatched_at, started_at, finished_at, fitted_at, published_at = times.T
     window_latency = published_at - closed_at
@@ -167,6 +195,13 @@ def measure(settings: ServiceSettings, seconds: float) -> dict:
         "on_time_fraction": float((window_latency <= ON_TIME_MS).sum()) / max(closed, 1),
         **{f"{stage}_ms_p{q}": pct(part, q) for stage, part in parts.items() for q in (50, 99)},
         "inference_calls": metrics.registry.get_sample_value("meniscope_inference_latency_seconds_count"),
+        "refine": settings.refine,
+        "windows_refined": len(lane),
+        "refined_per_minute": len(lane) / elapsed * 60,
+        "refine_skipped": lane_skipped,
+        "refine_latency_s_p50": pct(refine_latency, 50),
+        "refine_latency_s_p90": pct(refine_latency, 90),
+        "refine_wall_s_p50": pct(refine_cpu, 50),  # taken by the lane's process -> refined: its share of the cores
     }
 
 
@@ -254,14 +289,15 @@ def markdown(results: dict) -> str:
         f"at nice {results['fit_nice']}, "
         f"{os.cpu_count()} CPUs.",
         "",
-        "| batch x threads | variant | speed | fit modes | frames/s in | frames/s inferred | dropped | windows closed / published / unfitted "
+        "| batch x threads | variant | lane | speed | fit modes | frames/s in | frames/s inferred | dropped | windows closed / published / unfitted "
         f"| publish latency p50 / p99 (ms) | closed windows published within {ON_TIME_MS:g} ms | of which: to the fit / hand-off / fit / publishing, p50 (p99) "
         "| load average |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in results["runs"]:
         lines.append(
-            f"| {r['batch']} x {r['threads']} | {r.get('variant') or 'defaults'} | {r['run']} | {r.get('max_modes', 2)} | {_fmt(r['frames_per_s_in'])} | "
+            f"| {r['batch']} x {r['threads']} | {r.get('variant') or 'defaults'} | {'on' if r.get('refine') else 'off'} "
+            f"| {r['run']} | {r.get('max_modes', 2)} | {_fmt(r['frames_per_s_in'])} | "
             f"{_fmt(r['frames_per_s_inferred'])} | {r['dropped_fraction']:.1%} | {r['windows_closed']} / "
             f"{r['windows_published']} / {r['windows_skipped']} | {_fmt(r['publish_latency_ms_p50'], '.1f')} / "
             f"{_fmt(r['publish_latency_ms_p99'], '.1f')} | {r['on_time_fraction']:.1%} | "
@@ -271,6 +307,22 @@ def markdown(results: dict) -> str:
             )
             + f" | {r['load_average'][0]:.1f} -> {r['load_average'][1]:.1f} |"
         )
+    lanes = [r for r in results["runs"] if r.get("refine")]
+    if lanes:
+        lines += [
+            "",
+            "The refinement lane (serve --refine; latency: closing frame read -> refined update published):",
+            "",
+            "| batch x threads | variant | speed | refined | per minute | skipped | latency p50 / p90 (s) "
+            "| in the lane's process p50 (s) |",
+            "|---|---|---|---|---|---|---|---|",
+        ]
+        lines += [
+            f"| {r['batch']} x {r['threads']} | {r.get('variant') or 'defaults'} | {r['run']} | {r['windows_refined']} "
+            f"| {r['refined_per_minute']:.1f} | {r['refine_skipped']:.0f} | {_fmt(r['refine_latency_s_p50'], '.1f')} / "
+            f"{_fmt(r['refine_latency_s_p90'], '.1f')} | {_fmt(r['refine_wall_s_p50'], '.1f')} |"
+            for r in lanes
+        ]
     c = results["stage_costs"]
     lines += [
         "",
@@ -316,7 +368,8 @@ def run(args: argparse.Namespace) -> int:
         "runs": [],
     }
     for batch, threads in configs:
-        for speed, modes, (variant, overrides) in itertools.product(speeds, max_modes, variants):
+        lanes = (False, True) if args.refine else (False,)
+        for speed, modes, (variant, overrides), lane in itertools.product(speeds, max_modes, variants, lanes):
             name = f"x{speed:g}"
             try:
                 settings = ServiceSettings(
@@ -329,6 +382,7 @@ def run(args: argparse.Namespace) -> int:
                         "fit_workers": args.fit_workers,
                         "fit_nice": args.fit_nice,
                         "zmq_publish": None,
+                        "refine": lane,
                         **overrides,
                     }
                 )
@@ -336,7 +390,7 @@ def run(args: argparse.Namespace) -> int:
                 raise MeniscopeError("--variants", f"{variant!r}: {exc.errors()[0]['msg']}") from None
             print(
                 f"bench serve: batch {batch} x {threads} threads, {variant or 'defaults'}, {name}, "
-                f"up to {modes} modes ...",
+                f"up to {modes} modes{', refinement lane on' if lane else ''} ...",
                 flush=True,
             )
             results["runs"].append(

@@ -15,6 +15,7 @@ short call before its own; then it cuts windows at ejections and hands closed wi
 
 from __future__ import annotations
 
+import itertools
 import logging
 import queue
 import threading
@@ -30,6 +31,7 @@ from service.errors import MeniscopeError
 from service.inverse.base import InverseMethod
 from service.pipeline.ejections import EjectionDetector
 from service.pipeline.fitting import FitPool
+from service.pipeline.refining import KEEP_WINDOWS, Offered, RecentFrames, RefinedUpdate, RefineLane
 from service.pipeline.segmenter import ClosedWindow, StreamingSegmenter
 from service.pipeline.stages import FrameStages
 from service.pipeline.trigger import TriggerCheck, TriggerCounts, TriggerInbox
@@ -42,6 +44,8 @@ log = logging.getLogger(__name__)
 
 #: Seconds between two warnings that frames were dropped.
 DROP_REPORT_S = 10.0
+#: Numbers the pipeline runs of this process (a window is its run's and its index there).
+_RUNS = itertools.count(1)
 
 
 @dataclass(frozen=True)
@@ -66,13 +70,14 @@ class Acquired:
 class Taken:
     """The frames of one inference call, from one or more reads: their indices, arrival times, records and the inverse
     method's input, in order, and the last frame's ROI pixels (the latest frame; no other pixels are joined: the
-    input was prepared where they were read)."""
+    input was prepared where they were read), and the reads themselves (references, for the refinement lane)."""
 
     indices: np.ndarray
     arrival: np.ndarray
     records: np.ndarray
     inputs: np.ndarray
     last_pixels: np.ndarray
+    reads: tuple[FrameBatch, ...] = ()
 
     def __len__(self) -> int:
         return len(self.indices)
@@ -85,7 +90,7 @@ class Taken:
             for f in ("arrival", "records", "inputs")
         ]
         indices = parts[0].batch.indices if len(parts) == 1 else np.concatenate([p.batch.indices for p in parts])
-        return cls(indices, *joined, parts[-1].batch.pixels[-1])
+        return cls(indices, *joined, parts[-1].batch.pixels[-1], tuple(p.batch for p in parts))
 
 
 @dataclass(frozen=True)
@@ -93,7 +98,8 @@ class FittedWindow:
     """A window's result with its samples (mm, NaN where missing), the name of the source its frames came
     from (:attr:`ServiceSettings.source_name`: a fit may come back after the settings changed), and when
     (monotonic s) the frame that closed it was read, the window went to the fit workers, a worker started
-    and finished its fit (NaN if the fit raised) and its fit came back: where latency goes."""
+    and finished its fit (NaN if the fit raised) and its fit came back: where latency goes; the pipeline run it
+    came from (a refined update finds its window by run and index) and the per-frame method."""
 
     result: WindowResult
     source: str
@@ -104,6 +110,8 @@ class FittedWindow:
     fit_started_at: float
     fit_finished_at: float
     fitted_at: float
+    run: int = 0
+    method: str | None = None
 
 
 @dataclass(frozen=True)
@@ -135,6 +143,10 @@ class PipelineSink(Protocol):
     def on_trace(self, trace: TraceSnippet) -> None: ...
 
     def on_inference(self, seconds: float, frames: int) -> None: ...
+
+    def on_refined(self, refined: RefinedUpdate) -> None: ...
+
+    def on_refine_skipped(self, why: str) -> None: ...
 
 
 @dataclass
@@ -208,7 +220,8 @@ def segmenter_for(settings: ServiceSettings, fps: float, trigger: TriggerInbox |
 class Pipeline:
     """One run of the pipeline over an open ``source`` with an inverse ``method``; :meth:`run` until it ends.
 
-    The ``fits`` pool outlives the run: fits of its last windows may still arrive after it stopped.
+    The ``fits`` pool outlives the run: fits of its last windows may still arrive after it stopped. So does the
+    refinement ``lane`` (``serve --refine``), which gets each closed window the fits took, with its frames.
     """
 
     def __init__(
@@ -221,9 +234,13 @@ class Pipeline:
         sink: PipelineSink,
         stats: PipelineStats,
         trigger: TriggerInbox | None = None,
+        lane: RefineLane | None = None,
     ) -> None:
         self.stages = FrameStages(scene, source.format, source.uri, method)
         self.settings, self.source, self.method, self.fits = settings, source, method, fits
+        self.lane, self.run_id = lane, next(_RUNS)
+        keep = KEEP_WINDOWS * int(settings.max_window_s * source.fps)
+        self._recent = RecentFrames(keep) if lane is not None else None  # the frames the lane may need
         self.sink, self.stats = sink, stats
         fps = source.fps
         self.segmenter = segmenter_for(settings, fps, trigger)
@@ -352,6 +369,8 @@ class Pipeline:
         self.budget.record(seconds, len(taken))
         self.sink.on_inference(seconds, len(taken))
         self.stats.frames_inferred += len(taken)
+        if self._recent is not None:
+            self._recent.add(taken.reads)
         self._dispatch(
             self.segmenter.push(indices, records, records["change"], taken.arrival, novelty=records["novelty"])
         )
@@ -374,6 +393,11 @@ class Pipeline:
             dispatched_at = time.monotonic()
             if not self.fits.submit(job, self._fps, partial(self._fitted, dispatched_at)):
                 self.stats.windows_skipped += 1
+            elif self.lane is not None and self._recent is not None and self.lane.wants(window.window, self._fps):
+                w = window.window
+                reads = self._recent.covering(w.start, w.end)
+                offered = Offered(self.run_id, w, window.values.copy(), reads, self._fps, window.closed_at)
+                self.lane.offer(offered, self.settings.source_name)
 
     def _fitted(
         self, dispatched_at: float, job: WindowJob, result: WindowResult, started_at: float, finished_at: float
@@ -389,6 +413,8 @@ class Pipeline:
                 started_at,
                 finished_at,
                 time.monotonic(),
+                self.run_id,
+                self.settings.method,
             )
         )
 

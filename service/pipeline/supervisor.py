@@ -29,6 +29,7 @@ from service.inverse.methods import open_method
 from service.pipeline.demo import demo_uri
 from service.pipeline.fitting import FitPool
 from service.pipeline.records import NO_HIGHLIGHT
+from service.pipeline.refining import LaneConfig, RefineLane
 from service.pipeline.runtime import Pipeline, PipelineSink, PipelineStats
 from service.pipeline.trigger import TriggerInbox
 from service.scene import Scene
@@ -92,6 +93,7 @@ class Supervisor:
         self._health = Health("starting", None, time.time(), 0)
         self._source: FrameSource | None = None
         self._fits: FitPool | None = None
+        self._lane: RefineLane | None = None
         self._attempts = 0  # failed attempts in a row
         self._running_at = 0.0  # monotonic time (s) the current run started
         self._wake = threading.Event()  # interrupts a wait between attempts
@@ -155,6 +157,20 @@ class Supervisor:
             pool = self._fits = FitPool(*wanted)
         return pool
 
+    def _refine_lane(self, settings: ServiceSettings) -> RefineLane | None:
+        """The refinement lane for ``settings`` (None without ``refine``): kept while they ask for the same one."""
+        wanted = LaneConfig(settings.scene, settings.models, settings.method, settings.fit) if settings.refine else None
+        lane = self._lane
+        if lane is not None and (
+            wanted != lane.config or lane.nice != settings.refine_nice or not lane.process.is_alive()
+        ):
+            lane.close()
+            lane = None
+        if lane is None and wanted is not None:
+            lane = RefineLane(wanted, self.sink.on_refined, self.sink.on_refine_skipped, settings.refine_nice)
+        self._lane = lane
+        return lane
+
     def _set(self, state: State, reason: str | None, settings: ServiceSettings) -> None:
         """Report ``state`` of the run with ``settings``: its source, not that of settings changed meanwhile."""
         self._health = Health(state, reason, time.time(), self._attempts, {"uri": settings.source})
@@ -184,6 +200,8 @@ class Supervisor:
         if self._fits is not None:  # drain: the fits in flight come back before the publishers close
             self._fits.close()
             self._fits.join(5.0)
+        if self._lane is not None:  # a refinement in flight is abandoned: it would take seconds
+            self._lane.close()
 
     def _run_once(self, settings: ServiceSettings) -> bool:
         """Open everything, run until stopped or ended; True when the stream ended by itself."""
@@ -197,6 +215,7 @@ class Supervisor:
             batch=settings.batch,
         )
         fits = self._fit_pool(settings)  # before the source opens: a replay's clock starts when it does
+        lane = self._refine_lane(settings)
         uri = (
             demo_uri(settings.data_dir)
             if settings.source is None
@@ -204,7 +223,7 @@ class Supervisor:
         )
         scene_of_sim = {"scene": settings.scene} if urlsplit(uri).scheme.lower() == "sim" else {}
         with open_source(uri, **scene_of_sim) as source:  # a simulated camera renders the scene of the models
-            pipeline = Pipeline(settings, scene, source, method, fits, self.sink, self.stats, self.trigger)
+            pipeline = Pipeline(settings, scene, source, method, fits, self.sink, self.stats, self.trigger, lane)
             self._source, self._attempts = source, 0  # it ran: a later failure starts the backoff afresh
             self._running_at, self.stats.latest = time.monotonic(), None
             self._set("running", None, settings)

@@ -233,15 +233,16 @@ def gather(started: list[tuple[int, Future]], progress: bool = False) -> list[Wi
 
 
 def _fit_all(jobs: list[WindowJob], fps: float, settings: FitSettings) -> list[WindowResult]:
-    """Each job's :func:`fit_job`, or the failed result naming what it raised (one window's fit never stops an
-    analysis)."""
-    results = []
-    for job in jobs:
-        try:
-            results.append(fit_job(job, fps, settings))
-        except Exception as exc:
-            results.append(unfitted_result(job, f"the fit raised {type(exc).__name__}: {exc}"))
-    return results
+    """Each job's :func:`fit_or_failed`."""
+    return [fit_or_failed(job, fps, settings) for job in jobs]
+
+
+def fit_or_failed(job: WindowJob, fps: float, settings: FitSettings) -> WindowResult:
+    """:func:`fit_job`, or the failed result naming what it raised (one window's fit never stops an analysis)."""
+    try:
+        return fit_job(job, fps, settings)
+    except Exception as exc:
+        return unfitted_result(job, f"the fit raised {type(exc).__name__}: {exc}")
 
 
 def _warm() -> None:

@@ -125,12 +125,18 @@ def status(service: Svc) -> dict[str, Any]:
 
 
 class StoredWindowBody(BaseModel):
-    """A stored window result: its id, when it was stored (s since the epoch), source, frame rate."""
+    """A stored window result: its id, when it was stored (s since the epoch), source, frame rate, the method that
+    made it, its revision (0 as first published, 1 refined by ``serve --refine``'s lane) and the refinement's
+    latency."""
 
     id: int
     stored: float
     source: str
     fps: float
+    method: str | None = Field(description="per-frame method; +synthesis once refined; null in older histories")
+    revision: int = Field(ge=0, description="0 as first published, 1 refined (the same id, replaced)")
+    refined: bool
+    refine_latency_s: float | None = Field(description="refined: closing frame read -> refined update published")
     window: WindowResult
 
 

@@ -2,7 +2,8 @@
 
 One row per published window: an id that only grows (what REST's ``since`` and the published
 messages carry), the time it was stored, the source and frame rate, and the :class:`WindowResult`
-as JSON. One writer (the publishers, which give each window its id before sending it and store it
+as JSON, with the method that made it, its revision (0: as first published; 1: refined by the lane of
+``serve --refine``, which replaces the row under the same id) and the refinement's latency. One writer (the publishers, which give each window its id before sending it and store it
 after) and any number of readers (REST requests, each with a short-lived connection of its own),
 which WAL lets run side by side.
 """
@@ -26,23 +27,32 @@ CREATE TABLE IF NOT EXISTS windows (
     stored REAL NOT NULL,         -- seconds since the epoch
     source TEXT NOT NULL,
     fps REAL NOT NULL,
-    result TEXT NOT NULL          -- WindowResult as JSON
+    result TEXT NOT NULL,         -- WindowResult as JSON
+    method TEXT,                  -- the method that made it (null in databases older than the column)
+    revision INTEGER NOT NULL DEFAULT 0,  -- 0 as first published, 1 refined (same id)
+    refine_latency_s REAL         -- a refined window's: closing frame read -> refined update published
 );
 CREATE INDEX IF NOT EXISTS windows_stored ON windows (stored);
 """
+#: Columns added since the first schema, with their definitions: added to an older database when it opens.
+ADDED = {"method": "TEXT", "revision": "INTEGER NOT NULL DEFAULT 0", "refine_latency_s": "REAL"}
 #: Inserts between two retention passes.
 PRUNE_EVERY = 500
 
 
 @dataclass(frozen=True)
 class StoredWindow:
-    """A window result as kept: its id, when it was stored (s since the epoch), source and frame rate."""
+    """A window result as kept: its id, when it was stored (s since the epoch), source and frame rate, the method
+    that made it, its revision (0 first, 1 refined) and, refined, how long after its window closed."""
 
     id: int
     stored: float
     source: str
     fps: float
     result: WindowResult
+    method: str | None = None
+    revision: int = 0
+    refine_latency_s: float | None = None
 
     def to_json(self) -> dict[str, Any]:
         return {
@@ -50,6 +60,10 @@ class StoredWindow:
             "stored": self.stored,
             "source": self.source,
             "fps": self.fps,
+            "method": self.method,
+            "revision": self.revision,
+            "refined": self.revision > 0,
+            "refine_latency_s": self.refine_latency_s,
             "window": self.result.model_dump(mode="json"),
         }
 
@@ -65,6 +79,10 @@ class History:
             self._writer.execute("PRAGMA journal_mode=WAL")
             self._writer.execute("PRAGMA synchronous=NORMAL")  # WAL: durable at checkpoints, no fsync per window
             self._writer.executescript(SCHEMA)
+            have = {row["name"] for row in self._writer.execute("PRAGMA table_info(windows)")}
+            for column, definition in ADDED.items():
+                if column not in have:
+                    self._writer.execute(f"ALTER TABLE windows ADD COLUMN {column} {definition}")
         except (OSError, sqlite3.Error) as exc:
             raise MeniscopeError(self.path, f"cannot open the history database: {exc}") from None
         self._inserts = 0
@@ -86,14 +104,32 @@ class History:
         return self._last_id
 
     def add(
-        self, result: WindowResult, source: str, fps: float, stored: float | None = None, window_id: int | None = None
+        self,
+        result: WindowResult,
+        source: str,
+        fps: float,
+        stored: float | None = None,
+        window_id: int | None = None,
+        method: str | None = None,
+        revision: int = 0,
+        refine_latency_s: float | None = None,
     ) -> int:
-        """Store one result under ``window_id`` (from :meth:`new_id`; a new one if None); its id."""
+        """Store one result under ``window_id`` (from :meth:`new_id`; a new one if None); its id. A window stored
+        again under its id (after a failed attempt, or refined) replaces the row."""
         window_id = self.new_id() if window_id is None else window_id
         self._writer.execute(
-            # OR REPLACE: a window written again after a failed attempt is stored once
-            "INSERT OR REPLACE INTO windows (id, stored, source, fps, result) VALUES (?, ?, ?, ?, ?)",
-            (window_id, time.time() if stored is None else stored, source, fps, result.model_dump_json()),
+            "INSERT OR REPLACE INTO windows (id, stored, source, fps, result, method, revision, refine_latency_s) "
+            "VALUES (?, ?, ?, ?, ?, ?, ?, ?)",
+            (
+                window_id,
+                time.time() if stored is None else stored,
+                source,
+                fps,
+                result.model_dump_json(),
+                method,
+                revision,
+                refine_latency_s,
+            ),
         )
         self._inserts += 1
         if self._inserts % PRUNE_EVERY == 0:
@@ -124,7 +160,9 @@ class History:
         rows = self._rows(after, limit)
         items = ",".join(
             f'{{"id":{row["id"]},"stored":{json.dumps(row["stored"])},"source":{json.dumps(row["source"])},'
-            f'"fps":{json.dumps(row["fps"])},"window":{row["result"]}}}'
+            f'"fps":{json.dumps(row["fps"])},"method":{json.dumps(row["method"])},"revision":{row["revision"]},'
+            f'"refined":{json.dumps(row["revision"] > 0)},"refine_latency_s":{json.dumps(row["refine_latency_s"])},'
+            f'"window":{row["result"]}}}'
             for row in rows
         )
         last = rows[-1]["id"] if rows else after
@@ -154,5 +192,12 @@ class History:
 
 def _stored(row: sqlite3.Row) -> StoredWindow:
     return StoredWindow(
-        row["id"], row["stored"], row["source"], row["fps"], WindowResult.model_validate(json.loads(row["result"]))
+        row["id"],
+        row["stored"],
+        row["source"],
+        row["fps"],
+        WindowResult.model_validate(json.loads(row["result"])),
+        row["method"],
+        row["revision"],
+        row["refine_latency_s"],
     )

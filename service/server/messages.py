@@ -21,6 +21,11 @@ WINDOW_SCHEMA = "meniscope.window/1"
 TRACE_SCHEMA = "meniscope.trace/1"
 #: The ZeroMQ topic (first message part) of window results.
 WINDOW_TOPIC = b"meniscope.window"
+#: The ZeroMQ topic of refined updates of windows already published (``serve --refine``): not a prefix match of
+#: :data:`WINDOW_TOPIC`, so that a subscriber to windows alone never takes an update for a new window.
+REFINED_TOPIC = b"meniscope.refined"
+#: The ``type`` of a window message, and of a refined update of one (same id; dashboards replace the window).
+WINDOW, WINDOW_UPDATE = "window", "window_update"
 
 
 def samples(values: np.ndarray, decimals: int = 6) -> list[float | None]:
@@ -30,9 +35,11 @@ def samples(values: np.ndarray, decimals: int = 6) -> list[float | None]:
 
 
 def window_message(stored: StoredWindow, values: np.ndarray | None = None) -> str:
-    """A window message: ``{"schema", "type": "window", "id", "stored", "source", "fps", "window"}``,
-    plus ``"values"`` (the samples, mm) when given."""
-    message: dict[str, Any] = {"schema": WINDOW_SCHEMA, "type": "window", **stored.to_json()}
+    """A window message: ``{"schema", "type", "id", "stored", "source", "fps", "method", "revision", "refined",
+    "refine_latency_s", "window"}``, of type ``window`` or, refined (revision 1), ``window_update``; plus
+    ``"values"`` (the samples, mm) when given."""
+    kind = WINDOW_UPDATE if stored.revision else WINDOW
+    message: dict[str, Any] = {"schema": WINDOW_SCHEMA, "type": kind, **stored.to_json()}
     if values is not None:
         message["values"] = samples(values)
     return json.dumps(message, allow_nan=False, separators=(",", ":"))

@@ -22,6 +22,8 @@ from service.pipeline.runtime import PipelineStats
 from service.pipeline.supervisor import SOURCE_SILENT_S, Health
 
 STATUSES = get_args(Status)
+#: Why the refinement lane skips a window (the ``reason`` label of ``meniscope_windows_refine_skipped_total``).
+REFINE_SKIPPED = ("replaced", "incomplete", "failed", "unmatched")
 
 disable_created_metrics()  # no *_created series: nothing here reads them, and they double every counter
 
@@ -169,6 +171,26 @@ class Metrics:
             "meniscope_window_publish_latency_seconds",
             "From the frame that closed a window being read to its result being published.",
             buckets=(1e-3, 2.5e-3, 5e-3, 1e-2, 2.5e-2, 5e-2, 0.1, 0.25, 0.5, 1.0, 2.5, 10.0),
+            registry=r,
+        )
+        self.refined = Counter(
+            "meniscope_windows_refined",
+            "Windows refined by synthesis and published again as an update (serve --refine).",
+            registry=r,
+        )
+        self.refine_skipped = Counter(
+            "meniscope_windows_refine_skipped",
+            "Windows the refinement lane did not refine: replaced by a newer window while waiting (reason=replaced), "
+            "frames missing (incomplete), the refinement raised (failed), or its window no longer known (unmatched).",
+            ["reason"],
+            registry=r,
+        )
+        for reason in REFINE_SKIPPED:
+            self.refine_skipped.labels(reason)
+        self.refine_latency = Histogram(
+            "meniscope_refine_latency_seconds",
+            "From the frame that closed a window being read to its refined update being published.",
+            buckets=(1.0, 2.5, 5.0, 10.0, 20.0, 30.0, 45.0, 60.0, 90.0, 120.0, 180.0, 300.0, 600.0),
             registry=r,
         )
         self.last_frequency = Gauge(

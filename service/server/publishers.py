@@ -18,12 +18,13 @@ import logging
 import queue
 import threading
 import time
-from collections import deque
+from collections import OrderedDict, deque
 from typing import Protocol
 
+from service.pipeline.refining import RefinedUpdate
 from service.pipeline.runtime import FittedWindow, TraceSnippet
 from service.server.history import History, StoredWindow
-from service.server.messages import trace_message, window_message
+from service.server.messages import REFINED_TOPIC, trace_message, window_message
 from service.server.metrics import Metrics
 from service.server.zmq_publisher import ZmqPublisher
 
@@ -35,6 +36,9 @@ QUEUE_ITEMS = 1024
 BACKLOG_WINDOWS = 100_000
 #: Seconds between attempts to write the backlog when no window comes to trigger one.
 RETRY_S = 1.0
+#: Published windows whose ids a refined update can find (by pipeline run and window index): 10 minutes of windows
+#: at 100 ejections/s, ~100 bytes each; a refinement later than that is skipped (``unmatched``).
+IDS_KEPT = 60_000
 
 
 class Fanout(Protocol):
@@ -58,6 +62,7 @@ class Publishers:
         self._backlog: deque[StoredWindow] = deque()
         self._closed = False  # set by stop(): a fit that comes back later is counted, not sent on closed sockets
         self._sending = threading.Lock()  # one window at a time gets its id and goes out (several fit workers)
+        self._ids: OrderedDict[tuple[int, int], int] = OrderedDict()  # (run, window index) -> id, the newest last
         # for the publishing thread: a sent window with its publish latency (s), or a trace snippet
         self._queue: queue.Queue[tuple[StoredWindow, float] | TraceSnippet | None] = queue.Queue(QUEUE_ITEMS)
         self._thread = threading.Thread(target=self._run, name="meniscope-publish", daemon=True)
@@ -101,6 +106,24 @@ class Publishers:
     def on_inference(self, seconds: float, frames: int) -> None:
         self.metrics.inference_call(seconds)
 
+    def on_refined(self, refined: RefinedUpdate) -> None:
+        """Send a refined window as an update of the window published first (same id, revision 1), store it in that
+        window's place and count it; skipped (``unmatched``) where that window is not known here."""
+        try:
+            with self._sending:
+                window_id = self._ids.get((refined.run, refined.result.index))
+                if self._closed or window_id is None:
+                    self.metrics.refine_skipped.labels("unmatched").inc()
+                    return
+                stored = self._send_refined(refined, window_id)
+        except Exception:
+            log.exception("publishing a refined window failed")
+            return
+        self._offer((stored, stored.refine_latency_s))
+
+    def on_refine_skipped(self, why: str) -> None:
+        self.metrics.refine_skipped.labels(why).inc()
+
     def _offer(self, item: tuple[StoredWindow, float] | TraceSnippet) -> None:
         try:
             self._queue.put_nowait(item)
@@ -110,11 +133,29 @@ class Publishers:
     def _send(self, fitted: FittedWindow) -> tuple[StoredWindow, float]:
         """Give the window its id and send it to the printer (ZeroMQ) and the dashboards; the window as it will
         be stored and when (monotonic s) it was sent."""
-        stored = StoredWindow(self.history.new_id(), time.time(), fitted.source, fitted.fps, fitted.result)
+        stored = StoredWindow(
+            self.history.new_id(), time.time(), fitted.source, fitted.fps, fitted.result, fitted.method
+        )
         if self.zmq is not None:
             self.zmq.send(window_message(stored))
         self.hub.broadcast(window_message(stored, fitted.values))
-        return stored, time.monotonic()
+        sent = time.monotonic()
+        self._ids[(fitted.run, fitted.result.index)] = stored.id
+        if len(self._ids) > IDS_KEPT:
+            self._ids.popitem(last=False)
+        return stored, sent
+
+    def _send_refined(self, refined: RefinedUpdate, window_id: int) -> StoredWindow:
+        """Send the refined window under ``window_id`` to the printer (ZeroMQ, its own topic) and the dashboards;
+        the window as it will be stored, its latency measured to now (what the messages say)."""
+        latency = time.monotonic() - refined.closed_at
+        stored = StoredWindow(
+            window_id, time.time(), refined.source, refined.fps, refined.result, refined.method, 1, latency
+        )
+        if self.zmq is not None:
+            self.zmq.send(window_message(stored), REFINED_TOPIC)
+        self.hub.broadcast(window_message(stored, refined.values))
+        return stored
 
     # --- the publishing thread
     def _run(self) -> None:
@@ -131,7 +172,11 @@ class Publishers:
                     self.hub.broadcast(trace_message(item))
                 else:
                     stored, latency = item
-                    self.metrics.window(stored.result, latency)
+                    if stored.revision:
+                        self.metrics.refined.inc()
+                        self.metrics.refine_latency.observe(latency)
+                    else:
+                        self.metrics.window(stored.result, latency)
                     self._backlog.append(stored)
                     if len(self._backlog) > BACKLOG_WINDOWS:
                         self._backlog.popleft()
@@ -146,7 +191,16 @@ class Publishers:
         while self._backlog:
             stored = self._backlog[0]
             try:
-                self.history.add(stored.result, stored.source, stored.fps, stored.stored, stored.id)
+                self.history.add(
+                    stored.result,
+                    stored.source,
+                    stored.fps,
+                    stored.stored,
+                    stored.id,
+                    stored.method,
+                    stored.revision,
+                    stored.refine_latency_s,
+                )
             except Exception as exc:
                 self.history_failures += 1
                 if self.history_error is None:

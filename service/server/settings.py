@@ -104,6 +104,17 @@ class ServiceSettings(BaseSettings):
         description="niceness of the fit workers, between the frames (0) and the web side (web_nice): lower "
         "favours fresh windows, higher favours frames",
     )
+    refine: bool = Field(
+        False,
+        description="refine windows by synthesis (as meniscope analyze --refine) on a lane of their own at the "
+        "lowest CPU priority: the newest closed window each time the lane is free, published as an update of the "
+        "same window id; the others are skipped",
+    )
+    refine_nice: Annotated[int, Field(ge=0, le=19)] = Field(
+        19,
+        description="niceness of the refinement lane's process (19, the lowest priority: the frames, the fits and "
+        "the web side first; lower: refined windows sooner, at their cost)",
+    )
     # --- publishing
     web_nice: Annotated[int, Field(ge=0, le=19)] = Field(
         15,

@@ -30,8 +30,8 @@ class ZmqPublisher:
             raise MeniscopeError(endpoint, f"cannot bind the ZeroMQ publisher: {exc}") from None
         self.endpoint = self._socket.getsockopt_string(zmq.LAST_ENDPOINT)
 
-    def send(self, message: str) -> None:
-        self._socket.send_multipart([WINDOW_TOPIC, message.encode()], flags=zmq.NOBLOCK)
+    def send(self, message: str, topic: bytes = WINDOW_TOPIC) -> None:
+        self._socket.send_multipart([topic, message.encode()], flags=zmq.NOBLOCK)
 
     def close(self) -> None:
         self._socket.close()

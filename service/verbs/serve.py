@@ -30,6 +30,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--config", type=Path, help="settings file, TOML or JSON")
     p.add_argument("--host", help="address to bind (default 127.0.0.1: this machine only)")
     p.add_argument("--port", type=int, help="HTTP port (default 8000)")
+    p.add_argument(
+        "--refine",
+        action="store_const",
+        const=True,
+        help="also refine windows by synthesis on a lane of their own (as analyze --refine; tens of seconds a "
+        "window: the newest each time, published as an update of the same window id; setting refine)",
+    )
     p.set_defaults(func=run)
 
 
@@ -40,7 +47,9 @@ def serve_settings(args: argparse.Namespace) -> ServiceSettings:
     from service.server.settings import load_settings, recording_folder
 
     folder = None if args.source is None else recording_folder(args.source)
-    return load_settings(args.config, {"recordings_dir": folder}, source=args.source, host=args.host, port=args.port)
+    return load_settings(
+        args.config, {"recordings_dir": folder}, source=args.source, host=args.host, port=args.port, refine=args.refine
+    )
 
 
 def run(args: argparse.Namespace) -> int:

@@ -193,11 +193,18 @@ function addWindow(message) {
   state.dirty = true;
 }
 
+// a refined window (serve --refine) replaces the window of its id where it is still shown
+function updateWindow(message) {
+  const i = state.windows.findIndex((w) => w.id === message.id);
+  if (i >= 0) { state.windows[i] = message; state.dirty = true; }
+}
+
 function connect() {
   const ws = new WebSocket(`${location.protocol === "https:" ? "wss" : "ws"}://${location.host}/ws`);
   ws.onmessage = (event) => {
     const message = JSON.parse(event.data);
     if (message.type === "window") { window.meniscope.windows++; addWindow(message); }
+    if (message.type === "window_update") { window.meniscope.refined = (window.meniscope.refined ?? 0) + 1; updateWindow(message); }
     if (message.type === "trace") { window.meniscope.traces++; state.trace = message; state.dirty = true; }
   };
   ws.onclose = () => setTimeout(connect, 1000);
