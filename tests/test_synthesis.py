@@ -140,6 +140,7 @@ def test_a_refined_window_reports_the_pixel_fit_s_intervals_for_each_mode_and_th
     found = np.diag(variances)
     found[0, 1] = found[1, 0] = -5e-6  # d and p trade against each other
     intervals = _with_pixel_intervals(result, TRUE, found, 20, FPS, 0.95, 0.25)
+    assert (result.intervals, intervals.intervals) == ("fit", "pixels")  # the report says where they come from
     first, second = intervals.modes
     z = 2.093
     assert first.frequency_ci_hz == pytest.approx(

@@ -95,14 +95,15 @@ def analyse_recording(
     ``opened``: the method and database :func:`open_method` returned, when analysing several
     recordings with one (they are opened here otherwise). With ``refine`` the windows keep their own poles
     (``settings.poles`` becomes "series"): the refined motion is the window's inversion. The network method's
-    windows are fitted first as without ``refine`` (window model, the frames' poles) and searched from that fit.
+    windows are fitted first with the window model and their series' own poles (:func:`start_settings`) and searched
+    from that fit.
     """
     fitted_first = refine and method == "network"  # the window model's fit: the refinement's start
     if method != "network":  # the window model reads the network's per-frame values
         settings = settings.model_copy(update={"series_model": "steady"})
     first_settings = settings  # the windows' first fit: the report's, or with ``refine`` the search's start
     if refine:
-        settings = refined_settings(settings)
+        first_settings, settings = start_settings(settings), refined_settings(settings)
     # the recording opened once (its header and every image's offset read: ~1 us of CPU per frame), then replayed
     with ReplaySource(path, speed=0.0) as replay, ExitStack() as stack:
         fps, frames, width, height = replay.fps, replay.frames, replay.width, replay.height
@@ -254,6 +255,12 @@ def _regularise(
             continue
         chosen[lo : w.end] = regularised.chosen_rows(candidates[lo : w.end], db.centre, fps)[0]
     return db.coeffs[chosen], db.centre[chosen]
+
+
+def start_settings(settings: FitSettings) -> FitSettings:
+    """The first fit of a window that ``--refine`` searches from (in ``analyze`` and ``serve``'s lane alike): the
+    series ``settings`` name, with its own poles."""
+    return settings.model_copy(update={"poles": "series"})
 
 
 def refined_settings(settings: FitSettings) -> FitSettings:
@@ -409,7 +416,8 @@ def _with_pixel_intervals(
         )
     offset, offset_half = fields["offset_mm"], half(("d", 1.0), ("p", radius_mm))
     offset_ci = None if offset is None else (offset - offset_half, offset + offset_half)
-    return WindowResult.model_validate({**fields, "modes": modes, "offset_ci_mm": offset_ci})
+    kind = "pixels" if modes or offset_ci else fields["intervals"]
+    return WindowResult.model_validate({**fields, "modes": modes, "offset_ci_mm": offset_ci, "intervals": kind})
 
 
 def analyse_series(

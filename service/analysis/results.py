@@ -110,9 +110,10 @@ class WindowResult(_Frozen):
     #: The offset's interval at FitSettings.confidence.
     offset_ci_mm: Interval | None = None
     #: Where the intervals (the modes' and the offset's) come from: the fit's covariance alone ("fit": noise only,
-    #: blind to the bias of the series it was given), or that scaled by the window model's calibration on held-out
-    #: windows of the renderer ("calibrated", :mod:`service.inverse.window_model`); null without intervals.
-    intervals: Literal["fit", "calibrated"] | None = None
+    #: blind to the bias of the series it was given), that scaled by the window model's calibration on held-out
+    #: windows of the renderer ("calibrated", :mod:`service.inverse.window_model`), or a refined window's pixel fit
+    #: ("pixels": its cluster-robust covariance, :func:`service.inverse.synthesis.covariance`); null without intervals.
+    intervals: Literal["fit", "calibrated", "pixels"] | None = None
     drift_mm_per_s: Finite | None = None
     settling_time_s: NonNegative | None = None
     settled: bool = False

@@ -156,21 +156,15 @@ class LaneConfig:
     fit: FitSettings
 
 
-def first_settings(fit: FitSettings) -> FitSettings:
-    """The first fit ``meniscope analyze --refine`` makes of a window (its start; the CLI's poles are the series'
-    with ``--refine``) from the service's fit settings."""
-    return fit.model_copy(update={"poles": "series"})
-
-
 def _serve(conn: Connection, config: LaneConfig, nice: int) -> None:
     """The lane's process: refine each (window, records, frames, fps) the pipe brings until None, answering each
     with (result, series, started, finished) or, where it raised, the error as text."""
     os.nice(nice)
-    from service.analysis.offline import refine_window, refined_settings
+    from service.analysis.offline import refine_window, refined_settings, start_settings
     from service.pipeline.windows import fit_or_failed, job_for, window_model_for
     from service.scene import Scene
 
-    scene, first = Scene.load(config.scene), first_settings(config.fit)
+    scene, first = Scene.load(config.scene), start_settings(config.fit)
     refined = refined_settings(first)
     model = window_model_for(first, config.models, config.method)
     fitted_first = config.method == "network"  # as analyze: the network's windows are searched from their fit
