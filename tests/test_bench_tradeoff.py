@@ -110,7 +110,7 @@ def test_every_method_is_measured_at_both_noise_levels_with_the_targets_it_misse
         assert row["precision"] == row["recall"] == 1.0  # the same ejections, whatever the method
         assert row["misses"] == misses(row)  # exactly the targets its own figures miss
     refined = [r for r in results["methods"] if r["refine"]]
-    assert [len(r["recordings"]) for r in refined] == [1, 1] and all(r["series"] == "window" for r in refined)
+    assert [len(r["recording_files"]) for r in refined] == [1, 1] and all(r["series"] == "window" for r in refined)
     table = (tradeoff / "tradeoff.md").read_text()
     assert table.count("| regularised db600 |") == 2 and "Beside them" in table
     for row in results["methods"]:  # the table's last column says the same, or "none"

@@ -419,7 +419,6 @@ def _fit_window(
         chosen, problem = _choose(fits)
         if window.robust and not outliers.any() and chosen.problem is None:
             chosen = window.polish(chosen)
-            problem = chosen.problem  # a polish may end unresolved: the result then says why
         if outliers.any():
             problem = "; ".join(
                 [p for p in [problem] if p]

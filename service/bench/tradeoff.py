@@ -188,7 +188,7 @@ def method_rows(spec: Row, folders: dict[str, Path], scene: Scene, refined: int)
             "series": spec.series,
             "refine": spec.refine,
             "noise": noise,
-            "recordings": [r["recording"] for r in measured["rows"]],
+            "recording_files": [r["recording"] for r in measured["rows"]],
             **figures,
             "ms_per_window": 1e3 * seconds / windows,
             "setup_s": measured["setup_s"],
