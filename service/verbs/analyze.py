@@ -168,7 +168,7 @@ def run_analyze(args: argparse.Namespace) -> int:
             "window reads the network method's per-frame values: not with --method "
             f"{args.method}{' --refine' if args.refine else ''}",
         )
-    settings = _settings(args, args.poles or ("series" if args.refine else "frames"))
+    settings = _settings(args, args.poles or "frames")  # with --refine, analyse_recording takes the series' own
     if args.series:
         settings = settings.model_copy(update={"series_model": args.series})
     report_path, csv_path, png_path = _outputs(args.out)
