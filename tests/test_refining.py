@@ -4,6 +4,8 @@ the history that takes its updates under the window's own id."""
 from __future__ import annotations
 
 import json
+import multiprocessing
+import os
 import sqlite3
 import threading
 
@@ -12,7 +14,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from service.analysis.results import WindowResult
-from service.pipeline.refining import NewestSlot, RecentFrames, gather
+from service.pipeline.refining import LANE_NICE, NewestSlot, RecentFrames, gather, idle_priority
 from service.server.history import History
 from service.sources import FrameBatch
 
@@ -216,3 +218,24 @@ def test_publishers_send_a_refined_window_under_the_id_of_its_first_publication(
     assert sample("meniscope_windows_refine_skipped_total", {"reason": "unmatched"}) == 1
     assert sample("meniscope_windows_refine_skipped_total", {"reason": "replaced"}) == 1
     history.close()
+
+
+def _priority_after(nice: int) -> tuple[int, int, int]:
+    """In a fresh process: (scheduling policy, niceness, a new thread's policy) after ``idle_priority(nice)``."""
+    idle_priority(nice)
+    seen: list[int] = []
+    thread = threading.Thread(target=lambda: seen.append(os.sched_getscheduler(0)))
+    thread.start()
+    thread.join()
+    return os.sched_getscheduler(0), os.nice(0), seen[0]
+
+
+def test_the_lane_runs_in_the_idle_class_at_the_lowest_niceness_and_its_threads_inherit_it() -> None:
+    """At nice 19 (the lane's default) the process and every thread it starts run only where no other wants a core;
+    at a lower niceness (an operator's choice: refined windows sooner) it stays in the normal class."""
+    with multiprocessing.get_context("spawn").Pool(1) as pool:
+        idle = pool.apply(_priority_after, (LANE_NICE,))
+    with multiprocessing.get_context("spawn").Pool(1) as pool:
+        normal = pool.apply(_priority_after, (5,))
+    assert idle == (os.SCHED_IDLE, 19, os.SCHED_IDLE)
+    assert normal == (os.SCHED_OTHER, min(19, os.nice(0) + 5), os.SCHED_OTHER)  # niceness adds to this process's

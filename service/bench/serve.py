@@ -59,7 +59,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--speeds", default="1", help="replay speeds, x the recorded rate, comma-separated (default 1)")
     p.add_argument("--fit-workers", type=int, default=1, help="fit worker processes (default 1)")
-    p.add_argument("--fit-nice", type=int, default=10, help="niceness of the fit workers (default 10, the service's)")
+    fit_nice = ServiceSettings.model_fields["fit_nice"].default
+    p.add_argument(
+        "--fit-nice",
+        type=int,
+        default=fit_nice,
+        help=f"niceness of the fit workers (default {fit_nice}, the service's)",
+    )
     p.add_argument(
         "--max-modes",
         default="2",

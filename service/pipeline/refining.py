@@ -6,7 +6,7 @@ every window is published as before, and the lane publishes a refined update of 
 policy (docs/service.md): one window waits at most, the newest closed one; a window that closes while another
 waits replaces it, and the one replaced is skipped and counted: an operator wants the latest state, and no
 backlog of stale windows can grow. The work runs in a process of its own at the lowest CPU priority
-(:data:`LANE_NICE`), so that the frames and the fast fits get the CPU first.
+(:data:`LANE_NICE`, and Linux's idle scheduling class), so that the frames and the fast fits get the CPU first.
 
 The pipeline keeps references to the last :data:`KEEP_WINDOWS` windows' worth of ROI frames (:class:`RecentFrames`,
 no copies) and hands a closed window over with references to its frames; only the window the lane takes has its
@@ -156,10 +156,19 @@ class LaneConfig:
     fit: FitSettings
 
 
+def idle_priority(nice: int) -> None:
+    """Lower this process to ``nice`` and, at the lowest niceness (19), to Linux's idle class: a nice-19 process
+    still takes about a tenth of a core from saturated ones (weight 15 against the fits' 110-335); an idle-class one
+    runs only where no other wants the core, and every thread it starts afterwards inherits the class."""
+    os.nice(nice)
+    if nice >= LANE_NICE and hasattr(os, "SCHED_IDLE"):
+        os.sched_setscheduler(0, os.SCHED_IDLE, os.sched_param(0))
+
+
 def _serve(conn: Connection, config: LaneConfig, nice: int) -> None:
     """The lane's process: refine each (window, records, frames, fps) the pipe brings until None, answering each
     with (result, series, started, finished) or, where it raised, the error as text."""
-    os.nice(nice)
+    idle_priority(nice)
     from service.analysis.offline import refine_window, refined_settings, start_settings
     from service.pipeline.windows import fit_or_failed, job_for, window_model_for
     from service.scene import Scene
