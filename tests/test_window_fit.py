@@ -784,3 +784,34 @@ def test_each_fit_runs_its_blas_on_one_thread_and_leaves_it_as_it_found_it():
             with fit_module._one_blas_thread():
                 assert set(blas_threads()) == {1}
             assert blas_threads() == before == [threads] * len(before)
+
+
+@settings(max_examples=150, deadline=None)
+@given(
+    values=arrays(
+        np.float64,
+        st.integers(0, 60),
+        elements=st.one_of(st.floats(-1e6, 1e6), st.sampled_from([0.0, -0.0, 5e-324, 1e308, -1e308, np.inf, np.nan])),
+    ),
+    gaps=st.lists(st.integers(0, 59), max_size=30),
+)
+def test_the_noise_from_differences_is_numpy_s_to_the_last_bit_and_a_gap_free_window_has_no_strongest_run(values, gaps):
+    """The soft-L1 scale from first differences (consecutive samples where at least 3 are, else all) gives the bits
+    of its numpy composition for any samples and gaps (infinities, NaN, signed zeros included); a window without
+    gaps has no strongest run, one with them the run numpy's split finds."""
+    n = np.delete(np.arange(values.size, dtype=np.float64), [k for k in gaps if k < values.size])
+    y = values[: n.size]
+    with np.errstate(all="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        consecutive = np.diff(n) == 1
+        diffs = np.diff(y)[consecutive] if consecutive.sum() >= 3 else np.diff(y)
+        expected = robust_sigma(diffs) / np.sqrt(2.0)
+        noise = kernels.difference_noise(n, y)
+        run = fit_module._strongest_run(n, np.nan_to_num(y), 3)
+    assert np.array_equal(noise, expected, equal_nan=True)
+    breaks = np.flatnonzero(np.diff(n) != 1) + 1
+    if breaks.size == 0:
+        assert run is None
+    else:
+        runs = [r for r in np.split(np.arange(n.size), breaks) if r.size >= 3]
+        assert (run is None) == (not runs)

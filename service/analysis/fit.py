@@ -122,13 +122,6 @@ def _t_quantile(dof: int, confidence: float) -> float:
     return float(stdtrit(dof, 0.5 + confidence / 2))
 
 
-def _noise_from_differences(n: np.ndarray, y: np.ndarray) -> float:
-    """Noise level from first differences of consecutive samples (an over-estimate when the signal is fast)."""
-    consecutive = np.diff(n) == 1
-    diffs = np.diff(y)[consecutive] if consecutive.sum() >= 3 else np.diff(y)
-    return robust_sigma(diffs) / np.sqrt(2.0)
-
-
 @dataclass(frozen=True)
 class _OrderFit:
     """The least-squares optimum for one model order, in normalised units (per sample, per scale)."""
@@ -148,7 +141,7 @@ class _Window:
 
     def __init__(self, n: np.ndarray, y: np.ndarray, settings: FitSettings) -> None:
         self.n, self.y, self.settings = n, y, settings
-        self.scale = max(_noise_from_differences(n, y), _EXACT)  # soft-L1 scale, normalised units
+        self.scale = max(kernels.difference_noise(n, y), _EXACT)  # soft-L1 scale, normalised units
         self.robust = settings.loss == "soft_l1"
         self.span, self.mean_n = n[-1] - n[0] + 1, n.mean()  # samples the window spans; their mean index
         self.log_n = np.log(n.size)  # BIC's penalty per parameter, asked for ~8 times a window
@@ -520,7 +513,10 @@ def _order_fits(window: _Window, length: int, settings: FitSettings) -> list[_Or
 
 def _strongest_run(n: np.ndarray, y: np.ndarray, shortest: int) -> np.ndarray | None:
     """Indices of the gap-free stretch of consecutive samples with the most variance about its mean (at least
-    ``shortest`` samples), when the samples ``n`` have gaps; None without gaps or such a stretch."""
+    ``shortest`` samples), when the samples ``n`` (ascending whole indices) have gaps; None without gaps or such a
+    stretch."""
+    if n.size == 0 or n[-1] - n[0] == n.size - 1:  # no gap: the usual window, without looking at each step
+        return None
     breaks = np.flatnonzero(np.diff(n) != 1) + 1
     if breaks.size == 0:
         return None

@@ -433,6 +433,15 @@ def median(values: np.ndarray) -> float:
 
 
 @njit(**_JIT)
+def difference_noise(n: np.ndarray, y: np.ndarray) -> float:
+    """Noise level from first differences of consecutive samples ``n`` (an over-estimate when the signal is fast):
+    their :func:`robust_sigma` over sqrt 2, from all differences where fewer than 3 are of consecutive samples."""
+    consecutive = np.diff(n) == 1
+    diffs = np.diff(y)[consecutive] if consecutive.sum() >= 3 else np.diff(y)
+    return robust_sigma(diffs) / np.sqrt(2.0)
+
+
+@njit(**_JIT)
 def robust_sigma(values: np.ndarray) -> float:
     """:func:`service.analysis.segment.robust_sigma` (1.4826 MAD, 0 for no values) to the last bit, compiled."""
     if values.size == 0:
