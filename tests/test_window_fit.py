@@ -466,6 +466,35 @@ def test_the_stepped_oscillations_match_the_closed_form_at_any_length_and_gaps(w
     assert np.allclose(jac[:, 4], -n * (0.8 * es + 0.5 * ec), rtol=1e-9, atol=1e-11 * size)
 
 
+@settings(max_examples=80, deadline=None)
+@given(
+    modes=st.integers(0, 2),
+    gaps=st.lists(st.integers(1, 199), max_size=12),
+    size=st.sampled_from([3, 12, 190, 200]),
+    robust=st.booleans(),
+    scale=st.sampled_from([1e-12, 0.03, 1.0, 1e12]),
+    seed=st.integers(0, 10_000),
+)
+def test_the_search_s_residuals_and_jacobian_are_the_model_s_to_the_last_bit(modes, gaps, size, robust, scale, seed):
+    """One evaluation of the search (residuals as minimised and their Jacobian, stepping the modes sample by sample
+    as it goes) gives the bits of the model and Jacobian :func:`kernels.columns` builds, rescaled by the loss, for
+    any number of modes, gaps, decays up to the search's bound and soft-L1 scales from 1e-12 to 1e12."""
+    rng = np.random.default_rng(seed)
+    n = np.delete(np.arange(size, dtype=np.float64), [k for k in gaps if k < size - 1])
+    params = np.r_[
+        rng.normal(size=2),
+        np.column_stack(
+            [rng.normal(size=(modes, 2)), rng.uniform(0, np.pi, modes), rng.uniform(0, 1.0, modes)]
+        ).ravel(),
+    ]
+    y = rng.normal(size=n.size)
+    r, jac = kernels.weighted_jacobian(n, y, scale, robust, params)
+    model, columns = kernels.columns(n, params)
+    expected, slope = kernels.rescaled(model - y, scale, robust)
+    assert np.array_equal(r, expected)
+    assert np.array_equal(jac, columns * slope[:, None])
+
+
 def test_the_search_stops_once_a_mode_dies_within_a_frame():
     """A second mode sent after a spike in the first sample decays ever faster as it chases it; with the bound the
     search stops as it passes 1/frame (the fit judges such a mode a transient whatever follows), with the first
@@ -710,3 +739,79 @@ def test_compiled_median_and_robust_sigma_are_numpys_to_the_last_bit(values: np.
     assert np.array_equal(kernels.median(values), expected_median, equal_nan=True)
     assert np.array_equal(kernels.robust_sigma(values), expected_sigma, equal_nan=True)
     assert kernels.robust_sigma(np.empty(0)) == robust_sigma(np.empty(0)) == 0.0
+
+
+_EXTREME = st.one_of(
+    st.floats(allow_nan=True, allow_infinity=True),
+    st.sampled_from([0.0, -0.0, 1e-3, np.pi, 1.0, 1.0 + 2**-52, 5e-324, 1e308]),
+)
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    modes=st.integers(0, 2).flatmap(
+        lambda m: st.tuples(st.just(m), arrays(np.float64, (2, 2 + 4 * m), elements=_EXTREME))
+    ),
+    span=st.one_of(st.floats(1.0, 1e4), st.sampled_from([1.0, 20.0, 190.0, 2000.0])),
+)
+def test_a_fit_s_modes_are_resolved_exactly_when_the_judge_has_nothing_to_say(modes, span):
+    """The plain-float check that lets the judge skip building its message agrees with the message: a fit is
+    resolved (None) exactly where no mode is unidentifiable, slower than 0.8 cycles in the window, dead within a
+    frame or with a frequency interval reaching under 0.8 cycles, for any values (NaN, infinities, zeros and
+    subnormals included)."""
+    _, (params, half) = modes
+    with np.errstate(all="ignore"):
+        resolved = fit_module._resolved(params.tolist(), half.tolist(), np.float64(span))
+        problem = fit_module._problems(params, half, np.float64(span))
+        slow = np.any(params[4::4] * np.float64(span) < 2 * np.pi * 1.5)
+        assert fit_module._unresolved(params, half, np.float64(span)) == problem
+    assert resolved == (problem is None)
+    assert fit_module._slow_swing(params, np.float64(span)) == slow
+
+
+def test_each_fit_runs_its_blas_on_one_thread_and_leaves_it_as_it_found_it():
+    """Inside a fit every BLAS the process loaded runs one thread; after it, each runs as many as before (one
+    included), as threadpoolctl's limit left them."""
+    from threadpoolctl import threadpool_info, threadpool_limits
+
+    def blas_threads() -> list[int]:
+        return [lib["num_threads"] for lib in threadpool_info() if lib["user_api"] == "blas"]
+
+    assert fit_module._BLAS, "no BLAS found to limit"
+    for threads in (1, 2):
+        with threadpool_limits(threads, user_api="blas"):
+            before = blas_threads()
+            with fit_module._one_blas_thread():
+                assert set(blas_threads()) == {1}
+            assert blas_threads() == before == [threads] * len(before)
+
+
+@settings(max_examples=150, deadline=None)
+@given(
+    values=arrays(
+        np.float64,
+        st.integers(0, 60),
+        elements=st.one_of(st.floats(-1e6, 1e6), st.sampled_from([0.0, -0.0, 5e-324, 1e308, -1e308, np.inf, np.nan])),
+    ),
+    gaps=st.lists(st.integers(0, 59), max_size=30),
+)
+def test_the_noise_from_differences_is_numpy_s_to_the_last_bit_and_a_gap_free_window_has_no_strongest_run(values, gaps):
+    """The soft-L1 scale from first differences (consecutive samples where at least 3 are, else all) gives the bits
+    of its numpy composition for any samples and gaps (infinities, NaN, signed zeros included); a window without
+    gaps has no strongest run, one with them the run numpy's split finds."""
+    n = np.delete(np.arange(values.size, dtype=np.float64), [k for k in gaps if k < values.size])
+    y = values[: n.size]
+    with np.errstate(all="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        consecutive = np.diff(n) == 1
+        diffs = np.diff(y)[consecutive] if consecutive.sum() >= 3 else np.diff(y)
+        expected = robust_sigma(diffs) / np.sqrt(2.0)
+        noise = kernels.difference_noise(n, y)
+        run = fit_module._strongest_run(n, np.nan_to_num(y), 3)
+    assert np.array_equal(noise, expected, equal_nan=True)
+    breaks = np.flatnonzero(np.diff(n) != 1) + 1
+    if breaks.size == 0:
+        assert run is None
+    else:
+        runs = [r for r in np.split(np.arange(n.size), breaks) if r.size >= 3]
+        assert (run is None) == (not runs)

@@ -24,7 +24,9 @@ from __future__ import annotations
 
 import copy
 import functools
-from collections.abc import Sequence
+import math
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Literal
 
@@ -85,7 +87,23 @@ _SWING_CYCLES = 1.5
 _IRLS_STEPS = 100  # at most; the order-0 cost settles to 1e-6 (relative) in ~5-10 rounds
 #: The fit's matrices are small: a multi-threaded BLAS only fights the other threads for the cores
 #: (7x slower per window on a loaded 2-core machine), so each fit runs its BLAS on one thread.
-_BLAS = ThreadpoolController()
+_BLAS = [lib for lib in ThreadpoolController().lib_controllers if lib.user_api == "blas"]
+
+
+@contextmanager
+def _one_blas_thread() -> Iterator[None]:
+    """Each BLAS on one thread inside, as it was after: threadpoolctl's ``limit`` without its query of every
+    library's version and path each time (~30 us a window); nothing set where a BLAS already runs one."""
+    before = [lib.get_num_threads() for lib in _BLAS]
+    for lib, threads in zip(_BLAS, before):
+        if threads != 1:
+            lib.set_num_threads(1)
+    try:
+        yield
+    finally:
+        for lib, threads in zip(_BLAS, before):
+            if threads != 1:
+                lib.set_num_threads(threads)
 
 
 #: The linear parameters' indices (offset, drift and each mode's a and b) by number of modes.
@@ -102,13 +120,6 @@ def _t_quantile(dof: int, confidence: float) -> float:
     """Student t's two-sided ``confidence`` quantile at ``dof`` degrees of freedom (a window asks for it about 8
     times, a few values over all windows; scipy's call costs ~3 us)."""
     return float(stdtrit(dof, 0.5 + confidence / 2))
-
-
-def _noise_from_differences(n: np.ndarray, y: np.ndarray) -> float:
-    """Noise level from first differences of consecutive samples (an over-estimate when the signal is fast)."""
-    consecutive = np.diff(n) == 1
-    diffs = np.diff(y)[consecutive] if consecutive.sum() >= 3 else np.diff(y)
-    return robust_sigma(diffs) / np.sqrt(2.0)
 
 
 @dataclass(frozen=True)
@@ -130,9 +141,10 @@ class _Window:
 
     def __init__(self, n: np.ndarray, y: np.ndarray, settings: FitSettings) -> None:
         self.n, self.y, self.settings = n, y, settings
-        self.scale = max(_noise_from_differences(n, y), _EXACT)  # soft-L1 scale, normalised units
+        self.scale = max(kernels.difference_noise(n, y), _EXACT)  # soft-L1 scale, normalised units
         self.robust = settings.loss == "soft_l1"
         self.span, self.mean_n = n[-1] - n[0] + 1, n.mean()  # samples the window spans; their mean index
+        self.log_n = np.log(n.size)  # BIC's penalty per parameter, asked for ~8 times a window
 
     def starts(self, order: int, pencil_modes: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
         """Start for ``order`` modes: the most energetic pencil pairs, linear coefficients by least squares."""
@@ -180,7 +192,7 @@ class _Window:
         The last term is AICc's small-sample correction: negligible at 190 samples (1.2 for two modes), it stops
         a 20-sample window from taking a second mode that its few residual degrees of freedom cannot refute."""
         n = self.n.size
-        return float(n * np.log(cost / n + _EXACT**2) + k * np.log(n) + 2 * k * (k + 1) / max(n - k - 1, 1))
+        return float(n * np.log(cost / n + _EXACT**2) + k * self.log_n + 2 * k * (k + 1) / max(n - k - 1, 1))
 
     def linear_fit(self, design: np.ndarray) -> tuple[np.ndarray, float]:
         """Coefficients of ``design`` (N, k) and their robust cost (:func:`kernels.linear_fit`)."""
@@ -275,11 +287,16 @@ class _Window:
 def _slow_swing(params: np.ndarray, span: float) -> bool:
     """Whether a mode of ``params`` turns less than ``_SWING_CYCLES`` over ``span`` samples: with a drift beside
     it, it may be a slower swing made into a cycle, or a swing standing in for a drift."""
-    return bool(np.any(params[_BASE + 2 :: _PER_MODE] * span < 2 * np.pi * _SWING_CYCLES))
+    return any(w * span < 2 * np.pi * _SWING_CYCLES for w in params[_BASE + 2 :: _PER_MODE].tolist())
 
 
 def _unresolved(params: np.ndarray, half: np.ndarray, span: float) -> str | None:
     """Why the modes of a fit over ``span`` samples are not resolved oscillations, or None when they all are."""
+    return None if _resolved(params.tolist(), half.tolist(), span) else _problems(params, half, span)
+
+
+def _problems(params: np.ndarray, half: np.ndarray, span: float) -> str | None:
+    """:func:`_unresolved`'s message: each mode's problem, dominant first."""
     modes = params[_BASE:].reshape(-1, _PER_MODE)
     halves = half[_BASE:].reshape(-1, _PER_MODE)
     problems = []
@@ -300,6 +317,21 @@ def _unresolved(params: np.ndarray, half: np.ndarray, span: float) -> str | None
                 "in the window (it may be a slow swing, not a frequency)"
             )
     return "; ".join(problems) or None
+
+
+def _resolved(params: list[float], half: list[float], span: float) -> bool:
+    """Whether :func:`_unresolved` finds nothing wrong with any mode: its tests in plain floats, each mode once
+    (numpy's per-call cost on a few values was most of a fit's judging in Python)."""
+    for j in range(_BASE, len(params), _PER_MODE):
+        w, g = params[j + 2], params[j + 3]
+        if not (
+            all(math.isfinite(h) for h in half[j : j + _PER_MODE])
+            and not w * span / (2 * np.pi) < _MIN_CYCLES
+            and not g > _MAX_DECAY
+            and not (w - half[j + 2]) * span / (2 * np.pi) < _MIN_CYCLES
+        ):
+            return False
+    return True
 
 
 def _evidence(fit: _OrderFit) -> float:
@@ -347,7 +379,7 @@ def fit_window(
     -------
     WindowResult with modes in mm, Hz, 1/s, rad (dominant, i.e. smallest decay rate, first).
     """
-    with _BLAS.limit(limits=1, user_api="blas"):
+    with _one_blas_thread():
         return _fit_window(values, fps, settings, index, start_frame, starts_at_ejection, ends_at_ejection, brightness)
 
 
@@ -481,7 +513,10 @@ def _order_fits(window: _Window, length: int, settings: FitSettings) -> list[_Or
 
 def _strongest_run(n: np.ndarray, y: np.ndarray, shortest: int) -> np.ndarray | None:
     """Indices of the gap-free stretch of consecutive samples with the most variance about its mean (at least
-    ``shortest`` samples), when the samples ``n`` have gaps; None without gaps or such a stretch."""
+    ``shortest`` samples), when the samples ``n`` (ascending whole indices) have gaps; None without gaps or such a
+    stretch."""
+    if n.size == 0 or n[-1] - n[0] == n.size - 1:  # no gap: the usual window, without looking at each step
+        return None
     breaks = np.flatnonzero(np.diff(n) != 1) + 1
     if breaks.size == 0:
         return None

@@ -27,26 +27,54 @@ _JIT = dict(cache=True, nogil=True, error_model="numpy")
 
 
 @njit(**_JIT)
+def _steps(params: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each mode's step from one sample to the next, exp(-g) cos w and exp(-g) sin w, (M,) each."""
+    modes = (params.size - BASE) // PER_MODE
+    step_c, step_s = np.empty(modes), np.empty(modes)
+    for m in range(modes):
+        w, g = params[BASE + PER_MODE * m + 2], params[BASE + PER_MODE * m + 3]
+        step = np.exp(-g)
+        step_c[m], step_s[m] = step * np.cos(w), step * np.sin(w)
+    return step_c, step_s
+
+
+@njit(inline="always", **_JIT)
+def _advance(
+    t: float,
+    stepped: bool,
+    params: np.ndarray,
+    step_c: np.ndarray,
+    step_s: np.ndarray,
+    cosine: np.ndarray,
+    sine: np.ndarray,
+    out_c: np.ndarray,
+    out_s: np.ndarray,
+) -> None:
+    """The modes' damped cosines and sines at sample ``t`` (M,) into ``out_c``, ``out_s``: one step from those at
+    the sample before (``cosine``, ``sine``) where ``stepped``, else computed directly (``out`` may be ``cosine``)."""
+    for m in range(step_c.size):
+        if stepped:
+            c, s = cosine[m], sine[m]
+            out_c[m], out_s[m] = c * step_c[m] - s * step_s[m], c * step_s[m] + s * step_c[m]
+        else:
+            w, g = params[BASE + PER_MODE * m + 2], params[BASE + PER_MODE * m + 3]
+            e = np.exp(-g * t)
+            out_c[m], out_s[m] = e * np.cos(w * t), e * np.sin(w * t)
+
+
+@njit(**_JIT)
 def _oscillations(n: np.ndarray, params: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """exp(-g t) cos(w t) and exp(-g t) sin(w t) of each mode at each sample, (N, M) each.
 
     Consecutive samples step by one complex product, z(t + 1) = z(t) exp(-g + i w), instead of an exp, a cos and a sin
     per sample (three quarters of an evaluation's time); the first sample and each one after a gap are computed
     directly. The rounding this accumulates is ~N ulp (2e-13 at 2,000 samples), far under any interval."""
-    modes = (params.size - BASE) // PER_MODE
-    cosines, sines = np.empty((n.size, modes)), np.empty((n.size, modes))
-    for m in range(modes):
-        w, g = params[BASE + PER_MODE * m + 2], params[BASE + PER_MODE * m + 3]
-        step = np.exp(-g)
-        step_c, step_s = step * np.cos(w), step * np.sin(w)
-        for i in range(n.size):
-            t = n[i]
-            if i > 0 and t - n[i - 1] == 1.0:
-                c, s = cosines[i - 1, m], sines[i - 1, m]
-                cosines[i, m], sines[i, m] = c * step_c - s * step_s, c * step_s + s * step_c
-            else:
-                e = np.exp(-g * t)
-                cosines[i, m], sines[i, m] = e * np.cos(w * t), e * np.sin(w * t)
+    step_c, step_s = _steps(params)
+    cosines, sines = np.empty((n.size, step_c.size)), np.empty((n.size, step_c.size))
+    for i in range(n.size):
+        before = max(i - 1, 0)
+        stepped = i > 0 and n[i] - n[i - 1] == 1.0
+        _advance(n[i], stepped, params, step_c, step_s, cosines[before], sines[before], cosines[i], sines[i])
     return cosines, sines
 
 
@@ -108,13 +136,17 @@ def _weighted(
     n: np.ndarray, y: np.ndarray, scale: float, robust: bool, params: np.ndarray, chain: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
     """Residuals as minimised (N,) and their Jacobian (N, k), each column times ``chain`` (k,), in one pass over
-    the samples: the search's inner loop (one evaluation of LM), so nothing is allocated per sample."""
-    cosines, sines = _oscillations(n, params)
+    the samples: the search's inner loop (one evaluation of LM), so nothing is allocated per sample; the modes'
+    damped cosines and sines stepped as :func:`_oscillations` steps them (the same bits), sample by sample."""
+    step_c, step_s = _steps(params)
+    cosine, sine = np.empty(step_c.size), np.empty(step_c.size)
     r = np.empty(n.size)
     jac = np.empty((n.size, params.size))
     for i in range(n.size):
+        t = n[i]
+        _advance(t, i > 0 and t - n[i - 1] == 1.0, params, step_c, step_s, cosine, sine, cosine, sine)
         row = jac[i]
-        residual = _sample(n[i], params, cosines[i], sines[i], row) - y[i]
+        residual = _sample(t, params, cosine, sine, row) - y[i]
         slope = 1.0
         if robust:
             residual, slope = _soft_l1(residual, scale)
@@ -185,18 +217,22 @@ def levenberg_marquardt(
     fixed = np.zeros(k, np.bool_) if free is None else ~free
     diag = np.zeros(k)
     mu, nu = 1e-3, 2.0
+    moved = True  # x moved since the normal matrix was formed (a rejected trial leaves it, and it, as they were)
+    normal, gradient = np.empty((k, k)), np.empty(k)
     for _ in range(evaluations - 1):
-        normal = jac.T @ jac
-        gradient = jac.T @ r
-        for j in range(k):
-            if fixed[j]:  # a step of exactly 0 in it
-                normal[j, :] = 0.0
-                normal[:, j] = 0.0
-                normal[j, j] = 1.0
-                gradient[j] = 0.0
-            diag[j] = max(diag[j], normal[j, j], 1e-300)
-        if not np.all(np.isfinite(normal)) or np.max(np.abs(gradient)) <= 1e-15 * max(cost, 1e-300):
-            break
+        if moved:
+            normal = jac.T @ jac
+            gradient = jac.T @ r
+            for j in range(k):
+                if fixed[j]:  # a step of exactly 0 in it
+                    normal[j, :] = 0.0
+                    normal[:, j] = 0.0
+                    normal[j, j] = 1.0
+                    gradient[j] = 0.0
+                diag[j] = max(diag[j], normal[j, j], 1e-300)
+            if not np.all(np.isfinite(normal)) or np.max(np.abs(gradient)) <= 1e-15 * max(cost, 1e-300):
+                break
+            moved = False
         system = normal.copy()
         for j in range(k):
             system[j, j] += mu * diag[j]
@@ -217,6 +253,7 @@ def levenberg_marquardt(
         if ratio > 0 and np.isfinite(cost_new):
             small_change = cost - cost_new <= tolerance * cost and predicted <= tolerance * cost
             x, r, jac, cost = trial, r_new, jac_new, cost_new
+            moved = True
             mu *= max(1.0 / 3.0, 1.0 - (2.0 * ratio - 1.0) ** 3)
             nu = 2.0
             if small_change or small_step or _fastest_decay(x) > max_decay:
@@ -393,6 +430,15 @@ def median(values: np.ndarray) -> float:
         if np.isnan(v):  # numba's median, unlike numpy's, does not always propagate it
             return np.nan
     return np.median(values)
+
+
+@njit(**_JIT)
+def difference_noise(n: np.ndarray, y: np.ndarray) -> float:
+    """Noise level from first differences of consecutive samples ``n`` (an over-estimate when the signal is fast):
+    their :func:`robust_sigma` over sqrt 2, from all differences where fewer than 3 are of consecutive samples."""
+    consecutive = np.diff(n) == 1
+    diffs = np.diff(y)[consecutive] if consecutive.sum() >= 3 else np.diff(y)
+    return robust_sigma(diffs) / np.sqrt(2.0)
 
 
 @njit(**_JIT)
