@@ -85,6 +85,8 @@ _SWING_CYCLES = 1.5
 #: The brightness' polynomial fit replaces its modes' poles only within this relative shift of its start's
 #: frequency and this factor of its decay rate: further off, it has ended on another mode or a product.
 _PRODUCT_SHIFT, _PRODUCT_FACTOR = 0.05, 2.0
+#: Radians over which a pole must decay by no more than e to start that fit as mode 1 (issue 17's fluids: >= 3.1).
+_UNDERDAMPED = 2.0
 _IRLS_STEPS = 100  # at most; the order-0 cost settles to 1e-6 (relative) in ~5-10 rounds
 #: The fit's matrices are small: a multi-threaded BLAS only fights the other threads for the cores
 #: (7x slower per window on a loaded 2-core machine), so each fit runs its BLAS on one thread.
@@ -531,29 +533,32 @@ def _brightness_poles(
 
 def _product_poles(n: np.ndarray, y: np.ndarray, modes: _OrderFit, settings: FitSettings) -> _OrderFit:
     """``modes`` (the brightness' fit as damped modes) with its poles those of the brightness fitted as a
-    polynomial of two modes (:func:`products.fit`), started from its underdamped modes (decaying by e in over a
-    radian; a pole that dies within a cycle is the ejection's or noise's) in order of frequency (harmonics and sum
-    frequencies lie above mode 1), the first fit that holds; ``modes`` itself where none does. A fit holds where it
-    converges near its start (frequency within :data:`_PRODUCT_SHIFT`, decay within a factor
-    :data:`_PRODUCT_FACTOR`) with mode 2 more damped than mode 1 (Eq. 1's higher mode damps faster: else it has
-    taken something else for it)."""
+    polynomial of two modes (:func:`products.fit`), started from its lowest-frequency underdamped mode (decaying
+    by e over more than :data:`_UNDERDAMPED` radians: a pole that dies within a fraction of a cycle is the
+    ejection's light or noise; harmonics and sum frequencies lie above mode 1). ``modes`` itself where it has no
+    such mode, or the polynomial's fit fails, ends far from its start (frequency over :data:`_PRODUCT_SHIFT` off,
+    decay outside a factor :data:`_PRODUCT_FACTOR`) or with mode 2 less damped than mode 1 (Eq. 1's higher mode
+    damps faster: it has taken something else for it)."""
     w, g = modes.params[_BASE + 2 :: _PER_MODE], modes.params[_BASE + 3 :: _PER_MODE]
-    for first in sorted(np.flatnonzero(g < w), key=lambda k: w[k]):
-        found = products.fit(n, y, float(w[first]), float(g[first]), settings.confidence)
-        if (
-            found is not None
-            and abs(found.w[0] - w[first]) <= _PRODUCT_SHIFT * w[first]
-            and g[first] / _PRODUCT_FACTOR <= found.g[0] <= g[first] * _PRODUCT_FACTOR
-            and found.g[1] > found.g[0]
-        ):
-            params, half = modes.params.copy(), modes.half_width.copy()
-            keep = [first] + [k for k in range(modes.order) if k != first]  # mode 1 first, then the other, if any
-            for k, slot in enumerate(keep):
-                at = _BASE + _PER_MODE * slot
-                params[at + 2 : at + 4] = found.w[k], found.g[k]
-                half[at + 2 : at + 4] = found.w_half[k], found.g_half[k]
-            return replace(modes, params=params, half_width=half)
-    return modes
+    under = np.flatnonzero(g * _UNDERDAMPED < w)
+    if under.size == 0:
+        return modes
+    first = int(under[np.argmin(w[under])])
+    found = products.fit(n, y, float(w[first]), float(g[first]), settings.confidence)
+    if (
+        found is None
+        or abs(found.w[0] - w[first]) > _PRODUCT_SHIFT * w[first]
+        or not g[first] / _PRODUCT_FACTOR <= found.g[0] <= g[first] * _PRODUCT_FACTOR
+        or found.g[1] <= found.g[0]
+    ):
+        return modes
+    params, half = modes.params.copy(), modes.half_width.copy()
+    keep = [first] + [k for k in range(modes.order) if k != first]  # mode 1 first, then the other, if any
+    for k, slot in enumerate(keep):
+        at = _BASE + _PER_MODE * slot
+        params[at + 2 : at + 4] = found.w[k], found.g[k]
+        half[at + 2 : at + 4] = found.w_half[k], found.g_half[k]
+    return replace(modes, params=params, half_width=half)
 
 
 def _pencil_modes(n: np.ndarray, y: np.ndarray, length: int, order: int) -> tuple[np.ndarray, np.ndarray]:
