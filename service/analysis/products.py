@@ -4,11 +4,10 @@ The mean brightness of a frame is a smooth but nonlinear function of the surface
 grows and clips as the meniscus swings. Within a window it is a function of the two modes alone,
 B(n) = F(x1(n), x2(n)) with x_k = exp(-g_k n) cos(w_k n + phi_k), so besides each mode it holds their harmonics
 and their sum and difference frequencies, and (from F's cubic terms) a part at each mode's frequency that decays
-at three times its rate. A fit of damped modes alone takes these for modes or folds them into the modes it has
-(on Blender Cycles recordings of the default scene it left the dominant decay 7.6 % off, median:
-docs/benchmarks.md). Here F is F's Taylor polynomial of degree :data:`ORDER`, its coefficients linear, and the
-six parameters (w, g, phi of each mode) are found by variable projection (Golub & Pereyra 1973, Kaufman's
-Jacobian) with Levenberg-Marquardt, in sample units.
+at three times its rate. A fit of damped modes alone takes these for modes or folds them into the modes it has,
+and their decay rates with them (docs/benchmarks.md). Here F is its Taylor polynomial of degree :data:`ORDER`,
+whose coefficients are linear, and the six parameters (w, g, phi of each mode) are found by variable projection
+(Golub & Pereyra 1973, Kaufman's Jacobian) with Levenberg-Marquardt, in sample units.
 """
 
 from __future__ import annotations
@@ -19,7 +18,7 @@ import numpy as np
 from numba import njit
 from scipy.special import stdtrit
 
-#: Degree of F's Taylor polynomial in (x1, x2): 4 against 2 and 3 halved the decay's p90 error on Blender Cycles.
+#: Degree of F's Taylor polynomial in (x1, x2): the highest of 2, 3 and 4 was the closest on Blender Cycles (docs).
 ORDER = 4
 #: The monomials x1^i x2^j, 0 < i + j <= ORDER, as the exponent arrays (M,) of x1 and of x2.
 _I, _J = np.array([(i, j) for i in range(ORDER + 1) for j in range(ORDER + 1 - i) if i + j > 0]).T
@@ -32,14 +31,13 @@ _RATIO_W, _RATIO_G = 2.3, 2.0
 
 @dataclass(frozen=True)
 class ProductFit:
-    """The two modes' poles (w, g per sample) and the half-widths of w and g at the confidence
-    asked, (2,) each, mode 1 (the start's) first; ``cost`` the sum of squared residuals."""
+    """The two modes' poles (w, g per sample) and the half-widths of w and g at the confidence asked, (2,) each,
+    mode 1 (the start's) first."""
 
     w: np.ndarray
     g: np.ndarray
     w_half: np.ndarray
     g_half: np.ndarray
-    cost: float
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -162,4 +160,4 @@ def fit(n: np.ndarray, y: np.ndarray, w1: float, g1: float, confidence: float) -
     except np.linalg.LinAlgError:
         return None
     half = float(stdtrit(dof, 0.5 + confidence / 2)) * np.sqrt(np.maximum(variance, 0.0))
-    return ProductFit(w, g, half[0::3], half[1::3], cost)
+    return ProductFit(w, g, half[0::3], half[1::3])
