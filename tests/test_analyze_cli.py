@@ -91,6 +91,24 @@ def test_analyze_takes_the_poles_from_the_frames_unless_told(recording: Path, tm
     assert np.median(errors["frames"]) < np.median(errors["series"])
 
 
+def test_analyze_fits_the_brightness_as_a_polynomial_of_the_modes_unless_told(recording: Path, tmp_path: Path):
+    """``--brightness products`` (the default) or ``modes``: stored in the report; both take the poles from the
+    frames, and the polynomial's decay rates are the closer to the truth (median over the windows)."""
+    truth = {w["start_frame"]: w["truth"]["g1"] for w in read_truth(recording)["windows"]}
+    errors = {}
+    for model in ("products", "modes"):
+        out = tmp_path / f"{model}.json"
+        assert meniscope("analyze", recording, "--brightness", model, "--out", out, "--quiet").returncode == 0
+        data = json.loads(out.read_text())
+        assert data["fit"]["brightness_model"] == model and data["fit"]["poles"] == "frames"
+        errors[model] = [
+            abs(w["modes"][0]["decay_rate_per_s"] / truth[w["start_frame"]] - 1)
+            for w in data["windows"]
+            if w["modes"] and w["start_frame"] in truth
+        ]
+    assert np.median(errors["products"]) < np.median(errors["modes"])
+
+
 def test_analyze_at_a_known_rate_and_from_the_printers_file(recording: Path, tmp_path: Path):
     listed = tmp_path / "ejections.txt"
     listed.write_text("0\n190\n380\n570\n")

@@ -27,7 +27,7 @@ import functools
 import math
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Literal
 
 import numpy as np
@@ -36,7 +36,7 @@ from scipy.special import stdtrit
 from threadpoolctl import ThreadpoolController
 from tqdm import tqdm
 
-from service.analysis import kernels, pencil
+from service.analysis import kernels, pencil, products
 from service.analysis.kernels import BASE as _BASE
 from service.analysis.kernels import PER_MODE as _PER_MODE
 from service.analysis.kernels import robust_sigma
@@ -84,6 +84,11 @@ _EVIDENCE = 2.0
 _DRIFT_TEST = 2.0
 #: Modes turning fewer cycles than this over the window are fitted both with and without a drift.
 _SWING_CYCLES = 1.5
+#: The brightness' polynomial fit replaces its modes' poles only within this relative shift of its start's
+#: frequency and this factor of its decay rate: further off, it has ended on another mode or a product.
+_PRODUCT_SHIFT, _PRODUCT_FACTOR = 0.05, 2.0
+#: Radians over which a pole must decay by no more than e to start that fit as mode 1 (issue 17's fluids: >= 3.1).
+_UNDERDAMPED = 2.0
 _IRLS_STEPS = 100  # at most; the order-0 cost settles to 1e-6 (relative) in ~5-10 rounds
 #: The fit's matrices are small: a multi-threaded BLAS only fights the other threads for the cores
 #: (7x slower per window on a loaded 2-core machine), so each fit runs its BLAS on one thread.
@@ -373,7 +378,8 @@ def fit_window(
     settings : model orders, loss, confidence level and settling tolerance.
     brightness : array of shape (N,), the window's mean frame brightness (any unit, NaN missing): with
         ``settings.poles == "frames"`` the modes' frequencies and decay rates are those of its fit when it
-        resolves an oscillation, and the series gives their amplitudes and phases, the offset and the drift.
+        resolves an oscillation (as damped modes, or by default as a polynomial of two modes:
+        ``settings.brightness_model``), and the series gives their amplitudes and phases, the offset and the drift.
 
     Returns
     -------
@@ -439,7 +445,8 @@ def _fit_window(
         )
     window = _Window(n, (raw - centre) / spread, settings)
     use_frames = settings.poles == "frames" and brightness is not None
-    poles = _brightness_poles(brightness, x.size, skip, settings) if use_frames else None
+    later = settings.brightness_frames(fps) if starts_at_ejection else 0
+    poles = _brightness_poles(brightness, x.size, skip, later, settings) if use_frames else None
     if poles is not None:
         chosen, problem = window.pinned(poles), None
     else:
@@ -533,9 +540,12 @@ def _has_harmonic(fit: _OrderFit) -> bool:
     return any(abs(w[j] - 2 * w[i]) <= half[j] + 2 * half[i] for i in range(w.size) for j in range(w.size) if i != j)
 
 
-def _brightness_poles(brightness: ArrayLike, length: int, skip: int, settings: FitSettings) -> _OrderFit | None:
-    """The fit of a window's mean frame brightness (``length`` values, NaN missing) when it resolves an
-    oscillation: its modes' w and g are the poles the window's series is fitted with. None when it does not."""
+def _brightness_poles(
+    brightness: ArrayLike, length: int, skip: int, later: int, settings: FitSettings
+) -> _OrderFit | None:
+    """The fit of a window's mean frame brightness (``length`` values, NaN missing; its first ``skip`` left out, and
+    its first ``later`` out of the polynomial's fit) when it resolves an oscillation: its modes' w and g are the
+    poles the window's series is fitted with. None when it does not."""
     x = np.asarray(brightness, dtype=np.float64).reshape(-1)
     if x.size != length:
         raise ValueError(f"{x.size} brightness values for a window of {length} frames")
@@ -545,9 +555,45 @@ def _brightness_poles(brightness: ArrayLike, length: int, skip: int, settings: F
     n, raw, centre, spread = _centred(x)
     if not 0 < spread < _MAX_VALUE:
         return None
-    fits = _order_fits(_Window(n, (raw - centre) / spread, settings), x.size, settings)
+    y = (raw - centre) / spread
+    fits = _order_fits(_Window(n, y, settings), x.size, settings)
     chosen, _ = _choose([f for f in fits if not _has_harmonic(f)])  # resolved, if a higher order was not
-    return chosen if chosen.order > 0 and chosen.problem is None else None
+    if chosen.order == 0 or chosen.problem is not None:
+        return None
+    if settings.brightness_model == "modes":
+        return chosen
+    kept = n >= later  # the polynomial's fit starts later: the ejection's light is no function of the modes
+    return _product_poles(n[kept], y[kept], chosen, settings)
+
+
+def _product_poles(n: np.ndarray, y: np.ndarray, modes: _OrderFit, settings: FitSettings) -> _OrderFit:
+    """``modes`` (the brightness' fit as damped modes) with its poles those of the brightness fitted as a
+    polynomial of two modes (:func:`products.fit`), started from its lowest-frequency underdamped mode (decaying
+    by e over more than :data:`_UNDERDAMPED` radians: a pole that dies within a fraction of a cycle is the
+    ejection's light or noise; harmonics and sum frequencies lie above mode 1). ``modes`` itself where it has no
+    such mode, or the polynomial's fit fails, ends far from its start (frequency over :data:`_PRODUCT_SHIFT` off,
+    decay outside a factor :data:`_PRODUCT_FACTOR`) or with mode 2 less damped than mode 1 (Eq. 1's higher mode
+    damps faster: it has taken something else for it)."""
+    w, g = modes.params[_BASE + 2 :: _PER_MODE], modes.params[_BASE + 3 :: _PER_MODE]
+    under = np.flatnonzero(g * _UNDERDAMPED < w)
+    if under.size == 0:
+        return modes
+    first = int(under[np.argmin(w[under])])
+    found = products.fit(n, y, float(w[first]), float(g[first]), settings.confidence)
+    if (
+        found is None
+        or abs(found.w[0] - w[first]) > _PRODUCT_SHIFT * w[first]
+        or not g[first] / _PRODUCT_FACTOR <= found.g[0] <= g[first] * _PRODUCT_FACTOR
+        or found.g[1] <= found.g[0]
+    ):
+        return modes
+    params, half = modes.params.copy(), modes.half_width.copy()
+    keep = [first] + [k for k in range(modes.order) if k != first]  # mode 1 first, then the other, if any
+    for k, slot in enumerate(keep):
+        at = _BASE + _PER_MODE * slot
+        params[at + 2 : at + 4] = found.w[k], found.g[k]
+        half[at + 2 : at + 4] = found.w_half[k], found.g_half[k]
+    return replace(modes, params=params, half_width=half)
 
 
 def _pencil_modes(n: np.ndarray, y: np.ndarray, length: int, order: int) -> tuple[np.ndarray, np.ndarray]:
@@ -693,7 +739,7 @@ def warm() -> None:
     t = np.arange(64) / 19000.0
     y = damped_mode(t, 0.01, 300.0, 1500.0, 0.3) + damped_mode(t, 0.004, 900.0, 3900.0, 1.0)
     for loss in ("soft_l1", "linear"):
-        fit_window(y, 19000.0, FitSettings(loss=loss))
+        fit_window(y, 19000.0, FitSettings(loss=loss), brightness=y + y**2)  # the brightness' polynomial fit too
 
 
 def fit_windows(

@@ -55,6 +55,19 @@ class FitSettings(_Frozen):
     #: recordings it took the amplitude error from ~70 % to ~25 % and the offset's from ~20 um to ~4 um, median).
     #: The network method's only: the other methods' windows keep their steady series.
     series_model: Literal["steady", "window"] = "window"
+    #: How the frames' brightness gives the poles (with ``poles == "frames"``): as damped modes ("modes"), or as a
+    #: polynomial of the two modes ("products", :mod:`service.analysis.products`), whose harmonics and sum and
+    #: difference frequencies the brightness' nonlinearity adds and which biased the modes' decay rates.
+    brightness_model: Literal["modes", "products"] = "products"
+    #: Time after an ejection whose frames' brightness the polynomial fit leaves out (``brightness_model ==
+    #: "products"``), at least :attr:`transient_s`: the ejection's light lingers after the surface is back to its
+    #: modes (docs/benchmarks.md). The damped modes that start it keep :attr:`transient_s`: fewer frames left
+    #: them on noise in heavily damped windows.
+    brightness_transient_s: NonNegative = 5e-4
+
+    def brightness_frames(self, fps: float) -> int:
+        """Frames after an ejection whose brightness the poles' fit leaves out (rounded up)."""
+        return int(np.ceil(max(self.brightness_transient_s, self.transient_s) * fps - 1e-9))
 
     def transient_frames(self, fps: float) -> int:
         """Frames after an ejection that :attr:`transient_s` covers (rounded up)."""

@@ -86,6 +86,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "the refined motion is the window's inversion, its poles its own)",
     )
     p.add_argument(
+        "--brightness",
+        choices=("products", "modes"),
+        help="how the frames' brightness gives the poles (with --poles frames): fitted as a polynomial of two "
+        "damped modes (default: the brightness is nonlinear in the surface's motion and holds the modes' "
+        "harmonics and sum and difference frequencies) or as damped modes alone (the fit until 2026-11-26)",
+    )
+    p.add_argument(
         "--series",
         choices=("steady", "window"),
         help="the series each window is fitted to: the steady D(0, t) of the per-frame estimates or that "
@@ -171,6 +178,8 @@ def run_analyze(args: argparse.Namespace) -> int:
     settings = _settings(args, args.poles or "frames")  # with --refine, analyse_recording takes the series' own
     if args.series:
         settings = settings.model_copy(update={"series_model": args.series})
+    if args.brightness:
+        settings = settings.model_copy(update={"brightness_model": args.brightness})
     report_path, csv_path, png_path = _outputs(args.out)
     scene = Scene.load(args.scene)
     analysis = analyse_recording(
