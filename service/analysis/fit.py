@@ -54,6 +54,10 @@ _MIN_CYCLES = 0.8
 _MAX_VALUE = 1e150
 #: Residuals below this fraction of the window's peak deviation count as exact (float64 round-off).
 _EXACT = 1e-9
+#: Residuals below this fraction count as exact in the order choice: what LM's stopping tolerance
+#: (:data:`_LM_TOLERANCE`) leaves of a noise-free window (a pure cosine near Nyquist kept 3e-7 to 7e-7 of its
+#: amplitude); below it a second mode would only fit the search's own leftovers.
+_CONVERGED = 1e-5
 #: LM stops when cost or step change by under this (relative): 1e-6 moves a frequency by ~1e-6 of
 #: itself, far inside its confidence interval, in ~30 % fewer evaluations than MINPACK's 1.5e-8.
 _LM_TOLERANCE = 1e-6
@@ -192,12 +196,12 @@ class _Window:
         return gaussian._judge(chosen.order, params, drift=chosen.drift)
 
     def bic(self, cost: float, k: int) -> float:
-        """n ln(cost / n) + k ln n + 2 k (k + 1) / (n - k - 1), with residuals under ``_EXACT`` counted as exact.
+        """n ln(cost / n) + k ln n + 2 k (k + 1) / (n - k - 1), with residuals under ``_CONVERGED`` counted as exact.
 
         The last term is AICc's small-sample correction: negligible at 190 samples (1.2 for two modes), it stops
         a 20-sample window from taking a second mode that its few residual degrees of freedom cannot refute."""
         n = self.n.size
-        return float(n * np.log(cost / n + _EXACT**2) + k * self.log_n + 2 * k * (k + 1) / max(n - k - 1, 1))
+        return float(n * np.log(cost / n + _CONVERGED**2) + k * self.log_n + 2 * k * (k + 1) / max(n - k - 1, 1))
 
     def linear_fit(self, design: np.ndarray) -> tuple[np.ndarray, float]:
         """Coefficients of ``design`` (N, k) and their robust cost (:func:`kernels.linear_fit`)."""
@@ -510,6 +514,11 @@ def _order_fits(window: _Window, length: int, settings: FitSettings) -> list[_Or
             starts.append(_pencil_modes(window.n[run] - window.n[run[0]], window.y[run], run.size, poles))
         for m in orders:
             fit = min((window.fit(m, window.starts(m, modes), fits[0].drift) for modes in starts), key=lambda f: f.cost)
+            if fit.problem is not None and m == 1:  # a short window's most energetic pencil pair may be a spurious one
+                for w, g in starts:
+                    for i in range(1, w.size):
+                        other = window.fit(1, window.starts(1, (w[i : i + 1], g[i : i + 1])), fits[0].drift)
+                        fit = min(fit, other, key=lambda f: f.cost)
             if fit.problem is not None and fits[-1].order == m - 1 >= 1:
                 extended = window.extended(fits[-1], length)
                 if extended is not None:
