@@ -74,9 +74,10 @@ def _words(pixels: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
     n, h, w = pixels.shape
     item = pixels.itemsize
     frame_step, row_step, column_step = pixels.strides
-    if n == 0 or column_step != item or abs(row_step) != w * item or frame_step % item or frame_step < 0:
+    together = column_step == item and abs(row_step) == w * item and frame_step >= 0 and frame_step % item == 0
+    if pixels.flags.c_contiguous or not together:
         pixels = np.ascontiguousarray(pixels)
-        frame_step, row_step = pixels.strides[:2]
+        return pixels.reshape(-1), np.arange(n, dtype=np.int64) * (h * w), False
     flipped = row_step < 0
     lowest = pixels[0, h - 1] if flipped else pixels[0, 0]  # the first frame's first row in memory
     words = np.lib.stride_tricks.as_strided(lowest, ((n - 1) * frame_step // item + h * w,), (item,), writeable=False)
