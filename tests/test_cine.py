@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import itertools
 import json
+import os
 import struct
 import warnings
 from pathlib import Path
@@ -267,6 +268,46 @@ def test_random_access_matches_one_full_read(tmp_path: Path) -> None:
             rec.read(7, 3)
     with pytest.raises(MeniscopeError, match="closed"):
         rec.read(0, 1)
+
+
+@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(data=st.data(), storage=st.sampled_from(["8", "16", "p10", "p12"]))
+def test_views_are_the_frames_read_and_copy_nothing_where_words_lie_at_one_stride(
+    tmp_path: Path, data: st.DataObject, storage: str
+) -> None:
+    """:meth:`view_grey` of any run of frames is :meth:`read`'s frames: where the images are 8- or 16-bit words at one
+    stride (the annotations between them of one length), a read-only view of the reader's mapping that outlives the reader; packed
+    images, and runs whose annotations differ in length, come as copies."""
+    n = data.draw(st.integers(1, 6))
+    height, width = data.draw(st.integers(1, 5)), data.draw(st.sampled_from([4, 8, 12]))
+    even = data.draw(st.booleans())
+    annotations = (
+        [data.draw(st.sampled_from([8, 12, 24]))] * n
+        if even
+        else data.draw(st.lists(st.sampled_from([8, 12, 24]), min_size=n, max_size=n))
+    )
+    bits = {"8": 8, "16": 12, "p10": 10, "p12": 12}[storage]
+    dtype = np.uint8 if storage == "8" else np.uint16
+    frames = np.random.default_rng(n).integers(0, 2**bits, (n, height, width)).astype(dtype)
+    path = write(tmp_path, cine_bytes(frames, storage=storage, real_bpp=bits, annotations=annotations))
+    start = data.draw(st.integers(0, n - 1))
+    count = data.draw(st.integers(1, n - start))
+    with open_recording(path) as rec:
+        view = rec.view_grey(start, count)
+        np.testing.assert_array_equal(view, rec.read(start, count))
+        spaced = len(set(annotations[start + 1 : start + count])) <= 1  # the annotations between the images alike
+        assert np.shares_memory(view, rec.mapped) == (storage in ("8", "16") and spaced)
+        assert not view.flags.writeable or not np.shares_memory(view, rec.mapped)
+    np.testing.assert_array_equal(view, frames[start : start + count])  # still readable once the reader is closed
+
+
+def test_a_view_of_frames_a_shrunken_file_no_longer_holds_is_an_error(tmp_path: Path) -> None:
+    frames = np.zeros((4, 6, 8), np.uint16)
+    path = write(tmp_path, cine_bytes(frames))
+    with open_recording(path) as rec:
+        os.truncate(path, path.stat().st_size - 10)
+        with pytest.raises(MeniscopeError, match="shrank"):
+            rec.view_grey(2, 2)
 
 
 def test_info_is_json_and_its_header_fields_extend_the_common_ones(tmp_path: Path) -> None:

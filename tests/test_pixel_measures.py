@@ -117,6 +117,52 @@ def test_block_means_made_in_the_same_pass_are_the_exact_means_rounded_once_and_
         np.testing.assert_array_equal(pooled[:, 0], means.astype(np.float32))
 
 
+def stored_bottom_up(frames: np.ndarray, gap: int) -> np.ndarray:
+    """``frames`` (N, H, W) as a read-only view of one buffer where each frame's rows are stored bottom row first
+    after ``gap`` bytes of something else, as a .cine holds its images: frames at a stride, rows at a negative one."""
+    n, h, w = frames.shape
+    item, row = frames.itemsize, w * frames.itemsize
+    step = gap + h * row
+    buffer = np.zeros(n * step, np.uint8)
+    for i, frame in enumerate(frames):
+        buffer[i * step + gap : (i + 1) * step] = np.frombuffer(frame[::-1].tobytes(), np.uint8)
+    buffer.setflags(write=False)
+    offset = gap + (h - 1) * row
+    return np.ndarray(frames.shape, frames.dtype, buffer=buffer, offset=offset, strides=(step, -row, item))
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    dtype=st.sampled_from([np.uint8, np.uint16]),
+    factor=st.integers(1, 3),
+    blocks=st.tuples(st.integers(1, 12), st.integers(1, 12)),
+    frames=st.integers(1, 9),
+    gap=st.sampled_from([0, 2, 8, 12]),
+    viewed=st.lists(st.booleans(), min_size=9, max_size=9),
+    batch=st.integers(1, 9),
+    seed=st.integers(0, 2**16),
+)
+def test_frames_viewed_where_stored_bottom_up_measure_as_their_copies(
+    dtype, factor, blocks, frames, gap, viewed, batch, seed
+):
+    """Frames read in place where a file stores them (bottom row first, at a stride: no copy) give the measures and
+    pooled means of the same frames copied top row first, to the last bit, whichever batches come viewed and which
+    copied (the frame before a batch carried across)."""
+    shape = (frames, blocks[0] * factor, blocks[1] * factor)
+    pixels = np.random.default_rng(seed).integers(0, np.iinfo(dtype).max, shape, dtype, endpoint=True)
+    stored = stored_bottom_up(pixels, gap)
+    indices = np.arange(frames)
+    copied, mixed = PixelMeasures(1, 3), PixelMeasures(1, 3)
+    for k, lo in enumerate(range(0, frames, batch)):
+        part = slice(lo, lo + batch)
+        want_pooled, got_pooled = (np.empty((len(pixels[part]), 1, *blocks), np.float32) for _ in range(2))
+        want = copied.update(pixels[part], indices[part], want_pooled)
+        got = mixed.update(stored[part] if viewed[k] else pixels[part], indices[part], got_pooled)
+        for g, w in zip(got, want):
+            np.testing.assert_array_equal(g, w)
+        np.testing.assert_array_equal(got_pooled, want_pooled)
+
+
 def test_a_pooled_output_that_does_not_fit_the_frames_is_refused() -> None:
     frames = np.zeros((2, 6, 6), np.uint16)
     for pooled in (

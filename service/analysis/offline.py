@@ -105,7 +105,7 @@ def analyse_recording(
     if refine:
         first_settings, settings = start_settings(settings), refined_settings(settings)
     # the recording opened once (its header and every image's offset read: ~1 us of CPU per frame), then replayed
-    with ReplaySource(path, speed=0.0) as replay, ExitStack() as stack:
+    with ReplaySource(path, speed=0.0, views=True) as replay, ExitStack() as stack:
         fps, frames, width, height = replay.fps, replay.frames, replay.width, replay.height
         inverse, db = opened or open_method(method, scene, models, database)
         db = db if method == "regularised" else None

@@ -23,22 +23,26 @@ GRID = 8
 
 
 @njit(cache=True, nogil=True)
-def _sums(frames, previous, zero, band, edges, total, peak, change, cells, factor, pooled):  # type: ignore[no-untyped-def]
-    """Per frame of ``frames`` (N, H * W): its pixels' sum, maximum and summed absolute difference from the frame
-    before (``previous`` (H * W,) before frame 0), accumulated from ``zero`` (its type sets the sums'), and its
-    sums over the cells (``cells`` (N, bands * columns)): row y in band ``band[y]``, columns cut at ``edges``
+def _sums(words, starts, previous, zero, band, edges, flipped, total, peak, change, cells, factor, pooled):  # type: ignore[no-untyped-def]
+    """Per frame ``words[starts[i] : starts[i] + H * W]`` (its rows in memory order: bottom row first where
+    ``flipped``): its pixels' sum, maximum and summed absolute difference from the frame before (``previous``
+    (H * W,), in the same row order, before frame 0), accumulated from ``zero`` (its type sets the sums'), and its
+    sums over the cells (``cells`` (N, bands * columns)): memory row r in band ``band[r]``, columns cut at ``edges``
     (columns + 1,). A band's rows are summed column by column first (a plain loop over each row, as fast as the
     three sums alone), then cut into its cells. With ``factor`` > 0, also the means of its ``factor`` x ``factor``
-    blocks into ``pooled`` (N, 1, H/f, W/f), summed the same way (exact sums of integer pixels, divided once)."""
+    blocks into ``pooled`` (N, 1, H/f, W/f) in display order, summed the same way (exact sums of integer pixels,
+    divided once). Rows are read in memory order, as the hardware prefetches them."""
     columns = edges.size - 1
     width = edges[columns]
+    height = band.size
+    size = height * width
     acc = np.full(width, zero)
     block = np.full(width, zero)
-    for i in range(frames.shape[0]):
-        row = frames[i]
-        before = previous if i == 0 else frames[i - 1]
+    for i in range(starts.size):
+        row = words[starts[i] : starts[i] + size]
+        before = previous if i == 0 else words[starts[i - 1] : starts[i - 1] + size]
         s, d, m = zero, zero, row[0]
-        for y in range(band.size):
+        for y in range(height):
             for x in range(width):
                 j = y * width + x
                 a, b = row[j], before[j]
@@ -49,17 +53,35 @@ def _sums(frames, previous, zero, band, edges, total, peak, change, cells, facto
                 block[x] += a
             if factor:
                 if (y + 1) % factor == 0:  # the block row's last row: its blocks
+                    r = (height - 1 - y) // factor if flipped else y // factor
                     for c in range(width // factor):
                         t = zero
                         for k in range(c * factor, c * factor + factor):
                             t += block[k]
-                        pooled[i, 0, y // factor, c] = np.float64(t) / (factor * factor)
+                        pooled[i, 0, r, c] = np.float64(t) / (factor * factor)
                     block[:] = zero
-            if y + 1 == band.size or band[y + 1] != band[y]:  # the band's last row: its cells
+            if y + 1 == height or band[y + 1] != band[y]:  # the band's last row: its cells
                 for c in range(columns):
                     cells[i, band[y] * columns + c] = acc[edges[c] : edges[c + 1]].sum()
                 acc[:] = zero
         total[i], peak[i], change[i] = s, m, d
+
+
+def _words(pixels: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
+    """Frames ``pixels`` (N, H, W) as the compiled pass reads them, without a copy where each frame's rows lie next
+    to each other in memory (a C-contiguous batch, or a .cine's frames viewed in its mapping: rows bottom-up, frames
+    at the file's stride): (words (M,), each frame's first word in memory (N,), whether its rows run bottom-up)."""
+    n, h, w = pixels.shape
+    item = pixels.itemsize
+    frame_step, row_step, column_step = pixels.strides
+    together = column_step == item and abs(row_step) == w * item and frame_step >= 0 and frame_step % item == 0
+    if pixels.flags.c_contiguous or not together:
+        pixels = np.ascontiguousarray(pixels)
+        return pixels.reshape(-1), np.arange(n, dtype=np.int64) * (h * w), False
+    flipped = row_step < 0
+    lowest = pixels[0, h - 1] if flipped else pixels[0, 0]  # the first frame's first row in memory
+    words = np.lib.stride_tricks.as_strided(lowest, ((n - 1) * frame_step // item + h * w,), (item,), writeable=False)
+    return words, np.arange(n, dtype=np.int64) * (frame_step // item), flipped
 
 
 @njit(cache=True, nogil=True)
@@ -83,13 +105,14 @@ def _novelty(cells, ring, filled, position, near, out):  # type: ignore[no-untyp
     return filled, position
 
 
-def _zero(flat: np.ndarray) -> np.generic:
-    """The zero the sums of frames ``flat`` (N, H * W) start from, whose type they are kept in: 32-bit unsigned where
-    a frame's pixels all at full scale sum below 2**32 (exact, and the compiled loop adds twice as many pixels an
-    instruction as in 64 bits), 64-bit unsigned where not, float64 for pixels that are not unsigned integers."""
-    if flat.dtype.kind != "u":
+def _zero(dtype: np.dtype, pixels: int) -> np.generic:
+    """The zero the sums of frames of ``pixels`` pixels of ``dtype`` start from, whose type they are kept in: 32-bit
+    unsigned where a frame's pixels all at full scale sum below 2**32 (exact, and the compiled loop adds twice as many
+    pixels an instruction as in 64 bits), 64-bit unsigned where not, float64 for pixels that are not unsigned
+    integers."""
+    if dtype.kind != "u":
         return np.float64(0.0)
-    return np.uint32(0) if flat.shape[1] * int(np.iinfo(flat.dtype).max) < 2**32 else np.uint64(0)
+    return np.uint32(0) if pixels * int(np.iinfo(dtype).max) < 2**32 else np.uint64(0)
 
 
 class PixelMeasures:
@@ -116,13 +139,12 @@ class PixelMeasures:
         ``pooled`` (N, 1, H/f, W/f) float32 gets each frame's f x f block means in the same pass (an inverse graph's
         input, :attr:`service.inverse.base.InverseMethod.pooling`), the exact means rounded once."""
         n, h, w = pixels.shape
-        flat = pixels.reshape(n, -1)
-        if not np.issubdtype(flat.dtype, np.unsignedinteger):  # an unsigned sum of signed pixels would wrap
-            flat = flat.astype(np.float64)
-        zero = _zero(flat)
+        if not np.issubdtype(pixels.dtype, np.unsignedinteger):  # an unsigned sum of signed pixels would wrap
+            pixels = pixels.astype(np.float64)
+        zero = _zero(pixels.dtype, h * w)
         follows = self._previous is not None and self._last_index == indices[0] - 1
         band, edges, counts = self._cells(h, w)
-        total, change, peak = np.empty(n, zero.dtype), np.empty(n, zero.dtype), np.empty(n, flat.dtype)
+        total, change, peak = np.empty(n, zero.dtype), np.empty(n, zero.dtype), np.empty(n, pixels.dtype)
         cells = np.zeros((n, counts.size))
         factor = 0
         if pooled is None:
@@ -133,9 +155,12 @@ class PixelMeasures:
                 raise ValueError(f"pooled must be (N, 1, H/f, W/f) of whole blocks, got {pooled.shape} for {h} x {w}")
             if pooled.dtype != np.float32:
                 raise ValueError(f"pooled must be float32, got {pooled.dtype}")
-        previous = self._previous if follows else flat[0]
-        _sums(flat, previous, zero, band, edges, total, peak, change, cells, factor, pooled)
-        size = flat.shape[1]
+        words, starts, flipped = _words(pixels)
+        previous = self._previous if follows else pixels[0].reshape(-1)  # display order
+        if flipped:  # in the order the pass reads the rows
+            band, previous = band[::-1].copy(), previous.reshape(h, w)[::-1].ravel()
+        _sums(words, starts, previous, zero, band, edges, flipped, total, peak, change, cells, factor, pooled)
+        size = h * w
         steps = change / size
         if not follows:
             steps[0] = np.nan
@@ -151,7 +176,7 @@ class PixelMeasures:
             self._filled, self._position = _novelty(
                 cells[lo:hi], self._ring, self._filled, self._position, self._near, novelty[lo:hi]
             )
-        self._previous, self._last_index = flat[-1].copy(), int(indices[-1])  # the batch buffer may be reused
+        self._previous, self._last_index = pixels[-1].flatten(), int(indices[-1])  # the batch buffer may be reused
         return steps, total / size, peak.astype(np.float64), novelty
 
     def _cells(self, h: int, w: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

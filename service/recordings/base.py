@@ -146,6 +146,18 @@ class Recording(ABC):
         code = getattr(cv2, BAYER_TO_GREY[self.cfa])
         return np.stack([cv2.cvtColor(frame, code) for frame in frames]) if len(frames) else frames
 
+    def view_grey(self, start: int, count: int) -> np.ndarray:
+        """:meth:`read_grey`'s frames without a copy where the reader can give them so: a read-only view of the file's
+        mapping (:meth:`_view`), valid after :meth:`close`; else :meth:`read_grey`'s copy."""
+        frames = self.frame_range(start, count)
+        view = self._view(frames.start, len(frames)) if frames and self.cfa is None else None
+        return self.read_grey(start, count) if view is None else view
+
+    def _view(self, start: int, count: int) -> np.ndarray | None:
+        """Frames ``start .. start + count - 1`` (range-checked, ``count >= 1``) as a read-only view of the mapped
+        file, (count, height, width) in display order, or None where the reader cannot view them."""
+        return None
+
     def __getitem__(self, index: int) -> np.ndarray:
         """One frame, shape (height, width); negative indices count from the end."""
         i = operator.index(index)

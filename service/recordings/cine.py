@@ -37,8 +37,10 @@ What the reader returns, and what it does not do:
 
 Every offset and size in the header is checked against the file size before use, so a truncated or
 corrupt file gives one :class:`MeniscopeError` line, never a large allocation. The headers are read
-through a memory map that is dropped once the file is open; images are read with ``pread``, so a file
-that shrinks while it is read (overwritten by ``cp``) is an error naming it, never a SIGBUS.
+through a memory map, kept open for a digest of the file and for :meth:`~Recording.view_grey`; images are read
+with ``pread``, so a file that shrinks while it is read (overwritten by ``cp``) is an error naming it, never a
+SIGBUS. :meth:`~Recording.view_grey` gives 8- and 16-bit images in place in the map instead (no copy; the file's
+size checked when they are viewed, not when their pixels are read later).
 """
 
 from __future__ import annotations
@@ -266,6 +268,29 @@ class CineRecording(Recording):
             span = self._pread(int(starts[0]), (len(starts) - 1) * step + self._frame_bytes)
             return np.ndarray((len(starts), self._frame_bytes), np.uint8, buffer=span, strides=(step, 1))
         return np.stack([self._pread(s, self._frame_bytes) for s in starts.tolist()])
+
+    def _view(self, start: int, count: int) -> np.ndarray | None:
+        """The images as stored words at a constant stride in the mapping, rows bottom-up (a negative row stride);
+        None for packed images, unevenly spaced ones, or words not in the machine's order. The file's size is
+        checked first, as :meth:`_pread` checks it."""
+        item = self._stored_bits // 8
+        if self._data is None or self._stored_bits in _UNPACK or np.dtype(f"<u{item}") != self.dtype:
+            return None
+        starts = self._starts[start : start + count]
+        step = int(starts[1] - starts[0]) if count > 1 else self._frame_bytes
+        if step < self._frame_bytes or (count > 1 and not (np.diff(starts) == step).all()):
+            return None
+        end = int(starts[-1]) + self._frame_bytes
+        if os.fstat(self._fd).st_size < end:
+            raise MeniscopeError(self.path, f"the file shrank while open: bytes up to {end - 1} are gone")
+        row = self.width * item
+        return np.ndarray(
+            (count, self.height, self.width),
+            self.dtype,
+            buffer=self._data,
+            offset=int(starts[0]) + (self.height - 1) * row,
+            strides=(step, -row, item),
+        )
 
     def _pread(self, offset: int, size: int) -> np.ndarray:
         """``size`` bytes at ``offset``, or an error when the file no longer holds them (it shrank since opening).

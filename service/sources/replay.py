@@ -34,16 +34,28 @@ class ReplayOptions(SourceOptions):
 
 
 class ReplaySource(FrameSource):
-    """A recording delivered at ``speed`` x its recorded rate, in batches, on a drift-free schedule."""
+    """A recording delivered at ``speed`` x its recorded rate, in batches, on a drift-free schedule.
+
+    With ``views``, batches are read-only views of the reader's mapping of the file where it has one
+    (:meth:`Recording.view_grey`: no copy), checked against the file's size when read; a file cut shorter after
+    that, while its frames are still read, ends the process with SIGBUS instead of an error: for a reader that
+    measures each batch at once (``meniscope analyze``), not for a long-running service."""
 
     kind = "replay"
 
     def __init__(
-        self, path: str | Path, *, speed: float = 1.0, loop: bool = False, timeout: float = 0.1, uri: str | None = None
+        self,
+        path: str | Path,
+        *,
+        speed: float = 1.0,
+        loop: bool = False,
+        timeout: float = 0.1,
+        uri: str | None = None,
+        views: bool = False,
     ) -> None:
         super().__init__(uri or str(path), timeout)
         self.path = Path(path)
-        self.speed, self.loop = speed, loop
+        self.speed, self.loop, self.views = speed, loop, views
         self._recording: Recording | None = None
         self._times = np.empty(0)
         self._period = 0.0
@@ -127,7 +139,8 @@ class ReplaySource(FrameSource):
         while count > 0:
             pos = start % n
             take = min(count, n - pos)
-            pieces.append(self._recording.read_grey(pos, take))
+            read = self._recording.view_grey if self.views else self._recording.read_grey
+            pieces.append(read(pos, take))
             start, count = start + take, count - take
         return pieces[0] if len(pieces) == 1 else np.concatenate(pieces)
 
