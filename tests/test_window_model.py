@@ -12,7 +12,7 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from service import DEFAULT_MODELS
+from service import DEFAULT_MODELS, DEFAULT_SCENE
 from service.analysis.results import FitSettings, ModeEstimate, WindowResult
 from service.analysis.segment import Window
 from service.errors import MeniscopeError
@@ -20,11 +20,12 @@ from service.inverse import window_model as wm
 from service.inverse.manifest import sha256_file
 from service.pipeline.records import FRAME
 from service.pipeline.windows import WindowJob, fit_job, job_for, window_model_for
+from service.scene import Scene
 from service.simulate import WindowRanges
 from service.validation.score import QUANTITIES
 from training import window as tw
 from training.window import WindowNet, export
-from training.window_intervals import calibrate
+from training.window_intervals import calibrate, calibrate_folder
 
 
 def _records(m: int, rng: np.random.Generator) -> np.ndarray:
@@ -286,3 +287,14 @@ def test_training_windows_are_half_nominal_half_widened_at_seeds_of_their_own(wi
     calibration = {seed + tw.CALIBRATION_SEEDS + k for k in range(len(tw.TRAINING_NOISE))}
     assert len(set(used)) == len(used) and not calibration & set(used)
     assert len(set(paths)) == len(paths) == len(tw.TRAINING_NOISE) * len(asked)
+
+
+def test_calibrating_a_model_folder_that_fails_leaves_the_folder_as_it_was(demo_cine: Path, tmp_path: Path) -> None:
+    """The intervals are calibrated on a copy of the folder without them: the demo's 4 windows are too few, and the
+    shipped folder copied here keeps every byte (it used to lose its intervals and no longer match its manifest)."""
+    models = tmp_path / "models"
+    shutil.copytree(DEFAULT_MODELS, models)
+    with pytest.raises(ValueError, match="too few to calibrate"):
+        calibrate_folder(models, [demo_cine], Scene.load(DEFAULT_SCENE))
+    for path in sorted(DEFAULT_MODELS.iterdir()):
+        assert (models / path.name).read_bytes() == path.read_bytes(), path.name

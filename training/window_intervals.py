@@ -17,6 +17,8 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import shutil
+import tempfile
 from collections.abc import Callable
 from pathlib import Path
 
@@ -124,13 +126,19 @@ def _or_none(statistic: Callable[[np.ndarray], float], values: np.ndarray) -> fl
 
 
 def calibrate_folder(models: Path, recordings: list[Path], scene: Scene, confidence: float = 0.95) -> wm.Intervals:
-    """The window model of ``models`` calibrated on ``recordings`` (its record's intervals taken out first, so that
-    the fit's own are scored), stored in its record; the folder's manifest rewritten."""
+    """The window model of ``models`` calibrated on ``recordings``, stored in its record; the folder's manifest
+    rewritten. The recordings are analysed with a copy of the folder whose record has no intervals (so that the
+    fit's own are scored): the folder itself is left as it was until the result is written, so that a failure
+    loses nothing and its manifest keeps matching its files."""
     record_path = models / wm.RECORD
     record = json.loads(record_path.read_text())
-    record.pop("intervals", None)
-    record_path.write_text(json.dumps(record, indent=1) + "\n")
-    intervals = calibrate(pooled_pairs(reports(recordings, scene, models)), confidence)
+    with tempfile.TemporaryDirectory(prefix="meniscope-intervals-") as scratch:
+        bare = Path(scratch) / models.name
+        shutil.copytree(models, bare)
+        without = {key: value for key, value in record.items() if key != "intervals"}
+        (bare / wm.RECORD).write_text(json.dumps(without, indent=1) + "\n")
+        write_manifest(bare, Manifest.model_validate_json((bare / MANIFEST).read_text()))
+        intervals = calibrate(pooled_pairs(reports(recordings, scene, bare)), confidence)
     record["intervals"] = intervals.as_record() | {"recordings": [str(r) for r in recordings]}
     record_path.write_text(json.dumps(record, indent=1) + "\n")
     write_manifest(models, Manifest.model_validate_json((models / MANIFEST).read_text()))
