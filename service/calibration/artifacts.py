@@ -69,7 +69,7 @@ def detect(residual: np.ndarray, allowed: np.ndarray, noise: float, level: np.nd
     without spheres) inside the ``allowed`` mask: maxima over the flux square of its white top-hat (small bright
     specks, not the smooth or edge-like leftovers of an imperfect model; one glint per square, as its flux is
     summed there) above DETECT_SIGMAS ``noise``, above DETECT_SIGMAS robust spreads of the top-hat itself, and
-    above CONTRAST of the model's own ``level`` (h, w, above black) there. The top-hat is taken of the residual's
+    above CONTRAST of the face's ``level`` (h, w, above black) there. The top-hat is taken of the residual's
     bright part: next to a dark leftover (the model brighter than the lab) it would raise a ridge that pulls the
     glint."""
     res = residual.astype(np.float32)
@@ -142,8 +142,8 @@ def glint_flux(scene: Scene, spheres: np.ndarray, at: np.ndarray, supersample: i
 
 def recover(scene: Scene, residual: np.ndarray, allowed: np.ndarray, noise: float, level: np.ndarray) -> np.ndarray:
     """The artifact spheres (G, 4) whose glints explain ``residual`` (fractions of full scale, the PSF keeps a
-    glint's flux; ``level``: the model's static frame above black): placed with START_RADIUS_MM, resized from
-    their flux against a render, placed again."""
+    glint's flux; ``level``: the face's brightness in the model, the fluid left out): placed with
+    START_RADIUS_MM, resized from their flux against a render, placed again."""
     glints = detect(residual, allowed, noise, level)
     if not len(glints):
         return np.zeros((0, 4))

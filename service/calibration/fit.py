@@ -27,7 +27,7 @@ from service.calibration.artifacts import face_pixels, recover, still_pixels, wi
 from service.calibration.footage import Footage
 from service.calibration.noise import NoiseFit, fit_noise
 from service.calibration.roi import find_roi, refine_shift
-from service.calibration.synthesis import Synthesis, pyramid
+from service.calibration.synthesis import Synthesis, gaussian, pyramid
 from service.errors import MeniscopeError
 from service.physics import CoefficientRanges
 from service.scene import Scene
@@ -571,5 +571,7 @@ def _spheres(
     spread = 1.4826 * float(np.median(np.abs(residual[~moving] - np.median(residual[~moving]))))
     still = still_pixels(lab_stack, noise, scene.sensor.offset, full_scale)
     allowed = still & face_pixels(scene)
-    found = recover(scene, residual, allowed, max(sigma_median, spread), static - scene.sensor.offset)
+    # the face's level without the fluid: by the fluid's edge its blurred light would raise the bar over a glint
+    face = gaussian(synth.renderer(scene).static_frame[None], scene.sensor.blur_sigma_px)[0]
+    found = recover(scene, residual, allowed, max(sigma_median, spread), face)
     return found if len(found) else None
