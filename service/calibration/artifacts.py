@@ -30,6 +30,8 @@ STILL_FRACTION = 0.25
 #: A glint must also stand this fraction of the face's own brightness above the model: where two renderers draw
 #: the face's edges (Blender and ours), their leftovers there are fainter (docs/calibration.md, calib4).
 CONTRAST = 0.4
+#: Glints are not looked for this close (px) to the face's outline.
+OUTLINE_PX = 2
 
 
 def pixel_ray(scene: Scene, col: float | np.ndarray, row: float | np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -44,14 +46,16 @@ def pixel_ray(scene: Scene, col: float | np.ndarray, row: float | np.ndarray) ->
 
 
 def face_pixels(scene: Scene) -> np.ndarray:
-    """Pixels (h, w) bool whose ray meets the plane z = 0 on the nozzle's bottom face (R < r < outer radius):
-    where a defect's glint can be."""
+    """Pixels (h, w) bool whose ray meets the plane z = 0 on the nozzle's bottom face (R < r < outer radius) at
+    least OUTLINE_PX from the face's outline: where a defect's glint can be told from the leftovers of an outline
+    drawn a fraction of a pixel off (by the calibrated pose, ROI and blur, or by another renderer)."""
     cam, nz = scene.camera, scene.nozzle
     rows, cols = np.mgrid[0 : cam.height_px, 0 : cam.width_px]
     location, d = pixel_ray(scene, cols.ravel().astype(float), rows.ravel().astype(float))
     t = -location[2] / d[..., 2]
-    r = np.hypot(*(location[:2, None] + t * d[..., :2].T))
-    return ((r > nz.radius_mm) & (r < nz.outer_radius_mm)).reshape(cam.height_px, cam.width_px)
+    r = np.hypot(*(location[:2, None] + t * d[..., :2].T)).reshape(cam.height_px, cam.width_px)
+    inside = cv2.erode((r < nz.outer_radius_mm).astype(np.uint8), np.ones((2 * OUTLINE_PX + 1,) * 2, np.uint8))
+    return (r > nz.radius_mm) & inside.astype(bool)
 
 
 def still_pixels(stack: np.ndarray, noise: NoiseFit, black: float, full_scale: float) -> np.ndarray:
