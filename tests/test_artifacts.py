@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import cv2
 import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
@@ -12,8 +13,11 @@ from hypothesis import strategies as st
 from service import DEFAULT_SCENE
 from service.calibration.artifacts import (
     CONTRAST,
+    OUTLINE_PX,
     detect,
+    face_pixels,
     glint_positions,
+    pixel_ray,
     place,
     still_pixels,
     with_spheres,
@@ -90,6 +94,24 @@ def test_one_glint_is_found_once_and_two_apart_twice(apart: float, second: float
     two = _speck((30, 30), 12, 15, 0.1) + _speck((30, 30), 12 + far, 15, second * 0.1)
     assert len(detect(one, np.ones((30, 30), bool), 1e-4, np.zeros((30, 30)))) == 1
     assert len(detect(two, np.ones((30, 30), bool), 1e-4, np.zeros((30, 30)))) == 2
+
+
+@settings(max_examples=20, deadline=None)
+@given(st.floats(-70.0, -15.0), st.floats(0.4, 1.2), st.integers(40, 120))
+def test_glints_are_looked_for_on_the_face_and_not_by_its_outline(elevation: float, fov: float, size: int) -> None:
+    """Every pixel looked at sees the face (bore radius < r < outer radius), and so do its neighbours up to
+    OUTLINE_PX away; the face's inner part, by the bore, is looked at."""
+    data = json.loads(Path(DEFAULT_SCENE).read_text())
+    data["camera"].update(elevation_deg=elevation, fov_deg=fov, width_px=size, height_px=size)
+    scene = Scene.from_dict(data)
+    mask = face_pixels(scene)
+    rows, cols = np.mgrid[0:size, 0:size]
+    location, d = pixel_ray(scene, cols.ravel().astype(float), rows.ravel().astype(float))
+    r = np.hypot(*(location[:2, None] + (-location[2] / d[..., 2]) * d[..., :2].T)).reshape(size, size)
+    near = cv2.dilate(mask.astype(np.uint8), np.ones((2 * OUTLINE_PX + 1,) * 2, np.uint8)).astype(bool)
+    assert (r[near] < scene.nozzle.outer_radius_mm).all() and (r[mask] > scene.nozzle.radius_mm).all()
+    rim = (r > scene.nozzle.radius_mm) & (r < 1.2 * scene.nozzle.radius_mm)
+    assert mask[rim].any()
 
 
 @settings(max_examples=30, deadline=None)
