@@ -12,6 +12,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from service.calibration.noise import NoiseFit
 from service.render import Renderer
 from service.render.camera import camera_frame, focal_px, project
 from service.scene import Scene, direction
@@ -22,6 +23,15 @@ START_RADIUS_MM = 0.012
 FLUX_HALF_PX = 2
 #: A glint must stand this many noise sigmas above the static model.
 DETECT_SIGMAS = 6.0
+#: A pixel is still when its robust temporal spread is within this many of the noise model's sigma at its level,
+#: or within STILL_FRACTION of its level above black (a glint by the rim that the fluid shades now and then).
+STILL_SIGMAS = 3.0
+STILL_FRACTION = 0.25
+#: A glint must also stand this fraction of the face's own brightness above the model: where two renderers draw
+#: the face's edges (Blender and ours), their leftovers there are fainter (docs/calibration.md, calib4).
+CONTRAST = 0.4
+#: Glints are not looked for this close (px) to the face's outline.
+OUTLINE_PX = 2
 
 
 def pixel_ray(scene: Scene, col: float | np.ndarray, row: float | np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -36,30 +46,53 @@ def pixel_ray(scene: Scene, col: float | np.ndarray, row: float | np.ndarray) ->
 
 
 def face_pixels(scene: Scene) -> np.ndarray:
-    """Pixels (h, w) bool whose ray meets the plane z = 0 on the nozzle's bottom face (R < r < outer radius):
-    where a defect's glint can be."""
+    """Pixels (h, w) bool whose ray meets the plane z = 0 on the nozzle's bottom face (R < r < outer radius) at
+    least OUTLINE_PX from the face's outline: where a defect's glint can be told from the leftovers of an outline
+    drawn a fraction of a pixel off (by the calibrated pose, ROI and blur, or by another renderer)."""
     cam, nz = scene.camera, scene.nozzle
     rows, cols = np.mgrid[0 : cam.height_px, 0 : cam.width_px]
     location, d = pixel_ray(scene, cols.ravel().astype(float), rows.ravel().astype(float))
     t = -location[2] / d[..., 2]
-    r = np.hypot(*(location[:2, None] + t * d[..., :2].T))
-    return ((r > nz.radius_mm) & (r < nz.outer_radius_mm)).reshape(cam.height_px, cam.width_px)
+    r = np.hypot(*(location[:2, None] + t * d[..., :2].T)).reshape(cam.height_px, cam.width_px)
+    inside = cv2.erode((r < nz.outer_radius_mm).astype(np.uint8), np.ones((2 * OUTLINE_PX + 1,) * 2, np.uint8))
+    return (r > nz.radius_mm) & inside.astype(bool)
 
 
-def detect(residual: np.ndarray, allowed: np.ndarray, noise: float) -> np.ndarray:
+def still_pixels(stack: np.ndarray, noise: NoiseFit, black: float, full_scale: float) -> np.ndarray:
+    """Pixels (h, w) bool of ``stack`` (S, h, w) whose robust temporal spread (1.4826 MAD, blind to a fluid
+    that covers them now and then) is the camera's noise alone: where a static glint can be told from the
+    fluid's moving highlights, however near the bore (the fluid's reach in the model is far wider)."""
+    median = np.median(stack, axis=0)
+    spread = 1.4826 * np.median(np.abs(stack - median), axis=0)
+    level = median - black
+    return spread <= np.maximum(STILL_SIGMAS * noise.sigma(level, full_scale), STILL_FRACTION * level)
+
+
+def detect(residual: np.ndarray, allowed: np.ndarray, noise: float, level: np.ndarray) -> np.ndarray:
     """Glints (G, 3): sub-pixel (col, row) and flux, of ``residual`` (h, w) (lab static image minus the model's
-    without spheres) inside the ``allowed`` mask: local maxima of its white top-hat (small bright specks, not
-    the smooth or edge-like leftovers of an imperfect model) above DETECT_SIGMAS ``noise`` and above
-    DETECT_SIGMAS robust spreads of the top-hat itself."""
+    without spheres) inside the ``allowed`` mask: maxima over the flux square of its white top-hat (small bright
+    specks, not the smooth or edge-like leftovers of an imperfect model; one glint per square, as its flux is
+    summed there) above DETECT_SIGMAS ``noise``, above DETECT_SIGMAS robust spreads of the top-hat itself, and
+    above CONTRAST of the face's ``level`` (h, w, above black) there. The top-hat is taken of the residual's
+    bright part: next to a dark leftover (the model brighter than the lab) it would raise a ridge that pulls the
+    glint."""
     res = residual.astype(np.float32)
-    speck = cv2.morphologyEx(res, cv2.MORPH_TOPHAT, np.ones((5, 5), np.uint8))
+    speck = cv2.morphologyEx(np.maximum(res, 0.0), cv2.MORPH_TOPHAT, np.ones((5, 5), np.uint8))
     spread = 1.4826 * float(np.median(np.abs(speck[allowed] - np.median(speck[allowed])))) if allowed.any() else 0.0
+    square = np.ones((2 * FLUX_HALF_PX + 1,) * 2, np.uint8)
     peak = (
-        (speck == cv2.dilate(speck, np.ones((3, 3), np.uint8))) & allowed & (speck > DETECT_SIGMAS * max(noise, spread))
+        (speck == cv2.dilate(speck, square))
+        & allowed
+        & (speck > DETECT_SIGMAS * max(noise, spread))
+        & (speck > CONTRAST * np.maximum(level, 0.0))
     )
-    out = []
+    out, taken = [], []
     h, w = res.shape
-    for row, col in zip(*np.nonzero(peak)):
+    rows, cols = np.nonzero(peak)
+    for row, col in zip(rows, cols):  # raster order: of equal maxima in one square, the first is the glint
+        if any(abs(row - r) <= FLUX_HALF_PX and abs(col - c) <= FLUX_HALF_PX for r, c in taken):
+            continue
+        taken.append((row, col))
         r0, r1 = max(0, row - FLUX_HALF_PX), min(h, row + FLUX_HALF_PX + 1)
         c0, c1 = max(0, col - FLUX_HALF_PX), min(w, col + FLUX_HALF_PX + 1)
         patch = np.maximum(speck[r0:r1, c0:c1], 0.0)
@@ -111,10 +144,11 @@ def glint_flux(scene: Scene, spheres: np.ndarray, at: np.ndarray, supersample: i
     return np.array(out)
 
 
-def recover(scene: Scene, residual: np.ndarray, allowed: np.ndarray, noise: float) -> np.ndarray:
+def recover(scene: Scene, residual: np.ndarray, allowed: np.ndarray, noise: float, level: np.ndarray) -> np.ndarray:
     """The artifact spheres (G, 4) whose glints explain ``residual`` (fractions of full scale, the PSF keeps a
-    glint's flux): placed with START_RADIUS_MM, resized from their flux against a render, placed again."""
-    glints = detect(residual, allowed, noise)
+    glint's flux; ``level``: the face's brightness in the model, the fluid left out): placed with
+    START_RADIUS_MM, resized from their flux against a render, placed again."""
+    glints = detect(residual, allowed, noise, level)
     if not len(glints):
         return np.zeros((0, 4))
     radii = np.full(len(glints), START_RADIUS_MM)

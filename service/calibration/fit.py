@@ -23,11 +23,11 @@ from scipy.sparse import lil_matrix
 from tqdm import tqdm
 
 from service.calibration import parameters as P
-from service.calibration.artifacts import face_pixels, recover, with_spheres
+from service.calibration.artifacts import face_pixels, recover, still_pixels, with_spheres
 from service.calibration.footage import Footage
 from service.calibration.noise import NoiseFit, fit_noise
 from service.calibration.roi import find_roi, refine_shift
-from service.calibration.synthesis import Synthesis, pyramid
+from service.calibration.synthesis import Synthesis, gaussian, pyramid
 from service.errors import MeniscopeError
 from service.physics import CoefficientRanges
 from service.scene import Scene
@@ -494,7 +494,7 @@ def calibrate(
     moving = _moving(synth, scene)
     noise = fit_noise(lab_stack, ~moving, scene.sensor.offset, footage.full_scale)
     scene = _with_noise(scene, noise)
-    spheres = _spheres(synth, scene, lab_stack, moving, noise)
+    spheres = _spheres(synth, scene, lab_stack, moving, noise, footage.full_scale)
     scene = with_spheres(scene, spheres if spheres is not None else np.zeros((0, 4)))
     lab = crop(footage.frames, scene)
     return Calibration(
@@ -560,11 +560,18 @@ def _with_noise(scene: Scene, noise: NoiseFit) -> Scene:
     return Scene.from_dict(data)
 
 
-def _spheres(synth: Synthesis, scene: Scene, lab_stack: np.ndarray, moving: np.ndarray, noise: NoiseFit):
-    """The artifact spheres from the static residual (lab median minus the model's static frame without them)."""
+def _spheres(
+    synth: Synthesis, scene: Scene, lab_stack: np.ndarray, moving: np.ndarray, noise: NoiseFit, full_scale: float
+) -> np.ndarray | None:
+    """The artifact spheres from the static residual (lab median minus the model's static frame without them),
+    looked for on the face wherever the lab's pixels are still (however near the bore)."""
     static = synth.stored(scene, np.zeros((1, 4)))[0]
     residual = np.median(lab_stack, axis=0) - static
     sigma_median = max(noise.read_noise_fraction, 1e-4) * 1.25 / math.sqrt(len(lab_stack))
     spread = 1.4826 * float(np.median(np.abs(residual[~moving] - np.median(residual[~moving]))))
-    found = recover(scene, residual, ~moving & face_pixels(scene), max(sigma_median, spread))
+    still = still_pixels(lab_stack, noise, scene.sensor.offset, full_scale)
+    allowed = still & face_pixels(scene)
+    # the face's level without the fluid: by the fluid's edge its blurred light would raise the bar over a glint
+    face = gaussian(synth.renderer(scene).static_frame[None], scene.sensor.blur_sigma_px)[0]
+    found = recover(scene, residual, allowed, max(sigma_median, spread), face)
     return found if len(found) else None

@@ -23,6 +23,12 @@ class NoiseFit:
     pixels: int
     signal_span: float
 
+    def sigma(self, signal: np.ndarray, full_scale: float) -> np.ndarray:
+        """The temporal noise (fraction of full scale) this model expects of a static pixel ``signal`` above
+        black: read noise, shot noise where the full well is known, and the quantisation step."""
+        shot = np.maximum(signal, 0.0) / self.full_well_e if self.full_well_e > 0 else 0.0
+        return np.sqrt(self.read_noise_fraction**2 + shot + 1.0 / (12.0 * full_scale**2))
+
 
 def fit_noise(stack: np.ndarray, static: np.ndarray, black: float, full_scale: float) -> NoiseFit:
     """Noise of frames ``stack`` (S, h, w) in fractions of full scale over the ``static`` mask (h, w) bool."""

@@ -153,6 +153,11 @@ class Renderer:
         return self._origin + s[..., None] * self._direction
 
     @property
+    def static_frame(self) -> np.ndarray:
+        """The scene without the fluid (H, W): the nozzle and its defects as every frame starts, before the sensor."""
+        return self._static_frame.reshape(self.shape)
+
+    @property
     def fluid_rays(self) -> FluidRays:
         """The rays that can meet the fluid, as :meth:`fluid_hits` and :meth:`render` trace them."""
         return FluidRays(self._origin, self._direction, self._pixel, self._enter, self._leave)
