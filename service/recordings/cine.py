@@ -40,7 +40,8 @@ corrupt file gives one :class:`MeniscopeError` line, never a large allocation. T
 through a memory map, kept open for a digest of the file and for :meth:`~Recording.view_grey`; images are read
 with ``pread``, so a file that shrinks while it is read (overwritten by ``cp``) is an error naming it, never a
 SIGBUS. :meth:`~Recording.view_grey` gives 8- and 16-bit images in place in the map instead (no copy; the file's
-size checked when they are viewed, not when their pixels are read later).
+size checked when they are viewed, not when their pixels are read later, so a file cut shorter in between ends the
+reader with SIGBUS: ``meniscope analyze`` views, the live replay reads copies).
 """
 
 from __future__ import annotations
