@@ -6,10 +6,9 @@ frame's a + b, in ``meniscope analyze`` and ``meniscope serve`` alike.
 
 from __future__ import annotations
 
-import warnings
-
 import numpy as np
 
+from service.medians import nanmedian
 from service.physics import centre_displacement
 
 
@@ -26,6 +25,5 @@ def window_steady_centre(
     d, p, a, b = np.asarray(coefficients, np.float64).T
     skip = transient if starts_at_ejection else 0
     lo = skip if len(d) > skip else 0
-    with warnings.catch_warnings():  # a window whose frames are all missing: NaN, which the fit reports
-        warnings.simplefilter("ignore", RuntimeWarning)
-        return centre_displacement(np.nanmedian(d[lo:]), np.nanmedian(p[lo:]), a, b, radius_mm)
+    # a window whose frames are all missing: NaN, which the fit reports
+    return centre_displacement(nanmedian(d[lo:]), nanmedian(p[lo:]), a, b, radius_mm)

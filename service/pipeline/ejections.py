@@ -44,6 +44,8 @@ from collections import deque
 import numpy as np
 from numba import njit
 
+from service.medians import median
+
 #: The transient an ejection shows, s: the droplet leaving and the surface's bulge (0.25 ms simulated).
 TRANSIENT_S = 0.3e-3
 #: Frames before a start whose median change is its baseline, s.
@@ -310,7 +312,7 @@ class EjectionDetector:
                 break
             n = np.round(intervals / unit)  # at least 1: the unit is at most the shortest
             if np.all(np.abs(intervals - n * unit) <= EXPECTED_SPREAD * n * unit):
-                return float(np.median(intervals / n))
+                return median(intervals / n)
         return None
 
     def _start(self, final: bool) -> list[int]:
@@ -425,7 +427,7 @@ class EjectionDetector:
         out = np.full((count, 2), -1, np.int64)
         if self._last is None or not self._intervals or self._learning:
             return out
-        period = float(np.median(self._intervals))
+        period = median(self._intervals)
         for k in range(1, EXPECTED_PERIODS + 1):
             centre, spread = self._last + k * period, max(2.0, EXPECTED_SPREAD * k * period)
             a, b = int(np.ceil(centre - spread)) - lo, int(np.floor(centre + spread)) - lo
@@ -459,13 +461,12 @@ class EjectionDetector:
         """Whether the start at kept position ``start`` shows a newer shape than the one at ``other`` (the highest
         novelty over each one's transient): the ringing an ejection starts can change the frame more than the
         bulge did (a 4 kHz mode), never show as new a shape. False where novelty is unknown."""
-        n, t = self._novelty, self.transient
-        with np.errstate(all="ignore"), _quiet():
-            return bool(np.nanmax(n[start : start + t]) > np.nanmax(n[other : other + t]))
+        n, t = self._novelty, self.transient  # fmax: nanmax's values, NaN where all are, without its warning
+        return bool(np.fmax.reduce(n[start : start + t]) > np.fmax.reduce(n[other : other + t]))
 
     def _typical(self) -> float:
         """The median burst level of the recent ejections (0 before the first)."""
-        return float(np.median(self._bursts)) if self._bursts else 0.0
+        return median(self._bursts) if self._bursts else 0.0
 
     def _onset(self, peak: int, top: float, run: int, clear: float) -> int:
         """Position of the burst's first frame: the earliest of the frames from the ``transient`` before ``peak``, or
@@ -558,20 +559,6 @@ def _quantile(ordered, q):  # type: ignore[no-untyped-def]
     lo = int(np.floor(position))
     hi = min(lo + 1, ordered.size - 1)
     return ordered[lo] + (ordered[hi] - ordered[lo]) * (position - lo)
-
-
-class _quiet:
-    """Silences numpy's warnings about all-NaN slices (a gap's frames: their statistics are NaN, as meant)."""
-
-    def __enter__(self) -> None:
-        import warnings
-
-        self._catch = warnings.catch_warnings()
-        self._catch.__enter__()
-        warnings.simplefilter("ignore", RuntimeWarning)
-
-    def __exit__(self, *exc: object) -> None:
-        self._catch.__exit__(*exc)
 
 
 #: Offline looks this far ahead (s): the strongest start within it wins (live waits only the transient).

@@ -21,6 +21,7 @@ from service.analysis.results import FitSettings, Status, WindowResult
 from service.analysis.segment import Window
 from service.analysis.steady import window_steady_centre
 from service.inverse.window_model import Intervals, WindowModel
+from service.medians import median
 from service.pipeline.records import NO_HIGHLIGHT, coefficients_of
 
 
@@ -63,7 +64,7 @@ def job_for(
         window,
         series,
         np.ascontiguousarray(records["brightness"]),
-        float(np.median(highlight)) if len(highlight) else math.nan,
+        median(highlight),
         closed_at,
         None if model is None else model.intervals,
         None if model is None else steady,
