@@ -348,22 +348,24 @@ class EjectionDetector:
         typical = self.floor * self._typical()
         count = max(0, min(span.size, at(until) - at(lo)))
         stretch_of = self._stretches(lo, count)
+        stretch_first = stretch_of[:, 0].tolist()  # ints: looked at every frame
+        ratio, refractory = self.ratio, self.refractory
         scored: tuple[int, int, np.ndarray] | None = None  # a stretch's first and last position, its starts' scores
         for i in range(count):
             frame = lo + i
-            if self._last is not None and frame - self._last < self.refractory:
+            if self._last is not None and frame - self._last < refractory:
                 self._run = None
                 continue
-            if levels[i] > self.ratio * bases[i] and levels[i] > typical:
+            if levels[i] > ratio * bases[i] and levels[i] > typical:
                 self._run = frame if self._run is None else self._run
                 ahead = level[i : i + self.lookahead - self.transient + 1]
                 stronger = span[i] + int(np.argmax(ahead))
                 if ahead.max() > level[i] and not self._newer(span[i], stronger):
                     continue  # a stronger start follows within the look-ahead, showing no older shape: decide there
                 onset = self._onset(at(frame), top[i], at(self._run), self.ratio * bases[i])
-            elif stretch_of[i, 0] >= 0 and levels[i] > 0:  # where the rate puts the next ejection
+            elif stretch_first[i] >= 0 and levels[i] > 0:  # where the rate puts the next ejection
                 self._run = None
-                a, b = int(stretch_of[i, 0]), int(stretch_of[i, 1])
+                a, b = stretch_first[i], int(stretch_of[i, 1])
                 if scored is None or scored[:2] != (a, b):  # the stretch's starts, as far as they are in
                     z = min(b, span.size - 1) + 1
                     scored = (a, b, self._scores(level[a:z], base[a:z], span[a:z]))
@@ -389,6 +391,7 @@ class EjectionDetector:
                 self._held_bursts[self._last] = (float(level[i]), float(burst[i]))
             typical = self.floor * self._typical()
             stretch_of = self._stretches(lo, count)
+            stretch_first = stretch_of[:, 0].tolist()
             if self._pending is not None:  # the stream's start judged against its first ejection
                 starts = self._last - self._origin >= self.refractory and self._pending >= START_FRACTION * burst[i]
                 if starts:
