@@ -10,7 +10,13 @@ from hypothesis import strategies as st
 from service import DEFAULT_SCENE
 from service.bench.ejections import frame_measures, score
 from service.camera_effects import noise_preset
-from service.pipeline.ejections import PERIOD_WAIT_S, EjectionDetector, _window_levels, detect_ejections_streamed
+from service.pipeline.ejections import (
+    PERIOD_WAIT_S,
+    EjectionDetector,
+    _nan_to,
+    _window_levels,
+    detect_ejections_streamed,
+)
 from service.scene import Scene
 from service.simulate import simulate
 from service.validation.score import ejection_matches
@@ -463,3 +469,17 @@ def test_window_levels_slid_from_start_to_start_are_the_bits_of_each_baseline_so
             assert (median[i], p90[i]) == (_fresh_quantile(finite, 0.5), _fresh_quantile(finite, 0.9))
         else:
             assert np.isnan(median[i]) and np.isnan(p90[i])
+
+
+@given(
+    st.lists(st.floats(allow_nan=True, allow_infinity=True), max_size=64),
+    st.sampled_from([(-np.inf, None), (0.0, 0.0), (0.0, None)]),
+)
+def test_the_detectors_nan_replacement_is_numpys(values: list[float], replacement: tuple[float, float | None]) -> None:
+    """NaN and infinities replaced as ``np.nan_to_num`` replaces them, to the bit (its per-call lookups cost the live
+    detector's small batches)."""
+    nan, posinf = replacement
+    x = np.array(values, np.float64)
+    expected = np.nan_to_num(x, nan=nan, posinf=posinf)
+    ours = _nan_to(x.copy(), nan) if posinf is None else _nan_to(x.copy(), nan, posinf)
+    assert ours.tobytes() == expected.tobytes()

@@ -411,7 +411,7 @@ class EjectionDetector:
         stands above the baseline's 90th percentile (-inf where the baseline is too short to judge against), the
         baseline's median and its 90th percentile."""
         burst, base, top, known = _window_levels(self._padded(self._changes), positions, self.history, self.transient)
-        level = np.nan_to_num(burst - top, nan=-np.inf)
+        level = _nan_to(burst - top, nan=-np.inf)
         level[known < self.transient] = -np.inf  # too little history to judge against
         # nor in the stream's first ``history``: a baseline shorter than a slow ringing's period misses its peaks
         level[positions + self._first < self._origin + self.history] = -np.inf
@@ -447,7 +447,7 @@ class EjectionDetector:
         with np.errstate(all="ignore"):
             novel = np.where(known >= self.transient, (burst - novel_top) / novel_base, np.nan)
             change = level / base
-        return np.nan_to_num(np.clip(change, 0, None) * np.clip(novel, 0, None), nan=0.0, posinf=0.0)
+        return _nan_to(np.clip(change, 0, None) * np.clip(novel, 0, None), nan=0.0, posinf=0.0)
 
     def _first_peak(self, score: np.ndarray, best: int) -> int:
         """Where, among a stretch's starts ``score``, the ejection that its highest ``best`` belongs to starts: the
@@ -486,7 +486,7 @@ class EjectionDetector:
             (self._last - self._first + self.refractory) if self._last is not None else 0,
         )
         lo = min(lo, peak)
-        span = np.nan_to_num(self._changes[lo : peak + self.transient] - top, nan=0.0)
+        span = _nan_to(self._changes[lo : peak + self.transient] - top, nan=0.0)
         onset = span >= min(ONSET_FRACTION * span.max(), clear)
         _, novel_base, novel_top, _ = _window_levels(self._padded(self._novelty), np.array([peak]), self.history, 1)
         with np.errstate(invalid="ignore"):
@@ -495,6 +495,20 @@ class EjectionDetector:
             )
         onset[:-1] |= new[:-1] & new[1:]
         return lo + int(np.argmax(onset))
+
+
+#: float64's largest finite value, where ``np.nan_to_num`` puts infinities.
+_LARGEST = float(np.finfo(np.float64).max)
+
+
+def _nan_to(values: np.ndarray, nan: float, posinf: float = _LARGEST) -> np.ndarray:
+    """``np.nan_to_num(values, nan=nan, posinf=posinf)`` (-inf to float64's lowest) of a float64 array made for the
+    call, in place: without numpy's per-call type lookups, most of what it cost the live detector's small batches."""
+    nans, high, low = np.isnan(values), values == np.inf, values == -np.inf
+    values[nans] = nan
+    values[high] = posinf
+    values[low] = -_LARGEST
+    return values
 
 
 @njit(cache=True, nogil=True)
