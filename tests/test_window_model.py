@@ -253,6 +253,26 @@ def test_a_settled_window_is_settled_whatever_the_window_models_correction_wande
     assert 0 < result.residual_amplitude_mm < 0.001
 
 
+def test_a_window_settled_from_its_steady_series_has_its_offsets_interval_calibrated_too() -> None:
+    """The calibration is made on every window the default path reports, those settled from the steady series among
+    them (``training.window_intervals``): their offset's interval is calibrated like any other's, not the fit's own
+    (a few nm wide: it held the truth of none of them)."""
+    steady = 0.001 + np.random.default_rng(1).normal(0, 0.0002, 190)
+    calibration = wm.Intervals(
+        dict.fromkeys(wm.QUANTITIES, 3.0),
+        dict.fromkeys(wm.QUANTITIES, 0.002),
+        dict.fromkeys(wm.QUANTITIES, False),
+        240,
+        0.95,
+    )
+    series = _wandering(steady, 0.01, 30.0)
+    job = WindowJob(Window(0, 0, 190, True, True), series, None, 0.5, intervals=calibration, steady=steady)
+    result = fit_job(job, 19_000.0, FitSettings())
+    assert result.status == "settled" and result.intervals == "calibrated"
+    low, high = result.offset_ci_mm
+    assert low < result.offset_mm < high and high - low >= 2 * 3.0 * 0.002
+
+
 def test_a_window_whose_steady_series_oscillates_keeps_the_window_models_fit() -> None:
     t = np.arange(190)
     steady = 0.001 + np.random.default_rng(0).normal(0, 0.0002, 190)
