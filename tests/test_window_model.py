@@ -212,18 +212,23 @@ def test_conformal_factors_hold_the_truth_in_95_percent_of_the_calibration_windo
     assert 0.90 <= coverage(pairs(4000), intervals) <= 0.99
 
 
+def _linear_intervals(factor: float, floor: float) -> wm.Intervals:
+    """A calibration with the same linear factor and floor for every quantity (240 windows, 95 %)."""
+    return wm.Intervals(
+        dict.fromkeys(wm.QUANTITIES, factor),
+        dict.fromkeys(wm.QUANTITIES, floor),
+        dict.fromkeys(wm.QUANTITIES, False),
+        240,
+        0.95,
+    )
+
+
 def test_the_calibration_travels_with_the_job_and_calibrates_the_fit(graph, tmp_path: Path) -> None:
     _, path = graph
     for name in (wm.FILE, wm.NETWORK):
         shutil.copy(path.with_name(name), tmp_path / name)
     record = json.loads(path.with_name(wm.RECORD).read_text())
-    factors = wm.Intervals(
-        dict.fromkeys(wm.QUANTITIES, 3.0),
-        dict.fromkeys(wm.QUANTITIES, 0.1),
-        dict.fromkeys(wm.QUANTITIES, False),
-        240,
-        0.95,
-    )
+    factors = _linear_intervals(3.0, 0.1)
     (tmp_path / wm.RECORD).write_text(json.dumps(record | {"intervals": factors.as_record()}))
     model = wm.WindowModel.of_folder(tmp_path)
     assert model.intervals == factors
@@ -258,13 +263,7 @@ def test_a_window_settled_from_its_steady_series_has_its_offsets_interval_calibr
     them (``training.window_intervals``): their offset's interval is calibrated like any other's, not the fit's own
     (a few nm wide: it held the truth of none of them)."""
     steady = 0.001 + np.random.default_rng(1).normal(0, 0.0002, 190)
-    calibration = wm.Intervals(
-        dict.fromkeys(wm.QUANTITIES, 3.0),
-        dict.fromkeys(wm.QUANTITIES, 0.002),
-        dict.fromkeys(wm.QUANTITIES, False),
-        240,
-        0.95,
-    )
+    calibration = _linear_intervals(3.0, 0.002)
     series = _wandering(steady, 0.01, 30.0)
     job = WindowJob(Window(0, 0, 190, True, True), series, None, 0.5, intervals=calibration, steady=steady)
     result = fit_job(job, 19_000.0, FitSettings())
