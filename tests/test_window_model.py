@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import shutil
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -211,18 +212,23 @@ def test_conformal_factors_hold_the_truth_in_95_percent_of_the_calibration_windo
     assert 0.90 <= coverage(pairs(4000), intervals) <= 0.99
 
 
+def _linear_intervals(factor: float, floor: float) -> wm.Intervals:
+    """A calibration with the same linear factor and floor for every quantity (240 windows, 95 %)."""
+    return wm.Intervals(
+        dict.fromkeys(wm.QUANTITIES, factor),
+        dict.fromkeys(wm.QUANTITIES, floor),
+        dict.fromkeys(wm.QUANTITIES, False),
+        240,
+        0.95,
+    )
+
+
 def test_the_calibration_travels_with_the_job_and_calibrates_the_fit(graph, tmp_path: Path) -> None:
     _, path = graph
     for name in (wm.FILE, wm.NETWORK):
         shutil.copy(path.with_name(name), tmp_path / name)
     record = json.loads(path.with_name(wm.RECORD).read_text())
-    factors = wm.Intervals(
-        dict.fromkeys(wm.QUANTITIES, 3.0),
-        dict.fromkeys(wm.QUANTITIES, 0.1),
-        dict.fromkeys(wm.QUANTITIES, False),
-        240,
-        0.95,
-    )
+    factors = _linear_intervals(3.0, 0.1)
     (tmp_path / wm.RECORD).write_text(json.dumps(record | {"intervals": factors.as_record()}))
     model = wm.WindowModel.of_folder(tmp_path)
     assert model.intervals == factors
@@ -252,6 +258,20 @@ def test_a_settled_window_is_settled_whatever_the_window_models_correction_wande
     assert 0 < result.residual_amplitude_mm < 0.001
 
 
+def test_a_window_settled_from_its_steady_series_has_its_offsets_interval_calibrated_too() -> None:
+    """The calibration is made on every window the default path reports, those settled from the steady series among
+    them (``training.window_intervals``): their offset's interval is calibrated like any other's, not the fit's own
+    (a few nm wide: it held the truth of none of them)."""
+    steady = 0.001 + np.random.default_rng(1).normal(0, 0.0002, 190)
+    calibration = _linear_intervals(3.0, 0.002)
+    series = _wandering(steady, 0.01, 30.0)
+    job = WindowJob(Window(0, 0, 190, True, True), series, None, 0.5, intervals=calibration, steady=steady)
+    result = fit_job(job, 19_000.0, FitSettings())
+    assert result.status == "settled" and result.intervals == "calibrated"
+    low, high = result.offset_ci_mm
+    assert low < result.offset_mm < high and high - low >= 2 * 3.0 * 0.002
+
+
 def test_a_window_whose_steady_series_oscillates_keeps_the_window_models_fit() -> None:
     t = np.arange(190)
     steady = 0.001 + np.random.default_rng(0).normal(0, 0.0002, 190)
@@ -261,32 +281,64 @@ def test_a_window_whose_steady_series_oscillates_keeps_the_window_models_fit() -
     assert result.status != "settled" and any(abs(m.frequency_hz - 1000) < 20 for m in result.modes)
 
 
+#: What :func:`training.window.render_training` was asked for: (windows, first seed, ranges, name, bit depth).
+Asked = list[tuple[int, int, WindowRanges, str, int]]
+
+
+def asked_of(render_some: Callable[[], list[Path]]) -> tuple[list[Path], Asked]:
+    """The paths ``render_some`` returns with :func:`training.window.render_training` replaced by a recorder that
+    renders nothing, and what it was asked for."""
+    asked: Asked = []
+
+    def render(
+        folder: Path,
+        scene: object,
+        n: int,
+        s: int,
+        ranges: WindowRanges = tw.TRAINING_RANGES,
+        name: str = "window",
+        bit_depth: int = 12,
+    ) -> list[Path]:
+        asked.append((n, s, ranges, name, bit_depth))
+        return [folder / f"{name}-{noise}-{s + k}.cine" for k, noise in enumerate(tw.TRAINING_NOISE)]
+
+    original, tw.render_training = tw.render_training, render
+    try:
+        return render_some(), asked
+    finally:
+        tw.render_training = original
+
+
 @settings(max_examples=30, deadline=None)
 @given(windows=st.integers(1, 5000), seed=st.integers(0, 10**6))
 def test_training_windows_are_half_nominal_half_widened_at_seeds_of_their_own(windows: int, seed: int) -> None:
     """``train``'s training windows (:func:`training.window.render_mix`): per noise preset, half at the simulator's
     nominal motion (like the held-out recordings and the calibration) and the rest at the widened ranges, each
-    half at seeds that neither the other half nor the calibration (``seed + CALIBRATION_SEEDS``) uses."""
-    asked: list[tuple[int, int, WindowRanges, str]] = []
-
-    def render(
-        folder: Path, scene: object, n: int, s: int, ranges: WindowRanges = tw.TRAINING_RANGES, name: str = "window"
-    ) -> list[Path]:
-        asked.append((n, s, ranges, name))
-        return [folder / f"{name}-{noise}-{s + k}.cine" for k, noise in enumerate(tw.TRAINING_NOISE)]
-
-    original, tw.render_training = tw.render_training, render
-    try:
-        paths = tw.render_mix(Path("data"), None, windows, seed)  # type: ignore[arg-type]
-    finally:
-        tw.render_training = original
+    half at seeds that neither the other half nor the calibration (``seed + CALIBRATION_SEEDS`` on) uses."""
+    paths, asked = asked_of(lambda: tw.render_mix(Path("data"), None, windows, seed))  # type: ignore[arg-type]
     assert sum(n for n, *_ in asked) == windows and all(n > 0 for n, *_ in asked)
-    assert {r for _, _, r, _ in asked} <= {tw.TRAINING_RANGES, WindowRanges()}
-    assert sum(n for n, _, r, _ in asked if r == WindowRanges()) == windows // 2
-    used = [s + k for _, s, _, _ in asked for k in range(len(tw.TRAINING_NOISE))]
-    calibration = {seed + tw.CALIBRATION_SEEDS + k for k in range(len(tw.TRAINING_NOISE))}
+    assert {r for _, _, r, _, _ in asked} <= {tw.TRAINING_RANGES, WindowRanges()}
+    assert sum(n for n, _, r, _, _ in asked if r == WindowRanges()) == windows // 2
+    used = [s + k for _, s, *_ in asked for k in range(len(tw.TRAINING_NOISE))]
+    calibrations = len(tw.TRAINING_NOISE) * len(tw.CALIBRATION_BIT_DEPTHS)
+    calibration = {seed + tw.CALIBRATION_SEEDS + k for k in range(calibrations)}
     assert len(set(used)) == len(used) and not calibration & set(used)
     assert len(set(paths)) == len(paths) == len(tw.TRAINING_NOISE) * len(asked)
+
+
+@settings(max_examples=30, deadline=None)
+@given(windows=st.integers(1, 5000), seed=st.integers(0, 10**6))
+def test_calibration_windows_cover_every_preset_through_the_12_and_the_8_bit_camera(windows: int, seed: int) -> None:
+    """``train``'s calibration windows (:func:`training.window.render_calibration`): ``windows`` per noise preset
+    and camera, all at the simulator's nominal motion, each recording at a seed of its own from
+    ``seed + CALIBRATION_SEEDS`` on (none of which a training window uses: the test above)."""
+    paths, asked = asked_of(lambda: tw.render_calibration(Path("data"), None, windows, seed))  # type: ignore[arg-type]
+    assert sorted(bits for *_, bits in asked) == sorted(tw.CALIBRATION_BIT_DEPTHS) == [8, 12]
+    assert all(n == windows and r == WindowRanges() for n, _, r, _, _ in asked)
+    used = sorted(s + k for _, s, *_ in asked for k in range(len(tw.TRAINING_NOISE)))
+    first = seed + tw.CALIBRATION_SEEDS
+    assert used == list(range(first, first + len(tw.TRAINING_NOISE) * len(tw.CALIBRATION_BIT_DEPTHS)))
+    assert len(set(paths)) == len(paths) == len(used)
 
 
 def test_calibrating_a_model_folder_that_fails_leaves_the_folder_as_it_was(demo_cine: Path, tmp_path: Path) -> None:

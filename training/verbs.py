@@ -24,7 +24,8 @@ if TYPE_CHECKING:
     from service.scene import Scene
 
 #: ``train``'s window model: windows per noise preset it is trained on (half at the nominal motion, half widened:
-#: ``training.window.render_mix``), its epochs, and the windows per preset that calibrate its intervals
+#: ``training.window.render_mix``), its epochs, and the windows per preset and camera (12 and 8 bits:
+#: ``training.window.render_calibration``) that calibrate its intervals
 #: (docs/window_model.md: its error fell with the windows trained on).
 WINDOW_WINDOWS, WINDOW_EPOCHS, WINDOW_CALIBRATION = 1300, 80, 80
 #: Top-level modules of the train extra -> the extra (the scale extra's Dask is checked where --scheduler is read).
@@ -140,7 +141,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "--window-windows",
         type=int,
         help=f"windows per noise preset the window model is trained on (default {WINDOW_WINDOWS}; --quick 2; 0: no "
-        f"window model), rendered by our renderer from the scene; {WINDOW_CALIBRATION} more calibrate its intervals",
+        f"window model), rendered by our renderer from the scene; {WINDOW_CALIBRATION} more per preset at 12 and 8 bits calibrate its intervals",
     )
     p.set_defaults(func=run_train)
 

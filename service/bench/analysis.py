@@ -28,11 +28,11 @@ from service.errors import MeniscopeError, require_folder_of
 from service.inverse.methods import DATABASE_METHODS, METHODS, database_folder, open_method
 from service.scene import Scene
 from service.simulate import truth_path
-from service.validation.score import summary
+from service.validation.score import QUANTITIES, error_statistics, summary
 from service.validation.truth import read_truth
 from service.verbs import add_scene_option
 
-#: Summary figures averaged over a method's recordings, as (key, label, format) of the table.
+#: Summary figures of a method's recordings (:func:`aggregate`), as (key, label, format) of the table.
 COLUMNS = (
     ("frames_per_s", "frames/s", ".0f"),
     ("precision", "seg. precision", ".3f"),
@@ -136,12 +136,16 @@ def run_method_apart(*args: object) -> dict:
 
 
 def aggregate(rows: list[dict]) -> dict:
-    """Means over recordings of each summary figure (None where no recording had it); frames/s overall."""
+    """The errors' medians and 90th percentiles over the set's windows pooled (what a user reads as the set's
+    figures; a mean of each recording's own would weigh a 4-window recording as much as a 40-window one and let
+    one recording's bad tail set the p90), means over recordings of the other summary figures (None where no
+    recording had it); frames/s overall."""
     out = {"recordings": len(rows), "frames_per_s": sum(r["frames"] for r in rows) / sum(r["seconds"] for r in rows)}
     for key, _, _ in COLUMNS[1:-1]:  # peak memory is the method's, not per recording
         values = [r[key] for r in rows if r.get(key) is not None]
         out[key] = float(np.mean(values)) if values else None
-    return out
+    pooled = {key: np.concatenate([np.asarray(r[f"{key}_errors"], np.float64) for r in rows]) for key in QUANTITIES}
+    return out | error_statistics(pooled)
 
 
 def _cell(value: float | None, spec: str) -> str:

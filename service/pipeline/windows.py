@@ -84,7 +84,8 @@ def fit_job(job: WindowJob, fps: float, settings: FitSettings) -> WindowResult:
     would otherwise pass for a settled meniscus). The window model de-shrinks oscillations; it does not make a
     settled meniscus move: where its series leaves the window unresolved (a slow swing or trend: its correction
     wandering, on a Blender recording's settled window) and the steady series it corrected is settled, the window is
-    settled, as that series' fit reports it."""
+    settled, as that series' fit reports it, its intervals calibrated as any other's (the calibration was made on
+    every window the path reports, such ones among them)."""
     from service.analysis.fit import fit_window
 
     w = job.window
@@ -108,7 +109,7 @@ def fit_job(job: WindowJob, fps: float, settings: FitSettings) -> WindowResult:
         steady = fit_window(job.steady, fps, settings, **where)
         if steady.status == "settled":
             note = f"in the steady series (the window model's was unresolved: {result.reason})"
-            return steady.model_copy(update={"reason": f"{steady.reason}, {note}"})
+            result = steady.model_copy(update={"reason": f"{steady.reason}, {note}"})
     return result if job.intervals is None else job.intervals.apply(result)
 
 

@@ -87,10 +87,22 @@ def window_coverage(report: Report, truth: dict[str, Any]) -> dict[str, np.ndarr
     return out
 
 
+def error_statistics(errors: dict[str, np.ndarray]) -> dict[str, float | None]:
+    """``{quantity}_median`` and ``{quantity}_p90`` of each quantity's finite errors (None where there are none)."""
+    out: dict[str, float | None] = {}
+    for key, values in errors.items():
+        finite = np.asarray(values, np.float64)
+        finite = finite[np.isfinite(finite)]
+        out[f"{key}_median"] = float(np.median(finite)) if finite.size else None
+        out[f"{key}_p90"] = float(np.percentile(finite, 90)) if finite.size else None
+    return out
+
+
 def summary(report: Report, truth: dict[str, Any], per_frame: InverseOutput | None = None) -> dict[str, Any]:
-    """Medians and 90th percentiles of :func:`window_errors`, segmentation precision and recall (+-2 frames),
-    and with the ``per_frame`` estimates the RMSE of each coefficient and of D(0, t), and the correlation
-    of D(0, t), outside the transients."""
+    """Medians and 90th percentiles of :func:`window_errors` (and, as ``{quantity}_errors``, the finite errors
+    themselves, so that a set of recordings can be pooled over its windows), segmentation precision and recall
+    (+-2 frames), and with the ``per_frame`` estimates the RMSE of each coefficient and of D(0, t), and the
+    correlation of D(0, t), outside the transients."""
     errors = window_errors(report, truth)
     hits, found, true = ejection_matches(np.array(report.ejections), np.array(truth["ejections"]))
     out: dict[str, Any] = {
@@ -99,10 +111,8 @@ def summary(report: Report, truth: dict[str, Any], per_frame: InverseOutput | No
         "precision": hits / found if found else None,
         "recall": hits / true if true else None,
     }
-    for key, values in errors.items():
-        finite = values[np.isfinite(values)]
-        out[f"{key}_median"] = float(np.median(finite)) if finite.size else None
-        out[f"{key}_p90"] = float(np.percentile(finite, 90)) if finite.size else None
+    out |= error_statistics(errors)
+    out |= {f"{key}_errors": values[np.isfinite(values)].tolist() for key, values in errors.items()}
     for key, held in window_coverage(report, truth).items():  # the share of intervals that hold the truth
         finite = held[np.isfinite(held)]
         out[f"{key}_coverage"] = float(np.mean(finite)) if finite.size else None
