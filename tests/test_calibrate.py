@@ -243,3 +243,14 @@ def test_what_trades_with_an_unpinned_parameter_is_not_identified_either(
     assert verdict["fluid.roughness"] == pinned
     assert all(verdict[partner] == pinned for partner in PARTNERS["fluid.roughness"])
     assert verdict["light.azimuth_deg"] and verdict["camera.exposure"]  # no profile, no ridge: left to their sigma
+
+
+def test_without_a_rate_or_a_file_the_ejections_are_found_from_the_video(tmp_path: Path) -> None:
+    """``calibrate REC`` alone (no printer file, no rate): the detector ``analyze`` runs finds the lab's ejections, and
+    each fitted frame falls in the window between the true ejections it lies in."""
+    out = tmp_path / "lab.cine"
+    simulate(Scene.from_dict(json.loads(Path(DEFAULT_SCENE).read_text())), out, windows=3, seed=4, ejection_hz=100.0)
+    footage = read_footage(out, frames=12, stack=38)
+    true = json.loads(out.with_suffix(".truth.json").read_text())["ejections"]
+    assert footage.windows.tolist() == np.searchsorted(true, footage.indices, side="right").tolist()
+    assert len(np.unique(footage.windows)) == 3

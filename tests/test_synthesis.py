@@ -9,6 +9,8 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from scipy.ndimage import gaussian_filter
 from threadpoolctl import threadpool_limits
 
@@ -19,6 +21,8 @@ from service.analysis.results import ModeEstimate, WindowResult
 from service.camera_effects import CameraEffects
 from service.inverse.synthesis import (
     SUN_SAMPLES,
+    _point,
+    _Problem,
     covariance,
     frames_start,
     moving_pixels,
@@ -253,3 +257,15 @@ def test_the_search_sees_a_near_mirror_s_sun_as_a_disc_not_as_its_renderer_s_fou
         return float(np.sqrt(np.mean((seen(sun_samples) - truth)[:, moving] ** 2)) / scale)
 
     assert off(SUN_SAMPLES) < 0.07 and off(4) > 0.12
+
+
+@settings(max_examples=25, deadline=None)
+@given(blur=st.one_of(st.floats(10.001, 1e300), st.sampled_from([np.inf, -np.inf, np.nan, -5e9])))
+def test_a_search_step_to_an_absurd_blur_is_a_bad_fit_not_a_crash(renderer, blur: float) -> None:
+    """LM's steps are unbounded: a blur no camera has (sigma 5e9 px asked scipy for a 161 GiB kernel) gets residuals
+    as bad as a black window's, finite and worse than the true motion's, so the search steps back."""
+    camera = CameraEffects(blur_sigma_px=0.7, bit_depth=12)
+    problem = _Problem(renderer, frames_of(renderer, TRUE, camera), T)
+    absurd = problem.residuals(_point(TRUE, blur))
+    assert np.all(np.isfinite(absurd))
+    assert np.mean(absurd**2) > np.mean(problem.residuals(_point(TRUE, 0.7)) ** 2)

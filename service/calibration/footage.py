@@ -19,7 +19,7 @@ class Footage:
     ``frames`` (K, H, W): the frames whose motion is fitted, ``indices`` (K,) their frame numbers;
     ``stack`` (S, H, W): frames spread over the whole recording, for the temporal median (static scene,
     ROI search) and the temporal variance of static pixels (noise model); ``windows`` (K,) the window between
-    ejections each fitted frame lies in (ejections detected from the whole recording's frame-to-frame change).
+    ejections each fitted frame lies in (the printer's ejections, its rate's, or the video's, as ``analyze`` finds them).
     """
 
     path: Path
@@ -61,14 +61,22 @@ def read_footage(
         read = lambda idx: np.stack([rec[int(i)] for i in idx]).astype(np.float32) / top
         indices = spread(frames, total)
         stack_idx = np.unique(np.linspace(0, total - 1, min(stack, total)).round().astype(np.int64))
-        windows = np.searchsorted(_ejections(rec, total, ejections_file, ejection_hz), indices, side="right")
+        cuts = _ejections(path, rec, total, ejections_file, ejection_hz)
+        windows = np.searchsorted(cuts, indices, side="right")
         return Footage(path, read(indices), indices, read(stack_idx), rec.bit_depth, rec.fps, windows)
 
 
 def _ejections(
-    rec, total: int, ejections_file: str | Path | None, ejection_hz: float | None, chunk: int = 256
+    path: Path, rec, total: int, ejections_file: str | Path | None, ejection_hz: float | None, chunk: int = 256
 ) -> np.ndarray:
-    """Ejection frames of an open recording, detected from its frame-to-frame change as ``analyze`` does."""
+    """Ejection frames of an open recording: read from the printer's file, placed at its rate on the frame-to-frame
+    change, or, with neither, found from the video by the detector ``analyze`` and ``serve`` run."""
+    if ejections_file is None and ejection_hz is None:
+        from service.bench.ejections import frame_measures
+        from service.pipeline.ejections import detect_ejections_streamed
+
+        change, novelty = frame_measures(path, rec.fps)
+        return detect_ejections_streamed(change, rec.fps, offline=True, novelty=novelty)
     steps, previous = [], None
     for lo in range(0, total, chunk):
         frames = np.stack([rec[i] for i in range(lo, min(lo + chunk, total))])

@@ -45,6 +45,10 @@ _COEFFICIENT_STEP = np.array([1e-3, 1e-2, 1e-3, 1e-3])
 _BLUR_STEP = 0.05
 #: Start of the camera's blur (px): the "lab" camera preset's focus.
 _START_BLUR = 0.7
+#: The largest blur sigma (px) the search renders: beyond it a window's frames are a smear, no camera's focus. LM's
+#: steps are unbounded, and one to sigma 5e9 px asked scipy's Gaussian for a 161 GiB kernel (a Blender Cycles window
+#: of the calibrated near-mirror scene, docs/new_camera.md).
+_MAX_BLUR = 10.0
 #: Amplitude factors of the starts tried (the one whose frames fit best is refined): the shipped models'
 #: a(t) has a slope of 0.2-0.6 against the truth on unseen recordings.
 _AMPLIFY = (1.0, 2.0, 4.0)
@@ -246,7 +250,8 @@ class _Problem:
         """Frames minus gain * blurred render + offset, gain and offset the least-squares ones; (m H W,)."""
         params = x * _SCALE
         coefficients = _coefficients(params, self.t)
-        if not np.all(np.isfinite(coefficients)):  # a step to absurd amplitudes: as bad as a black window, not a crash
+        if not (np.all(np.isfinite(coefficients)) and abs(params[10]) <= _MAX_BLUR):
+            # a step to absurd amplitudes or blur: as bad as a black window, not a crash
             return np.abs(self.y).ravel() + np.abs(self.y).max()
         self._sharp = self._render(coefficients)
         model = self._seen(gaussian_filter(self._sharp, (0, abs(params[10]), abs(params[10]))))
