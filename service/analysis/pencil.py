@@ -59,6 +59,7 @@ def exponentials(x: np.ndarray, pencil: int, order: int) -> tuple[np.ndarray, np
     hankel = np.empty((size - rows, rows + 1))
     for i in range(size - rows):
         hankel[i, :] = x[i : i + rows + 1]
+    hankel /= max(np.abs(x).max(), 1e-300)  # its square finite for any finite x
     _, vectors = np.linalg.eigh(hankel.T @ hankel)  # ascending: the right singular vectors, the last dominant
     order = min(max(order, 1), min(size - rows, rows))
     v = np.ascontiguousarray(vectors[:, ::-1][:, :order]).astype(np.complex128)  # (L + 1, K): spans [z^0 .. z^L]

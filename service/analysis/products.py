@@ -26,8 +26,8 @@ _I, _J = np.array([(i, j) for i in range(ORDER + 1) for j in range(ORDER + 1 - i
 #: fewer evaluations than 1e-8 at no cost in accuracy, docs/benchmarks.md).
 _ITERATIONS, _TOLERANCE = 60, 1e-6
 #: Smallest pivot of the scaled Gram matrix's Cholesky factor, squared, for which the linear fit takes the
-#: seminormal equations (its condition number then under ~1e8: refined once, as accurate as a QR); below, a QR.
-_PIVOT = 1e-8
+#: seminormal equations (its condition number then under ~1e12: refined once, as accurate as a QR); below, the SVD.
+_PIVOT = 1e-12
 #: Mode 2's start against mode 1's: Eq. 1's second mode lies at l2 / l1 = 2.30 times the first's frequency and
 #: damps faster (a start only: the fit finds both).
 _RATIO_W, _RATIO_G = 2.3, 2.0
@@ -45,10 +45,10 @@ class ProductFit:
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _factor(design: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _factor(design: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
     """A lower-triangular ``L`` (k, k) and column scales ``s`` (k,) with ``S G S = L L'``, G ``design``'s (N, k)
-    Gram matrix: Cholesky's of G with its columns scaled to unit norm where each pivot is over :data:`_PIVOT`,
-    else R' of ``design``'s QR (s = 1): a near-singular design is not squared."""
+    Gram matrix with its columns scaled to unit norm (Cholesky's), and whether each pivot is over :data:`_PIVOT`
+    (else the design is near singular and is not to be squared)."""
     gram = design.T @ design
     width = gram.shape[0]
     scale = np.empty(width)
@@ -56,7 +56,7 @@ def _factor(design: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     ok = True
     for a in range(width):
         ok = ok and gram[a, a] > 0.0
-        scale[a] = 1.0 / np.sqrt(gram[a, a]) if ok else 1.0
+        scale[a] = 1.0 / np.sqrt(gram[a, a]) if gram[a, a] > 0.0 else 1.0
     for a in range(width):
         for b in range(a + 1):
             if not ok:
@@ -70,9 +70,7 @@ def _factor(design: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
                 lower[a, a] = np.sqrt(total)
             else:
                 ok = False
-    if ok:
-        return lower, scale
-    return np.ascontiguousarray(np.linalg.qr(design)[1].T), np.ones(width)
+    return lower, scale, ok
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -97,10 +95,13 @@ def _solved(lower: np.ndarray, scale: np.ndarray, rhs: np.ndarray) -> np.ndarray
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _least_squares(design: np.ndarray, lower: np.ndarray, scale: np.ndarray, rhs: np.ndarray) -> np.ndarray:
-    """The least-squares coefficients (k, m) of ``design`` (N, k) for each column of ``rhs`` (N, m), by the
-    seminormal equations with :func:`_factor`'s factor, refined once: as accurate as a QR solve here, without
-    forming a QR each evaluation."""
+def _least_squares(design: np.ndarray, lower: np.ndarray, scale: np.ndarray, ok: bool, rhs: np.ndarray) -> np.ndarray:
+    """The least-squares coefficients (k, m) of ``design`` (N, k) for each column of ``rhs`` (N, m): by the
+    seminormal equations with :func:`_factor`'s factor, refined once, where it is ``ok`` (as accurate as a QR solve
+    there, without forming a QR each evaluation); else by the SVD of the design with its columns scaled alike,
+    the minimum-norm solution where they are dependent."""
+    if not ok:
+        return np.linalg.lstsq(design * scale, np.ascontiguousarray(rhs), 1e-12)[0] * scale.reshape(-1, 1)
     coefficients = _solved(lower, scale, design.T @ rhs)
     return coefficients + _solved(lower, scale, design.T @ (rhs - design @ coefficients))
 
@@ -108,10 +109,10 @@ def _least_squares(design: np.ndarray, lower: np.ndarray, scale: np.ndarray, rhs
 @njit(cache=True, nogil=True, error_model="numpy")
 def _linear(
     n: np.ndarray, y: np.ndarray, theta: np.ndarray, first: np.ndarray, second: np.ndarray
-) -> tuple[np.ndarray, float, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, float, np.ndarray, np.ndarray, np.ndarray, bool, np.ndarray, np.ndarray, np.ndarray]:
     """Residual (N,) and cost of the linear fit (the offset and each monomial x1^first x2^second) at ``theta``
     (w1, g1, phi1, w2, g2, phi2), and what :func:`_kaufman` needs for its Jacobian: the design (N, M + 1), its
-    factor and scales, the coefficients (M + 1,), the powers x_k^e (2, E, N) and dx_k / d(w_k, g_k, phi_k)
+    factor, scales and whether the factor serves, the coefficients (M + 1,), the powers x_k^e (2, E, N) and dx_k / d(w_k, g_k, phi_k)
     (2, 3, N)."""
     size, monomials = n.size, first.size
     x = np.empty((2, size))
@@ -136,10 +137,10 @@ def _linear(
         design[i, 0] = 1.0
         for m in range(monomials):
             design[i, m + 1] = power[0, first[m], i] * power[1, second[m], i]
-    lower, scale = _factor(design)
-    c = np.ascontiguousarray(_least_squares(design, lower, scale, y.reshape(-1, 1))[:, 0])
+    lower, scale, ok = _factor(design)
+    c = np.ascontiguousarray(_least_squares(design, lower, scale, ok, y.reshape(-1, 1))[:, 0])
     residual = y - design @ c
-    return residual, float(residual @ residual), design, lower, scale, c, power, dx
+    return residual, float(residual @ residual), design, lower, scale, ok, c, power, dx
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -147,6 +148,7 @@ def _kaufman(
     design: np.ndarray,
     lower: np.ndarray,
     scale: np.ndarray,
+    ok: bool,
     c: np.ndarray,
     power: np.ndarray,
     dx: np.ndarray,
@@ -168,7 +170,7 @@ def _kaufman(
         for p in range(3):
             change[i, p] = dx[0, p, i] * slope0
             change[i, 3 + p] = dx[1, p, i] * slope1
-    return design @ _least_squares(design, lower, scale, change) - change
+    return design @ _least_squares(design, lower, scale, ok, change) - change
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -179,8 +181,8 @@ def _levenberg_marquardt(
     there, and whether it converged (the cost falling by under :data:`_TOLERANCE` of itself, or no step lowering
     it) within :data:`_ITERATIONS`; decay rates are held at 0 or above (a growing mode is no mode, and its powers
     overflow). A trial's Jacobian is formed only where the trial is taken."""
-    residual, cost, design, lower, scale, c, power, dx = _linear(n, y, theta, first, second)
-    jacobian = _kaufman(design, lower, scale, c, power, dx, first, second)
+    residual, cost, design, lower, scale, ok, c, power, dx = _linear(n, y, theta, first, second)
+    jacobian = _kaufman(design, lower, scale, ok, c, power, dx, first, second)
     damping = 1e-3
     for _ in range(_ITERATIONS):
         normal = jacobian.T @ jacobian
@@ -192,7 +194,7 @@ def _levenberg_marquardt(
             trial = theta - np.linalg.solve(lhs, gradient)
             for k in range(2):
                 trial[3 * k + 1] = max(trial[3 * k + 1], 0.0)
-            trial_residual, trial_cost, design, lower, scale, c, power, dx = _linear(n, y, trial, first, second)
+            trial_residual, trial_cost, design, lower, scale, ok, c, power, dx = _linear(n, y, trial, first, second)
             if trial_cost < cost:
                 break
             damping *= 4.0
@@ -200,7 +202,7 @@ def _levenberg_marquardt(
                 return theta, jacobian, cost, True
         converged = cost - trial_cost <= _TOLERANCE * cost
         theta, residual, cost = trial, trial_residual, trial_cost
-        jacobian = _kaufman(design, lower, scale, c, power, dx, first, second)
+        jacobian = _kaufman(design, lower, scale, ok, c, power, dx, first, second)
         damping = max(damping / 3.0, 1e-9)
         if converged:
             return theta, jacobian, cost, True
@@ -218,8 +220,7 @@ def _phases(n: np.ndarray, y: np.ndarray, w: np.ndarray, g: np.ndarray) -> np.nd
             envelope = np.exp(-g[k] * n[i])
             design[i, 1 + k] = envelope * np.cos(w[k] * n[i])
             design[i, 3 + k] = envelope * np.sin(w[k] * n[i])
-    lower, scale = _factor(design)
-    c = _least_squares(design, lower, scale, y.reshape(-1, 1))[:, 0]
+    c = _least_squares(design, *_factor(design), y.reshape(-1, 1))[:, 0]
     return np.arctan2(-c[3:5], c[1:3])
 
 
