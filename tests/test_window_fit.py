@@ -18,7 +18,7 @@ from scipy.optimize import least_squares
 from scipy.special import logsumexp
 
 from service.analysis import fit as fit_module
-from service.analysis import kernels
+from service.analysis import kernels, pencil
 from service.analysis.fit import fit_window, model_curve
 from service.analysis.pencil import energy
 from service.analysis.results import FitSettings, Report, Source
@@ -672,6 +672,31 @@ def test_a_pencil_pole_without_amplitude_explains_nothing_even_when_it_would_ove
     with np.errstate(all="raise"):
         e = energy(np.array([1e200 + 0j, 0.5 + 0.5j]), np.array([0j, 1 + 0j]), N)
         assert e[0] == 0.0 and e[1] > 0
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    w=st.lists(st.floats(0.1, 3.0), min_size=1, max_size=3, unique=True),
+    g=st.floats(-0.05, 0.1),
+    seed=st.integers(0, 2**16),
+)
+def test_the_pencil_finds_the_poles_and_ranks_them_as_least_squares_does(w, g, seed):
+    """Well-separated modes, damped by up to 19 e-folds over the window or growing by up to 9: the pencil's poles
+    are the true ones and its amplitudes (which rank them) those of the complex least squares on the Vandermonde
+    matrix."""
+    w = np.sort(np.array(w))
+    if w.size > 1 and np.min(np.diff(w)) < 0.2:
+        return
+    n = np.arange(N, dtype=float)
+    rng = np.random.default_rng(seed)
+    amplitudes = rng.uniform(0.5, 2.0, w.size)
+    x = sum(a * np.exp(-g * n) * np.cos(wk * n + 0.3) for a, wk in zip(amplitudes, w))
+    poles, found = pencil.exponentials(x, 20, 2 * w.size)
+    upper = np.sort(np.angle(poles[np.angle(poles) > 0]))
+    np.testing.assert_allclose(upper, w, atol=1e-6)
+    basis = np.exp(np.log(poles)[None, :] * n[:, None])
+    expected = np.linalg.lstsq(basis, x.astype(complex), rcond=None)[0]
+    np.testing.assert_allclose(np.abs(found), np.abs(expected), rtol=1e-5)
 
 
 def test_a_search_whose_normal_matrix_is_singular_damps_its_step_not_crashes():

@@ -59,12 +59,19 @@ def exponentials(x: np.ndarray, pencil: int, order: int) -> tuple[np.ndarray, np
     hankel = np.empty((size - rows, rows + 1))
     for i in range(size - rows):
         hankel[i, :] = x[i : i + rows + 1]
-    _, _, vh = np.linalg.svd(hankel, full_matrices=False)
+    hankel /= max(np.abs(x).max(), 1e-300)  # its square finite for any finite x
+    _, vectors = np.linalg.eigh(hankel.T @ hankel)  # ascending: the right singular vectors, the last dominant
     order = min(max(order, 1), min(size - rows, rows))
-    v = np.ascontiguousarray(vh[:order].T).astype(np.complex128)  # (L + 1, K): spans the rows [z^0 .. z^L]
+    v = np.ascontiguousarray(vectors[:, ::-1][:, :order]).astype(np.complex128)  # (L + 1, K): spans [z^0 .. z^L]
     shift = np.linalg.lstsq(np.ascontiguousarray(v[:-1]), np.ascontiguousarray(v[1:]))[0]  # v[1:] = v[:-1] @ shift
     poles = np.linalg.eigvals(shift)
-    amplitudes = np.linalg.lstsq(powers(poles, size), x.astype(np.complex128))[0]
+    basis = powers(poles, size)
+    largest = np.empty(poles.size)  # each column scaled to its largest |z^j| (up to e^600): its square stays finite
+    for k in range(poles.size):
+        largest[k] = np.abs(basis[:, k]).max()
+        basis[:, k] /= largest[k]
+    gram = np.conj(basis.T) @ basis  # the amplitudes rank the poles only: their normal equations suffice
+    amplitudes = np.linalg.lstsq(gram, np.conj(basis.T) @ x.astype(np.complex128))[0] / largest
     return poles, amplitudes
 
 

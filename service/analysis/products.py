@@ -22,8 +22,12 @@ from scipy.special import stdtrit
 ORDER = 4
 #: The monomials x1^i x2^j, 0 < i + j <= ORDER, as the exponent arrays (M,) of x1 and of x2.
 _I, _J = np.array([(i, j) for i in range(ORDER + 1) for j in range(ORDER + 1 - i) if i + j > 0]).T
-#: Levenberg-Marquardt: iterations at most, and the relative fall in cost under which it has converged.
-_ITERATIONS, _TOLERANCE = 60, 1e-8
+#: Levenberg-Marquardt: iterations at most, and the relative fall in cost under which it has converged (1e-6:
+#: fewer evaluations than 1e-8 at no cost in accuracy, docs/benchmarks.md).
+_ITERATIONS, _TOLERANCE = 60, 1e-6
+#: Smallest pivot of the scaled Gram matrix's Cholesky factor, squared, for which the linear fit takes the
+#: seminormal equations (its condition number then under ~1e12: refined once, as accurate as a QR); below, the SVD.
+_PIVOT = 1e-12
 #: Mode 2's start against mode 1's: Eq. 1's second mode lies at l2 / l1 = 2.30 times the first's frequency and
 #: damps faster (a start only: the fit finds both).
 _RATIO_W, _RATIO_G = 2.3, 2.0
@@ -41,11 +45,75 @@ class ProductFit:
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _projected(
+def _factor(design: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
+    """A lower-triangular ``L`` (k, k) and column scales ``s`` (k,) with ``S G S = L L'``, G ``design``'s (N, k)
+    Gram matrix with its columns scaled to unit norm (Cholesky's), and whether each pivot is over :data:`_PIVOT`
+    (else the design is near singular and is not to be squared)."""
+    gram = design.T @ design
+    width = gram.shape[0]
+    scale = np.empty(width)
+    lower = np.zeros((width, width))
+    ok = True
+    for a in range(width):
+        ok = ok and gram[a, a] > 0.0
+        scale[a] = 1.0 / np.sqrt(gram[a, a]) if gram[a, a] > 0.0 else 1.0
+    for a in range(width):
+        for b in range(a + 1):
+            if not ok:
+                break
+            total = gram[a, b] * scale[a] * scale[b]
+            for k in range(b):
+                total -= lower[a, k] * lower[b, k]
+            if a > b:
+                lower[a, b] = total / lower[b, b]
+            elif total > _PIVOT:
+                lower[a, a] = np.sqrt(total)
+            else:
+                ok = False
+    return lower, scale, ok
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _solved(lower: np.ndarray, scale: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+    """``G^-1 rhs`` (k, m) for :func:`_factor`'s ``L`` and ``s``: two triangular solves."""
+    width, count = rhs.shape
+    out = np.empty((width, count))
+    for j in range(count):
+        for a in range(width):  # L z = S rhs
+            total = scale[a] * rhs[a, j]
+            for k in range(a):
+                total -= lower[a, k] * out[k, j]
+            out[a, j] = total / lower[a, a]
+        for a in range(width - 1, -1, -1):  # L' u = z; G^-1 rhs = S u
+            total = out[a, j]
+            for k in range(a + 1, width):
+                total -= lower[k, a] * out[k, j]
+            out[a, j] = total / lower[a, a]
+        for a in range(width):
+            out[a, j] *= scale[a]
+    return out
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _least_squares(design: np.ndarray, lower: np.ndarray, scale: np.ndarray, ok: bool, rhs: np.ndarray) -> np.ndarray:
+    """The least-squares coefficients (k, m) of ``design`` (N, k) for each column of ``rhs`` (N, m): by the
+    seminormal equations with :func:`_factor`'s factor, refined once, where it is ``ok`` (as accurate as a QR solve
+    there, without forming a QR each evaluation); else by the SVD of the design with its columns scaled alike,
+    the minimum-norm solution where they are dependent."""
+    if not ok:
+        return np.linalg.lstsq(design * scale, np.ascontiguousarray(rhs), 1e-12)[0] * scale.reshape(-1, 1)
+    coefficients = _solved(lower, scale, design.T @ rhs)
+    return coefficients + _solved(lower, scale, design.T @ (rhs - design @ coefficients))
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _linear(
     n: np.ndarray, y: np.ndarray, theta: np.ndarray, first: np.ndarray, second: np.ndarray
-) -> tuple[np.ndarray, np.ndarray, float]:
-    """Residual (N,) of the linear fit (the offset and each monomial x1^first x2^second) at ``theta`` (w1, g1,
-    phi1, w2, g2, phi2), Kaufman's Jacobian (N, 6) of it in ``theta``, and the cost."""
+) -> tuple[np.ndarray, float, np.ndarray, np.ndarray, np.ndarray, bool, np.ndarray, np.ndarray, np.ndarray]:
+    """Residual (N,) and cost of the linear fit (the offset and each monomial x1^first x2^second) at ``theta``
+    (w1, g1, phi1, w2, g2, phi2), and what :func:`_kaufman` needs for its Jacobian: the design (N, M + 1), its
+    factor, scales and whether the factor serves, the coefficients (M + 1,), the powers x_k^e (2, E, N) and dx_k / d(w_k, g_k, phi_k)
+    (2, 3, N)."""
     size, monomials = n.size, first.size
     x = np.empty((2, size))
     dx = np.empty((2, 3, size))  # dx_k / d(w_k, g_k, phi_k) = (-n e sin, -n x, -e sin)
@@ -55,48 +123,66 @@ def _projected(
             envelope = np.exp(-g * n[i])
             angle = w * n[i] + phi
             x[k, i] = envelope * np.cos(angle)
-            dx[k, 0, i] = -n[i] * envelope * np.sin(angle)
-            dx[k, 1, i] = -n[i] * x[k, i]
             dx[k, 2, i] = -envelope * np.sin(angle)
+            dx[k, 0, i] = n[i] * dx[k, 2, i]
+            dx[k, 1, i] = -n[i] * x[k, i]
     top = max(first.max(), second.max())
     power = np.ones((2, top + 1, size))  # power[k, e] = x_k^e
     for e in range(1, top + 1):
-        power[:, e] = power[:, e - 1] * x
+        for k in range(2):
+            for i in range(size):
+                power[k, e, i] = power[k, e - 1, i] * x[k, i]
     design = np.empty((size, monomials + 1))
-    design[:, 0] = 1.0
-    for m in range(monomials):
-        design[:, m + 1] = power[0, first[m]] * power[1, second[m]]
-    q, r = np.linalg.qr(design)
-    q, r = np.ascontiguousarray(q), np.ascontiguousarray(r)
-    qy = q.T @ y
-    c = np.empty(monomials + 1)  # R c = Q^T y, by back-substitution
-    for m in range(monomials, -1, -1):
-        c[m] = (qy[m] - r[m, m + 1 :] @ c[m + 1 :]) / r[m, m]
-    residual = y - q @ qy
-    slope = np.zeros((2, size))  # dF / dx_k at each sample
-    for m in range(monomials):
-        a, b = first[m], second[m]
-        if a:
-            slope[0] += c[m + 1] * a * power[0, a - 1] * power[1, b]
-        if b:
-            slope[1] += c[m + 1] * b * power[0, a] * power[1, b - 1]
-    change = np.empty((size, 6))
-    for p in range(3):
-        change[:, p] = dx[0, p] * slope[0]
-        change[:, 3 + p] = dx[1, p] * slope[1]
-    jacobian = q @ (q.T @ change) - change
-    return residual, jacobian, float(residual @ residual)
+    for i in range(size):
+        design[i, 0] = 1.0
+        for m in range(monomials):
+            design[i, m + 1] = power[0, first[m], i] * power[1, second[m], i]
+    lower, scale, ok = _factor(design)
+    c = np.ascontiguousarray(_least_squares(design, lower, scale, ok, y.reshape(-1, 1))[:, 0])
+    residual = y - design @ c
+    return residual, float(residual @ residual), design, lower, scale, ok, c, power, dx
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _kaufman(
+    design: np.ndarray,
+    lower: np.ndarray,
+    scale: np.ndarray,
+    ok: bool,
+    c: np.ndarray,
+    power: np.ndarray,
+    dx: np.ndarray,
+    first: np.ndarray,
+    second: np.ndarray,
+) -> np.ndarray:
+    """Kaufman's Jacobian (N, 6) of :func:`_linear`'s residual: -(I - P) dF/dtheta at fixed coefficients, P the
+    projection onto the design's columns."""
+    size = design.shape[0]
+    change = np.empty((size, 6))  # dF / dx_k times dx_k / d theta, at each sample
+    for i in range(size):
+        slope0, slope1 = 0.0, 0.0
+        for m in range(first.size):
+            a, b = first[m], second[m]
+            if a:
+                slope0 += c[m + 1] * a * power[0, a - 1, i] * power[1, b, i]
+            if b:
+                slope1 += c[m + 1] * b * power[0, a, i] * power[1, b - 1, i]
+        for p in range(3):
+            change[i, p] = dx[0, p, i] * slope0
+            change[i, 3 + p] = dx[1, p, i] * slope1
+    return design @ _least_squares(design, lower, scale, ok, change) - change
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
 def _levenberg_marquardt(
     n: np.ndarray, y: np.ndarray, theta: np.ndarray, first: np.ndarray, second: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, float, bool]:
-    """The least-squares ``theta`` from the start ``theta`` (:func:`_projected`'s model), the Jacobian and cost
+    """The least-squares ``theta`` from the start ``theta`` (:func:`_linear`'s model), the Jacobian and cost
     there, and whether it converged (the cost falling by under :data:`_TOLERANCE` of itself, or no step lowering
     it) within :data:`_ITERATIONS`; decay rates are held at 0 or above (a growing mode is no mode, and its powers
-    overflow)."""
-    residual, jacobian, cost = _projected(n, y, theta, first, second)
+    overflow). A trial's Jacobian is formed only where the trial is taken."""
+    residual, cost, design, lower, scale, ok, c, power, dx = _linear(n, y, theta, first, second)
+    jacobian = _kaufman(design, lower, scale, ok, c, power, dx, first, second)
     damping = 1e-3
     for _ in range(_ITERATIONS):
         normal = jacobian.T @ jacobian
@@ -108,28 +194,33 @@ def _levenberg_marquardt(
             trial = theta - np.linalg.solve(lhs, gradient)
             for k in range(2):
                 trial[3 * k + 1] = max(trial[3 * k + 1], 0.0)
-            trial_residual, trial_jacobian, trial_cost = _projected(n, y, trial, first, second)
+            trial_residual, trial_cost, design, lower, scale, ok, c, power, dx = _linear(n, y, trial, first, second)
             if trial_cost < cost:
                 break
             damping *= 4.0
             if damping > 1e8:  # no step lowers the cost: at the minimum
                 return theta, jacobian, cost, True
         converged = cost - trial_cost <= _TOLERANCE * cost
-        theta, residual, jacobian, cost = trial, trial_residual, trial_jacobian, trial_cost
+        theta, residual, cost = trial, trial_residual, trial_cost
+        jacobian = _kaufman(design, lower, scale, ok, c, power, dx, first, second)
         damping = max(damping / 3.0, 1e-9)
         if converged:
             return theta, jacobian, cost, True
     return theta, jacobian, cost, False
 
 
+@njit(cache=True, nogil=True, error_model="numpy")
 def _phases(n: np.ndarray, y: np.ndarray, w: np.ndarray, g: np.ndarray) -> np.ndarray:
     """Each mode's phase (2,) at poles ``w``, ``g``: from the linear fit of the offset and the damped cosines and
     sines."""
-    envelope = np.exp(-g[:, None] * n)
-    design = np.column_stack(
-        [np.ones(n.size), *(envelope * np.cos(w[:, None] * n)), *(envelope * np.sin(w[:, None] * n))]
-    )
-    c = np.linalg.lstsq(design, y, rcond=None)[0]
+    design = np.empty((n.size, 5))
+    for i in range(n.size):
+        design[i, 0] = 1.0
+        for k in range(2):
+            envelope = np.exp(-g[k] * n[i])
+            design[i, 1 + k] = envelope * np.cos(w[k] * n[i])
+            design[i, 3 + k] = envelope * np.sin(w[k] * n[i])
+    c = _least_squares(design, *_factor(design), y.reshape(-1, 1))[:, 0]
     return np.arctan2(-c[3:5], c[1:3])
 
 
@@ -160,4 +251,6 @@ def fit(n: np.ndarray, y: np.ndarray, w1: float, g1: float, confidence: float) -
     except np.linalg.LinAlgError:
         return None
     half = float(stdtrit(dof, 0.5 + confidence / 2)) * np.sqrt(np.maximum(variance, 0.0))
+    if not np.all(np.isfinite(half)):  # a Jacobian gone non-finite where a mode's powers underflowed
+        return None
     return ProductFit(w, g, half[0::3], half[1::3])
