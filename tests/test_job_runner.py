@@ -1,5 +1,6 @@
 """The offline runner of window fits: jobs sent as windows close, several a task, come back in the order sent, each
-as the window fit alone makes it, and a fit that raises fails its own window only."""
+as the window fit alone makes it, and a fit that raises fails its own window only; the tail (the last jobs, and
+those whose task no worker has taken yet) goes one a task; released, the workers exit while results stay."""
 
 from __future__ import annotations
 
@@ -32,13 +33,15 @@ def runner() -> JobRunner:
         yield r
 
 
-@settings(max_examples=5, deadline=None)
-@given(sends=st.lists(st.integers(0, 2 * CHUNK + 1), min_size=1, max_size=4))
-def test_results_come_back_in_the_order_sent_whatever_the_chunks(runner: JobRunner, sends: list[int]) -> None:
+@settings(max_examples=8, deadline=None)
+@given(sends=st.lists(st.integers(0, 2 * CHUNK + 1), min_size=1, max_size=4), last=st.booleans())
+def test_results_come_back_in_the_order_sent_whatever_the_chunks(
+    runner: JobRunner, sends: list[int], last: bool
+) -> None:
     jobs = [job(i) for i in range(sum(sends))]
     sent = 0
-    for count in sends:  # windows closing a few at a time, as a pass over the frames sends them
-        runner.send(jobs[sent : sent + count], FPS)
+    for k, count in enumerate(sends):  # windows closing a few at a time, as a pass over the frames sends them
+        runner.send(jobs[sent : sent + count], FPS, last=last and k == len(sends) - 1)
         sent += count
     results = runner.results()
     assert [r.index for r in results] == [j.window.index for j in jobs]
@@ -57,3 +60,23 @@ def test_a_fit_that_raises_fails_its_own_window_and_no_other(runner: JobRunner) 
     first, broken, last = runner.results()
     assert broken.status == "failed" and "the fit raised ValueError" in (broken.reason or "")
     assert first.status == "ok" and last.status == "ok"
+
+
+def test_the_last_jobs_and_the_tasks_no_worker_took_go_one_a_task(runner: JobRunner) -> None:
+    jobs = [job(i) for i in range(6 * CHUNK)]
+    runner.send(jobs[: 5 * CHUNK], FPS)  # more tasks than the workers take at once: some still pending
+    runner.send(jobs[5 * CHUNK :], FPS, last=True)
+    sizes = [len(task) for task, _, _ in runner._started]
+    assert sum(sizes) == len(jobs) and sizes[-CHUNK:] == [1] * CHUNK  # the tail sent one a task
+    assert sizes[: sizes.index(1)] == [CHUNK] * sizes.index(1)  # the tasks taken kept their chunk
+    assert runner.results() == [fit_job(j, FPS, FitSettings()) for j in jobs]
+
+
+def test_a_released_runner_hands_back_its_results_and_closes() -> None:
+    with JobRunner(FitSettings(), workers=2) as r:
+        jobs = [job(i) for i in range(CHUNK + 1)]
+        r.send(jobs, FPS, last=True)
+        results = r.results()
+        r.release()  # the workers exit while the caller goes on
+        r.release()  # twice does nothing
+    assert results == [fit_job(j, FPS, FitSettings()) for j in jobs]

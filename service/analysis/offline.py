@@ -14,7 +14,7 @@ from __future__ import annotations
 
 from collections import deque
 from collections.abc import Iterator
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from contextlib import ExitStack
 from dataclasses import dataclass
 from pathlib import Path
@@ -104,11 +104,21 @@ def analyse_recording(
     first_settings = settings  # the windows' first fit: the report's, or with ``refine`` the search's start
     if refine:
         first_settings, settings = start_settings(settings), refined_settings(settings)
-    # the recording opened once (its header and every image's offset read: ~1 us of CPU per frame), then replayed
-    with ReplaySource(path, speed=0.0, views=True) as replay, ExitStack() as stack:
-        fps, frames, width, height = replay.fps, replay.frames, replay.width, replay.height
+    with ExitStack() as stack:
+        # the recording opened once (its header and every image's offset read: ~1 us of CPU per frame), on the
+        # hash's thread while this one starts the runner's workers, then replayed
+        hasher = ThreadPoolExecutor(1, "meniscope-hash")
+        opening = hasher.submit(_open_replay, path)
+        stack.callback(_close_opened, opening)  # last: after the hash (read from its mapping) and the runner
+        stack.enter_context(hasher)
         inverse, db = opened or open_method(method, scene, models, database)
         db = db if method == "regularised" else None
+        model = window_model_for(first_settings, models, method)
+        runner = stack.enter_context(JobRunner(first_settings, scheduler, workers))
+        replay = opening.result()
+        # the hash lets go of the interpreter lock: read while it hashes, from the replay's own mapping of the file
+        digest = hasher.submit(blake3_file, path, replay.mapped)
+        fps, frames, width, height = replay.fps, replay.frames, replay.width, replay.height
         transient, radius = settings.transient_frames(fps), scene.nozzle.radius_mm
         detecting = ejections.file is None and ejections.hz is None
         # the windows cut as the frames come, at the ejections the live detector finds looking further ahead; with
@@ -118,11 +128,6 @@ def analyse_recording(
         )
         # the window-level methods need every window's frames first
         streamed = db is None and (not refine or fitted_first)
-        model = window_model_for(first_settings, models, method)
-        runner = stack.enter_context(JobRunner(first_settings, scheduler, workers))
-        hasher = stack.enter_context(ThreadPoolExecutor(1, "meniscope-hash"))
-        # the hash lets go of the interpreter lock: read while it hashes, from the replay's own mapping of the file
-        digest = hasher.submit(blake3_file, path, replay.mapped)
         # one pass over the frames (each read once: reading was a fifth of the CPU)
         parts, found, closed, jobs = [], [], [], []
         with tqdm(total=frames, unit="frame", desc=f"{inverse.name} {path.name}", disable=not progress) as bar:
@@ -150,8 +155,8 @@ def analyse_recording(
             cuts, _ = find_ejections(frame_activity(records["change"]), fps, ejections.file, ejections.hz)
             closed += segmenter.push(np.arange(n), records, records["change"], np.zeros(n), cuts)
         closed += segmenter.finish(np.nan)
-        if streamed:
-            jobs += _send(runner, [(c.window, c.values) for c in closed], radius, transient, model, fps)
+        if streamed:  # the last windows: every worker shares them
+            jobs += _send(runner, [(c.window, c.values) for c in closed], radius, transient, model, fps, last=True)
             windows = [job.window for job in jobs]
         else:
             windows = [c.window for c in closed]
@@ -173,16 +178,16 @@ def analyse_recording(
             jobs = _send(runner, [(w, records[w.start : w.end]) for w in rest], radius, transient, model, fps)
         results = iter(runner.results(progress))
         results = [refined[w.index].result if w.index in refined else next(results) for w in windows]
+        runner.release()  # its workers exit while the report is built
         source = Source(path=str(path), frames=n, fps=fps, width=width, height=height, blake3=digest.result())
-    report = Report(
-        source=source, method=method_label(method, refine), ejections=cuts.tolist(), windows=results, fit=settings
-    )
-    fitted = np.full(n, np.nan)
-    for w, series in [(job.window, job.series) for job in jobs] + [(r.window, r.series) for r in refined.values()]:
-        fitted[w.start : w.end] = series
-    return Analysis(
-        report, InverseOutput(coefficients=coefficients_of(records), centre=records["centre"].copy()), fitted
-    )
+        report = Report(
+            source=source, method=method_label(method, refine), ejections=cuts.tolist(), windows=results, fit=settings
+        )
+        fitted = np.full(n, np.nan)
+        for w, series in [(job.window, job.series) for job in jobs] + [(r.window, r.series) for r in refined.values()]:
+            fitted[w.start : w.end] = series
+        per_frame = InverseOutput(coefficients=coefficients_of(records), centre=records["centre"].copy())
+    return Analysis(report, per_frame, fitted)
 
 
 def fps_of(path: Path) -> float:
@@ -224,11 +229,26 @@ def _send(
     transient: int,
     model: WindowModel | None,
     fps: float,
+    last: bool = False,
 ) -> list[WindowJob]:
-    """The jobs of ``windows`` (each with its frames' records: :func:`job_for`), sent to ``runner`` to be fitted."""
+    """The jobs of ``windows`` (each with its frames' records: :func:`job_for`), sent to ``runner`` to be fitted
+    (``last``: no more follow, :meth:`JobRunner.send`)."""
     jobs = [job_for(window, records, radius_mm, transient, model=model) for window, records in windows]
-    runner.send(jobs, fps)
+    runner.send(jobs, fps, last)
     return jobs
+
+
+def _open_replay(path: Path) -> ReplaySource:
+    """The recording at ``path`` open for a replay at full speed (its frames views of the file's mapping)."""
+    replay = ReplaySource(path, speed=0.0, views=True)
+    replay.open()
+    return replay
+
+
+def _close_opened(opening: Future[ReplaySource]) -> None:
+    """Close the replay ``opening`` opened, if it did (where it raised, the error was raised where it was awaited)."""
+    if opening.exception() is None:
+        opening.result().close()
 
 
 def _set_coefficients(records: np.ndarray, coefficients: np.ndarray, centre: np.ndarray) -> None:

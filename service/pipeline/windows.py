@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 import os
+import threading
 from collections.abc import Callable
 from concurrent.futures import Future
 from dataclasses import dataclass
@@ -133,6 +134,7 @@ def unfitted_result(job: WindowJob, reason: str, status: Status = "failed") -> W
 CONNECT_TIMEOUT_S = 10.0
 #: Window jobs per task: sent one a task, each window's hand-off (pickling, the pipe both ways, a future) cost the
 #: parent and the worker a good part of its fit (docs/benchmarks.md); a few a task keep the workers' last tasks even.
+#: The tail (jobs not yet started when :meth:`JobRunner.results` is called) goes one a task, so all workers share it.
 CHUNK = 8
 
 
@@ -151,8 +153,9 @@ class JobRunner:
     def __init__(self, settings: FitSettings, scheduler: str | None = None, workers: int | None = None) -> None:
         self.settings, self.scheduler = settings, scheduler
         self._client = self._pool = None
+        self._closing: threading.Thread | None = None  # the pool's shutdown, once released
         self._waiting: list[WindowJob] = []  # sent, not yet started: fewer than a chunk
-        self._started: list[tuple[int, Future]] = []  # (jobs, future of their results) per task
+        self._started: list[tuple[list[WindowJob], float, Future]] = []  # (jobs, fps, future of results) per task
         self._fps = math.nan  # of the jobs queued
         self.threads = 1
         if scheduler is not None:
@@ -173,9 +176,13 @@ class JobRunner:
             for _ in range(count):  # the pool starts its processes as work comes: start them all now
                 self._pool.submit(int)
 
-    def send(self, jobs: list[WindowJob], fps: float) -> None:
-        """Queue ``jobs``' fits: they start as one task per :data:`CHUNK` jobs queued (see :meth:`results`)."""
+    def send(self, jobs: list[WindowJob], fps: float, last: bool = False) -> None:
+        """Queue ``jobs``' fits: they start as one task per :data:`CHUNK` jobs queued (see :meth:`results`); with
+        ``last`` (no more jobs follow) these and those queued start at once, one a task, so every worker shares them."""
         self._waiting += jobs
+        if last:
+            self._fps = fps
+            self._start_tail()
         while len(self._waiting) >= CHUNK:
             self._start(self._waiting[:CHUNK], fps)
             del self._waiting[:CHUNK]
@@ -183,19 +190,31 @@ class JobRunner:
 
     def results(self, progress: bool = False) -> list[WindowResult]:
         """Each job's result, in the order sent (a failed one, saying why, where its fit raised), once the jobs still
-        queued have started too; with a progress bar over windows."""
-        if self._waiting:
-            self._start(self._waiting, self._fps)
-            self._waiting = []
+        queued have started too; with a progress bar over windows. No more jobs come: those not started yet (the
+        local pool's tasks still pending, the jobs queued) go one a task, so that every worker has a share of the
+        tail rather than one worker a last chunk while the others idle."""
+        self._start_tail()
         started, self._started = self._started, []
-        return gather(started, progress)
+        return gather([(len(jobs), future) for jobs, _, future in started], progress)
+
+    def _start_tail(self) -> None:
+        """Start the jobs queued and those of the local pool's tasks still pending (cancelled: no worker has taken
+        them) one a task, in the order sent."""
+        tail: list[tuple[WindowJob, float]] = []
+        if self._pool is not None:
+            while self._started and self._started[-1][2].cancel():
+                jobs, fps, _ = self._started.pop()
+                tail = [(job, fps) for job in jobs] + tail
+        for job, fps in tail + [(job, self._fps) for job in self._waiting]:
+            self._start([job], fps)
+        self._waiting = []
 
     def _start(self, jobs: list[WindowJob], fps: float) -> None:
         if self._client is not None:
             future = self._client.submit(_fit_all, jobs, fps, self.settings, pure=False)
         else:
             future = self._pool.submit(_fit_all, jobs, fps, self.settings)
-        self._started.append((len(jobs), future))
+        self._started.append((jobs, fps, future))
 
     def call(self, task: Callable[..., Any], *args: Any) -> Future:
         """Start any other window-level ``task(*args)`` (a picklable function of self-contained arguments)."""
@@ -203,11 +222,19 @@ class JobRunner:
             return self._client.submit(task, *args, pure=False)
         return self._pool.submit(task, *args)
 
+    def release(self) -> None:
+        """No more work comes: the local pool's workers start to exit now, beside what the caller does next (its
+        report); :meth:`close` waits for them (so that their CPU is counted as the caller's children's)."""
+        if self._pool is not None and self._closing is None:
+            self._closing = threading.Thread(target=self._pool.shutdown, name="meniscope-pool-close")
+            self._closing.start()
+
     def close(self) -> None:
         if self._client is not None:
             self._client.close()
         if self._pool is not None:
-            self._pool.shutdown()
+            self.release()
+            self._closing.join()
 
     def __enter__(self) -> JobRunner:
         return self
