@@ -31,6 +31,9 @@ def nanmedian(values: np.ndarray) -> float:
 
 
 def _middle(ordered: np.ndarray) -> float:
-    """The median of sorted values (at least one, none NaN)."""
+    """The median of sorted values (at least one, none NaN). numpy's mean sums from +0.0, so a middle of -0.0 comes
+    out +0.0; adding 0.0 first does the same and changes no other value."""
     half = ordered.size // 2
-    return float(ordered[half]) if ordered.size % 2 else float((ordered[half - 1] + ordered[half]) / 2)
+    if ordered.size % 2:
+        return float(0.0 + ordered[half])
+    return float((0.0 + ordered[half - 1] + ordered[half]) / 2)

@@ -4,7 +4,7 @@ import math
 import warnings
 
 import numpy as np
-from hypothesis import given
+from hypothesis import example, given
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
@@ -21,6 +21,8 @@ def _same(ours: float, numpy: float) -> bool:
     )
 
 
+@example(np.array([-0.0]))
+@example(np.array([-0.0, -0.0]))
 @given(_series)
 def test_median_is_numpys(values: np.ndarray) -> None:
     with np.errstate(all="ignore"):
@@ -28,6 +30,8 @@ def test_median_is_numpys(values: np.ndarray) -> None:
     assert _same(median(values), expected)
 
 
+@example(np.array([-0.0, np.nan]))
+@example(np.array([-0.0, -0.0, np.nan]))
 @given(_series)
 def test_nanmedian_is_numpys(values: np.ndarray) -> None:
     with np.errstate(all="ignore"), warnings.catch_warnings():
