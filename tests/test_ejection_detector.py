@@ -8,7 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from service import DEFAULT_SCENE
-from service.bench.ejections import frame_measures, score
+from service.bench.ejections import score
 from service.camera_effects import noise_preset
 from service.pipeline.ejections import (
     PERIOD_WAIT_S,
@@ -17,6 +17,7 @@ from service.pipeline.ejections import (
     _window_levels,
     detect_ejections_streamed,
 )
+from service.pipeline.measures import recording_measures
 from service.scene import Scene
 from service.simulate import simulate
 from service.validation.score import ejection_matches
@@ -41,7 +42,7 @@ def every_kind(tmp_path_factory: pytest.TempPathFactory) -> tuple[np.ndarray, np
         kinds=kinds_named(names),
         kind_names=names.split(","),
     )
-    return (*frame_measures(out, FPS), truth)
+    return (*recording_measures(out, FPS), truth)
 
 
 @pytest.mark.parametrize("offline", [False, True])

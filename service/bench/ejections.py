@@ -53,35 +53,17 @@ def score(found, true) -> tuple[int, int, int]:  # type: ignore[no-untyped-def]
     return ejection_matches(found[found >= true[0] - TOLERANCE] if true.size else found, true, TOLERANCE)
 
 
-def frame_measures(recording: Path, fps: float) -> tuple:
-    """Each frame's change and novelty (N,) as the pipeline measures them (:mod:`service.pipeline.measures`)."""
-    import numpy as np
-
-    from service.pipeline.ejections import novelty_lags
-    from service.pipeline.measures import PixelMeasures
-    from service.recordings import open_recording
-
-    pixels = PixelMeasures(*novelty_lags(fps))
-    change, novelty = [], []
-    with open_recording(recording) as rec:
-        for lo in range(0, len(rec), 512):
-            frames = rec.read_grey(lo, min(512, len(rec) - lo))
-            c, _, _, v = pixels.update(frames, np.arange(lo, lo + len(frames)))
-            change.append(c)
-            novelty.append(v)
-    return np.concatenate(change), np.concatenate(novelty)
-
-
 def measure(recording: Path) -> dict:
     """Detections of one recording by the detector with the live and the offline look-ahead, scored."""
     import json
 
     from service.pipeline.ejections import detect_ejections_streamed
+    from service.pipeline.measures import recording_measures
     from service.simulate import truth_path
 
     truth = json.loads(truth_path(recording).read_text())
     fps = float(truth["recording"]["fps"])
-    change, novelty = frame_measures(recording, fps)
+    change, novelty = recording_measures(recording, fps)
     runs = {
         "live": detect_ejections_streamed(change, fps, offline=False, novelty=novelty),
         "offline": detect_ejections_streamed(change, fps, offline=True, novelty=novelty),

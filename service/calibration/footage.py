@@ -72,10 +72,10 @@ def _ejections(
     """Ejection frames of an open recording: read from the printer's file, placed at its rate on the frame-to-frame
     change, or, with neither, found from the video by the detector ``analyze`` and ``serve`` run."""
     if ejections_file is None and ejection_hz is None:
-        from service.bench.ejections import frame_measures
         from service.pipeline.ejections import detect_ejections_streamed
+        from service.pipeline.measures import recording_measures
 
-        change, novelty = frame_measures(path, rec.fps)
+        change, novelty = recording_measures(path, rec.fps)
         return detect_ejections_streamed(change, rec.fps, offline=True, novelty=novelty)
     steps, previous = [], None
     for lo in range(0, total, chunk):

@@ -14,6 +14,8 @@ has not shown lately (:mod:`service.pipeline.ejections` uses it where the amount
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 from numba import njit
 
@@ -190,3 +192,20 @@ class PixelMeasures:
             self._edges = np.searchsorted(np.arange(w) * gx // w, np.arange(gx + 1))
             self._counts = np.outer(np.bincount(self._band, minlength=gy), np.diff(self._edges)).ravel().astype(float)
         return self._band, self._edges, self._counts
+
+
+def recording_measures(recording: Path, fps: float) -> tuple[np.ndarray, np.ndarray]:
+    """Each frame's change and novelty (N,) over a whole recording's frames, as the pipeline measures them: what the
+    ejection detector reads, for a recording read outside the pipeline (``calibrate``, ``bench ejections``)."""
+    from service.pipeline.ejections import novelty_lags
+    from service.recordings import open_recording
+
+    pixels = PixelMeasures(*novelty_lags(fps))
+    change, novelty = [], []
+    with open_recording(recording) as rec:
+        for lo in range(0, len(rec), 512):
+            frames = rec.read_grey(lo, min(512, len(rec) - lo))
+            c, _, _, v = pixels.update(frames, np.arange(lo, lo + len(frames)))
+            change.append(c)
+            novelty.append(v)
+    return np.concatenate(change), np.concatenate(novelty)
