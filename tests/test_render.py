@@ -198,20 +198,6 @@ def test_threads_and_batches_do_not_change_the_result(scene: Scene) -> None:
     np.testing.assert_array_equal(one, two)
 
 
-def test_a_renderer_with_other_sun_samples_renders_as_one_built_with_them(scene: Scene) -> None:
-    """A search's coarse stage swaps the sun's disc of a built renderer: the same frames, bit for bit, as a renderer
-    built with that many directions, and the original's unchanged."""
-    coeffs = CoefficientRanges().sample(6, np.random.default_rng(3))
-    sixteen = Renderer(scene, sun_samples=16, threads=1)
-    before = sixteen.render(coeffs)
-    four = sixteen.with_sun_samples(4)
-    assert four.sun_samples == 4 and sixteen.sun_samples == 16
-    np.testing.assert_array_equal(four.render(coeffs), Renderer(scene, sun_samples=4, threads=1).render(coeffs))
-    np.testing.assert_array_equal(sixteen.render(coeffs), before)
-    with pytest.raises(MeniscopeError, match="sun_samples"):
-        sixteen.with_sun_samples(0)
-
-
 def test_supersampling_converges(scene: Scene) -> None:
     """Anti-aliasing: more rays per pixel change the image less and less."""
     coeffs = CoefficientRanges().sample(6, np.random.default_rng(3))

@@ -75,12 +75,6 @@ _REACH = 3
 #: scales) for the same motion (docs/benchmarks.md).
 _XTOL = 1e-4
 _FTOL = 1e-5
-#: The search's coarse stage reads every this many frames of the window (its starts, LM and LM from the mirror), the
-#: last LM all of them from where the coarse stage ended: the motion has ten parameters, not one per frame, and most
-#: of the search's CPU is renders of its frames (docs/benchmarks.md, "`--refine` at a fraction of its CPU").
-_COARSE = 2
-#: ... and renders the sun's disc at this many directions (the renderer's default; 16 cost 1.75x as much a render).
-_COARSE_SUNS = 4
 #: Evaluations LM may spend per window (each one render of the window, each Jacobian four more).
 _EVALUATIONS = 100
 #: Directions over the sun's disc in the search's renders (the renderer's default is 4). Cycles, a real camera, sees
@@ -104,9 +98,9 @@ class Refined:
 
     motion: WindowMotion
     blur_sigma_px: float
-    rms_start: float  # pixel residual RMS at the start (the coarse stage's frames' moving pixels), stored units
+    rms_start: float  # pixel residual RMS at the start over the moving pixels, in stored pixel units
     rms: float  # and at the end
-    evaluations: int  # renders of the window's frames the search made (the coarse stage's as fractions of one)
+    evaluations: int  # renders of the window the search made
 
 
 def start_motion(coefficients: np.ndarray, t: np.ndarray, fps: float) -> WindowMotion:
@@ -392,30 +386,24 @@ def refine_window(
     starts: ``start`` (or the window fit's ``fitted``, :func:`window_start`, where given: its amplitudes as they
     are) and :func:`frames_start` of it; each one's :func:`_variants` are rendered once and
     :func:`_search` runs from the best-fitting variant of the better start, then (where it ends in an
-    implausible motion, see :func:`plausible`) from the other's. Variants and searches see every :data:`_COARSE`-th
-    frame at :data:`_COARSE_SUNS` sun directions, and one LM on every frame at the renderer's own ends each search.
-    The plausible result is returned, else the one that fits best."""
+    implausible motion, see :func:`plausible`) from the other's. The plausible result is returned, else the one
+    that fits best."""
     t = np.asarray(t, np.float64)
     problem = _Problem(renderer, frames, t)
-    coarse = _Problem(
-        renderer.with_sun_samples(min(_COARSE_SUNS, renderer.sun_samples)), frames[::_COARSE], t[::_COARSE]
-    )
     base, amplify = (start, _AMPLIFY) if fitted is None else (fitted, (1.0,))
     starts = sorted(
-        (coarse.best(_variants(motion, amplify)) for motion in (base, frames_start(base, frames, t))),
+        (problem.best(_variants(motion, amplify)) for motion in (base, frames_start(base, frames, t))),
         key=lambda pair: pair[0],
     )
     ends = []
     for cost, motion in starts:
-        motion, blur, _ = _search(coarse, motion, _START_BLUR)
-        ends.append((*_levenberg_marquardt(problem, motion, blur), cost))
+        ends.append((*_search(problem, motion, _START_BLUR), cost))
         if plausible(ends[-1][0], t):
             break
     motion, blur, cost, start_cost = next(
         (end for end in reversed(ends) if plausible(end[0], t)), min(ends, key=lambda end: end[2])
     )
-    renders = problem.renders + -(-coarse.renders // _COARSE)
-    return Refined(motion, blur, float(np.sqrt(start_cost)), float(np.sqrt(cost)), renders)
+    return Refined(motion, blur, float(np.sqrt(start_cost)), float(np.sqrt(cost)), problem.renders)
 
 
 @_BLAS.wrap(limits=1, user_api="blas")

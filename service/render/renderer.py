@@ -21,7 +21,6 @@ stratified rays per pixel, box filter. Output: ``clip(exposure * radiance, 0, 1)
 
 from __future__ import annotations
 
-import copy
 import os
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -115,7 +114,7 @@ class Renderer:
         self._touched, self._slot = np.unique(self._pixel, return_inverse=True)
         self._static_touched = static_pixels[self._touched]
         self._static_frame = np.clip(scene.camera.exposure * static_pixels, 0, 1).astype(np.float32)
-        self.sun_samples, self._suns = sun_samples, sun_directions(scene, sun_samples)
+        self._suns = sun_directions(scene, sun_samples)
         self._spheres = scene.spheres
         self._intensity = mirror_ball_intensity(
             self._spheres[:, 3], scene.sphere_material.reflectance, scene.light.strength
@@ -129,15 +128,6 @@ class Renderer:
         out = np.empty((coeffs.shape[0], *self.shape), np.float32)
         for i in range(0, coeffs.shape[0], self.batch_frames):
             self._render_batch(coeffs[i : i + self.batch_frames], out[i : i + self.batch_frames])
-        return out
-
-    def with_sun_samples(self, sun_samples: int) -> Renderer:
-        """This renderer with the fluid's sun disc at ``sun_samples`` directions, its static scene and rays shared:
-        a cheaper render for a search's coarse stage without building the scene again (seconds)."""
-        if not 1 <= sun_samples <= 4096:
-            raise MeniscopeError("renderer", f"sun_samples must be between 1 and 4096, got {sun_samples}")
-        out = copy.copy(self)
-        out.sun_samples, out._suns = sun_samples, sun_directions(self.scene, sun_samples)
         return out
 
     def fluid_hits(self, coeffs: ArrayLike) -> np.ndarray:
