@@ -189,9 +189,9 @@ def _fastest_decay(x: np.ndarray) -> float:
 @njit(**_JIT)
 def damped_solve(normal: np.ndarray, damping: np.ndarray, rhs: np.ndarray, out: np.ndarray) -> bool:
     """``(normal + diag(damping))^-1 rhs`` (k,) into ``out`` by Cholesky, and whether the matrix (symmetric, only
-    its lower triangle read) was positive definite to machine precision: LM's step (here and in
-    :mod:`service.analysis.products`), where LAPACK's LU through ``np.linalg.solve`` cost three times as much at
-    k <= 10 (docs/benchmarks.md)."""
+    its lower triangle read) was positive definite to machine precision: the step of
+    :mod:`service.analysis.products`' LM, where LAPACK's LU through ``np.linalg.solve`` cost three times as much
+    at k <= 10 (docs/benchmarks.md; the window fit's LM keeps LU: its last digits tipped a short window)."""
     k = rhs.size
     lower = np.empty((k, k))
     for j in range(k):
@@ -266,9 +266,13 @@ def levenberg_marquardt(
             if not np.all(np.isfinite(normal)) or np.max(np.abs(gradient)) <= 1e-15 * max(cost, 1e-300):
                 break
             moved = False
-        step = np.empty(k)
-        if not damped_solve(normal, mu * diag, -gradient, step):  # not positive definite to machine precision
-            if mu > 1e30:  # (a parameter the data do not move): damp harder
+        system = normal.copy()
+        for j in range(k):
+            system[j, j] += mu * diag[j]
+        try:
+            step = np.linalg.solve(system, -gradient)
+        except Exception:  # singular to machine precision (a parameter the data do not move): damp harder
+            if mu > 1e30:
                 break
             mu *= nu
             nu *= 2.0
