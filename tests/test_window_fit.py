@@ -845,3 +845,38 @@ def test_the_noise_from_differences_is_numpy_s_to_the_last_bit_and_a_gap_free_wi
     else:
         runs = [r for r in np.split(np.arange(n.size), breaks) if r.size >= 3]
         assert (run is None) == (not runs)
+
+
+@settings(max_examples=300, deadline=None)
+@given(
+    jacobian=st.tuples(st.integers(1, 30), st.integers(1, 10)).flatmap(
+        lambda shape: arrays(np.float64, shape, elements=st.floats(-1e3, 1e3))
+    ),
+    log_scales=arrays(np.float64, 10, elements=st.floats(-100, 100)),
+    damping=st.one_of(st.sampled_from([0.0, 5e-324, 1e-300, 1e-3, 1e30]), st.floats(0, 1e10)),
+    negative=st.booleans(),
+)
+def test_lm_s_step_solves_the_damped_normal_equations_or_says_they_are_not_positive_definite(
+    jacobian, log_scales, damping, negative
+):
+    """LM's Cholesky step solves (N + damping diag(N)) x = b backward-stably wherever it reports success, N = J'J
+    with J's columns scaled over 200 decades, rank-deficient or negated, the damping from 0 to 1e30; where it
+    reports failure the matrix, its diagonal scaled to 1, is singular or indefinite to machine precision (or
+    not finite): LM then damps harder."""
+    k = jacobian.shape[1]
+    j = jacobian * 10.0 ** log_scales[:k]
+    with np.errstate(all="ignore"):
+        normal = (-1.0 if negative else 1.0) * (j.T @ j)
+        added = damping * np.abs(np.diag(normal))
+        matrix = normal + np.diag(added)
+        out = np.empty(k)
+        ok = kernels.damped_solve(normal, added, np.ones(k), out)
+        if ok:
+            assert np.all(np.isfinite(out))
+            error = np.abs(matrix @ out - 1.0).max() / (np.abs(matrix).max() * np.abs(out).max() + 1.0)
+            assert not error > 1e-12  # NaN where the scale overflows: nothing to measure
+        else:
+            d = np.diag(matrix)
+            unscaled = not np.all(np.isfinite(matrix)) or np.any(d <= 0)
+            root = 1.0 / np.sqrt(d)
+            assert unscaled or np.linalg.eigvalsh(matrix * root[:, None] * root[None, :]).min() <= 1e-12

@@ -18,6 +18,8 @@ import numpy as np
 from numba import njit
 from scipy.special import stdtrit
 
+from service.analysis.kernels import damped_solve
+
 #: Degree of F's Taylor polynomial in (x1, x2): the highest of 2, 3 and 4 was the closest on Blender Cycles (docs).
 ORDER = 4
 #: The monomials x1^i x2^j, 0 < i + j <= ORDER, as the exponent arrays (M,) of x1 and of x2.
@@ -188,10 +190,10 @@ def _levenberg_marquardt(
         normal = jacobian.T @ jacobian
         gradient = jacobian.T @ residual
         while True:
-            lhs = normal.copy()
-            for p in range(6):
-                lhs[p, p] += damping * (normal[p, p] + 1e-12)
-            trial = theta - np.linalg.solve(lhs, gradient)
+            step = np.empty(6)
+            if not damped_solve(normal, damping * (np.diag(normal) + 1e-12), gradient, step):
+                raise np.linalg.LinAlgError("the damped normal matrix is not positive definite")
+            trial = theta - step
             for k in range(2):
                 trial[3 * k + 1] = max(trial[3 * k + 1], 0.0)
             trial_residual, trial_cost, design, lower, scale, ok, c, power, dx = _linear(n, y, trial, first, second)
