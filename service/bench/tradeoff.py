@@ -35,7 +35,7 @@ from service.verbs import add_scene_option
 
 #: (windows per recording, seeds, fit-suite windows per category, render frames flag, serve seconds, recordings of
 #: each set the refinement by synthesis runs on) of the two modes.
-MODES = {"quick": (2, (201,), 1, ["--quick"], 3.0, 1), "full": (12, (201, 202, 203), 25, [], 20.0, 1)}
+MODES = {"quick": (1, (201,), 1, ["--quick"], 3.0, 1), "full": (12, (201, 202, 203), 25, [], 20.0, 1)}
 NOISES = ("low", "high")
 #: Issue 4's accuracy targets (relative, and the offset in mm) and the speed targets of issues 5, 3 and 17 (a
 #: window's inversion within the window's 10 ms at 100 ejections/s).
