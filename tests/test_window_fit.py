@@ -862,7 +862,7 @@ def test_lm_s_step_solves_the_damped_normal_equations_or_says_they_are_not_posit
     """LM's Cholesky step solves (N + damping diag(N)) x = b backward-stably wherever it reports success, N = J'J
     with J's columns scaled over 200 decades, rank-deficient or negated, the damping from 0 to 1e30; where it
     reports failure the matrix, its diagonal scaled to 1, is singular or indefinite to machine precision (or
-    not finite): LM then damps harder."""
+    not finite): the brightness polynomial's fit is then given up, as on a singular LU before."""
     k = jacobian.shape[1]
     j = jacobian * 10.0 ** log_scales[:k]
     with np.errstate(all="ignore"):
