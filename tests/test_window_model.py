@@ -313,12 +313,17 @@ def asked_of(render_some: Callable[[], list[Path]]) -> tuple[list[Path], Asked]:
 @given(windows=st.integers(1, 5000), seed=st.integers(0, 10**6))
 def test_training_windows_are_half_nominal_half_widened_at_seeds_of_their_own(windows: int, seed: int) -> None:
     """``train``'s training windows (:func:`training.window.render_mix`): per noise preset, half at the simulator's
-    nominal motion (like the held-out recordings and the calibration) and the rest at the widened ranges, each
-    half at seeds that neither the other half nor the calibration (``seed + CALIBRATION_SEEDS`` on) uses."""
+    nominal motion (like the held-out recordings and the calibration) and the rest at the widened ranges, one in
+    ``EIGHT_BIT_SHARE`` of each half through the 8-bit camera, each part at seeds that no other part nor the
+    calibration (``seed + CALIBRATION_SEEDS`` on) uses."""
     paths, asked = asked_of(lambda: tw.render_mix(Path("data"), None, windows, seed))  # type: ignore[arg-type]
     assert sum(n for n, *_ in asked) == windows and all(n > 0 for n, *_ in asked)
     assert {r for _, _, r, _, _ in asked} <= {tw.TRAINING_RANGES, WindowRanges()}
     assert sum(n for n, _, r, _, _ in asked if r == WindowRanges()) == windows // 2
+    for ranges, half in ((WindowRanges(), windows // 2), (tw.TRAINING_RANGES, windows - windows // 2)):
+        eight = sum(n for n, _, r, _, bits in asked if r == ranges and bits == 8)
+        assert eight == half // tw.EIGHT_BIT_SHARE
+    assert {bits for *_, bits in asked} <= {8, 12}
     used = [s + k for _, s, *_ in asked for k in range(len(tw.TRAINING_NOISE))]
     calibrations = len(tw.TRAINING_NOISE) * len(tw.CALIBRATION_BIT_DEPTHS)
     calibration = {seed + tw.CALIBRATION_SEEDS + k for k in range(calibrations)}

@@ -23,8 +23,8 @@ from service.verbs import add_scene_option
 if TYPE_CHECKING:
     from service.scene import Scene
 
-#: ``train``'s window model: windows per noise preset it is trained on (half at the nominal motion, half widened:
-#: ``training.window.render_mix``), its epochs, and the windows per preset and camera (12 and 8 bits:
+#: ``train``'s window model: windows per noise preset it is trained on (half at the nominal motion, half widened,
+#: one in four of each through the 8-bit camera: ``training.window.render_mix``), its epochs, and the windows per preset and camera (12 and 8 bits:
 #: ``training.window.render_calibration``) that calibrate its intervals
 #: (docs/window_model.md: its error fell with the windows trained on).
 WINDOW_WINDOWS, WINDOW_EPOCHS, WINDOW_CALIBRATION = 1300, 80, 80

@@ -245,6 +245,9 @@ def export(net: WindowNet, path: Path) -> None:
 CALIBRATION_SEEDS = 100
 #: Seeds of the training windows at the simulator's nominal motion lie this far above the widened ones'.
 NOMINAL_SEEDS = 200
+#: One training window in this many (of each half, nominal and widened) is recorded through the 8-bit camera, at seeds
+#: :data:`EIGHT_BIT_SEEDS` above its half's 12-bit ones.
+EIGHT_BIT_SHARE, EIGHT_BIT_SEEDS = 4, 50
 #: The cameras the calibration windows are recorded through: 12 and 8 bits (the 8-bit camera's windows have
 #: errors of their own; calibrated on 12-bit windows alone the offset's intervals held the truth in fewer of
 #: Blender's windows: docs/window_model.md, "Coverage after the polynomial brightness").
@@ -254,11 +257,21 @@ CALIBRATION_BIT_DEPTHS = (12, 8)
 def render_mix(data: Path, scene: Scene, windows: int, seed: int) -> list[Path]:
     """``windows`` training windows per noise preset: half at the simulator's nominal motion (what the held-out
     recordings and the calibration are), half at the widened :data:`TRAINING_RANGES` (windows that barely move or
-    settle). Trained on the widened ones alone, the model's held-out amplitude error was larger (docs/window_model.md)."""
+    settle), one in :data:`EIGHT_BIT_SHARE` of each half through the 8-bit camera. Trained on the widened ones alone
+    the model's held-out amplitude error was larger, on 12-bit ones alone its series was biased through an 8-bit
+    camera (docs/window_model.md)."""
     nominal = windows // 2
-    paths = render_training(data, scene, windows - nominal, seed)
-    if nominal:
-        paths += render_training(data, scene, nominal, seed + NOMINAL_SEEDS, WindowRanges(), "nominal")
+    halves = (
+        (windows - nominal, seed, TRAINING_RANGES, "window"),
+        (nominal, seed + NOMINAL_SEEDS, WindowRanges(), "nominal"),
+    )
+    paths: list[Path] = []
+    for count, first, ranges, name in halves:
+        eight = count // EIGHT_BIT_SHARE
+        if count > eight:
+            paths += render_training(data, scene, count - eight, first, ranges, name)
+        if eight:
+            paths += render_training(data, scene, eight, first + EIGHT_BIT_SEEDS, ranges, f"{name}-8bit", 8)
     return paths
 
 
