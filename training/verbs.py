@@ -24,9 +24,9 @@ if TYPE_CHECKING:
     from service.scene import Scene
 
 #: ``train``'s window model: windows per noise preset it is trained on (half at the nominal motion, half widened,
-#: one in four of each through the 8-bit camera: ``training.window.render_mix``), its epochs, and the windows per preset and camera (12 and 8 bits:
-#: ``training.window.render_calibration``) that calibrate its intervals
-#: (docs/window_model.md: its error fell with the windows trained on).
+#: one in ``EIGHT_BIT_SHARE`` of each through the 8-bit camera: ``training.window.render_mix``), its epochs, and
+#: the windows per preset and camera (12 and 8 bits: ``training.window.render_calibration``) that calibrate its
+#: intervals (docs/window_model.md: its error fell with the windows trained on).
 WINDOW_WINDOWS, WINDOW_EPOCHS, WINDOW_CALIBRATION = 1300, 80, 80
 #: Top-level modules of the train extra -> the extra (the scale extra's Dask is checked where --scheduler is read).
 EXTRA_OF = {"torch": "train", "onnx": "train"}
