@@ -132,6 +132,38 @@ def test_the_frames_poles_hold_where_only_a_higher_order_of_the_brightness_is_un
     assert pinned.poles_from == "frames" and pinned.modes[0].frequency_hz == pytest.approx(1500, rel=2e-3)
 
 
+@pytest.mark.parametrize("brightness_model", ["products", "modes"])
+@pytest.mark.parametrize("light", [(0.5, 9000.0, 2000.0, 0.0), (1.0, 8000.0, 2400.0, 0.0)], ids=["2000Hz", "2400Hz"])
+def test_a_pole_of_the_brightness_dying_within_a_third_of_a_cycle_is_no_mode_of_the_surface(light, brightness_model):
+    """The brightness' fit may spend a pole on the ejection's light (decaying by e within 2 radians): the series is
+    fitted with its oscillation alone, not with a second mode whose amplitude is extrapolated through e-folds."""
+    brightness = 80.0 + series([(0.3, 400.0, 1500.0, 0.3), light], noise=1e-3, seed=4)
+    assert len(fit_window(brightness, FPS).modes) == 2  # the light is a resolved pole of the brightness' own fit
+    y = series([(0.02, 400.0, 1500.0, 0.3)], offset=0.01, noise=5e-4, seed=3)
+    r = fit_window(y, FPS, FitSettings(brightness_model=brightness_model), brightness=brightness)
+    assert r.poles_from == "frames" and [round(m.frequency_hz) for m in r.modes] == [1500]
+    assert r.modes[0].amplitude_mm == pytest.approx(0.02, rel=0.05)
+
+
+@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(
+    light_hz=st.floats(300.0, 3000.0),
+    radians=st.floats(0.3, 2.0),  # the light's pole decays by e within this many radians
+    amplitude=st.floats(0.05, 2.0),
+    seed=st.integers(0, 2**16),
+)
+def test_every_mode_given_the_frames_poles_is_underdamped(light_hz, radians, amplitude, seed):
+    """Whatever fast pole the brightness holds beside the oscillation, no reported mode decays by e within 2
+    radians: Eq. 1's modes are oscillations."""
+    w = 2 * np.pi * light_hz
+    light = (amplitude, min(w / radians, 0.99 * FPS), light_hz, 0.0)
+    brightness = 80.0 + series([(0.3, 400.0, 1500.0, 0.3), light], noise=1e-3, seed=seed)
+    r = fit_window(
+        series([(0.02, 400.0, 1500.0, 0.3)], offset=0.01, noise=5e-4, seed=seed + 1), FPS, brightness=brightness
+    )
+    assert all(2 * m.decay_rate_per_s < 2 * np.pi * m.frequency_hz for m in r.modes if r.poles_from == "frames")
+
+
 @pytest.mark.parametrize(
     "brightness",
     [np.full(N, 80.0), 80.0 + np.random.default_rng(0).normal(0, 0.5, N), np.full(N, np.nan)],

@@ -91,7 +91,8 @@ _SWING_CYCLES = 1.5
 #: The brightness' polynomial fit replaces its modes' poles only within this relative shift of its start's
 #: frequency and this factor of its decay rate: further off, it has ended on another mode or a product.
 _PRODUCT_SHIFT, _PRODUCT_FACTOR = 0.05, 2.0
-#: Radians over which a pole must decay by no more than e to start that fit as mode 1 (issue 17's fluids: >= 3.1).
+#: Radians over which a pole must decay by no more than e to be an oscillation of the surface (issue 17's fluids:
+#: >= 3.1): to start the brightness' polynomial fit as mode 1, and to be handed to the window's series.
 _UNDERDAMPED = 2.0
 _IRLS_STEPS = 100  # at most; the order-0 cost settles to 1e-6 (relative) in ~5-10 rounds
 #: The fit's matrices are small: a multi-threaded BLAS only fights the other threads for the cores
@@ -570,9 +571,24 @@ def _brightness_poles(
     if chosen.order == 0 or chosen.problem is not None:
         return None
     if settings.brightness_model == "modes":
-        return chosen
+        return _oscillations(chosen)
     kept = n >= later  # the polynomial's fit starts later: the ejection's light is no function of the modes
-    return _product_poles(n[kept], y[kept], chosen, settings)
+    return _oscillations(_product_poles(n[kept], y[kept], chosen, settings))
+
+
+def _oscillations(fit: _OrderFit) -> _OrderFit | None:
+    """``fit`` with only its underdamped modes (decaying by e over more than :data:`_UNDERDAMPED` radians), the
+    poles handed to the window's series; None when none is left. The brightness' fit may spend a pole on the
+    ejection's light dying within a fraction of a cycle: that is no oscillation of the surface, and a series
+    fitted with it extrapolates to its start through many e-folds (amplitudes far beyond the nozzle)."""
+    w, g = fit.params[_BASE + 2 :: _PER_MODE], fit.params[_BASE + 3 :: _PER_MODE]
+    keep = np.flatnonzero(g * _UNDERDAMPED < w)
+    if keep.size == fit.order:
+        return fit
+    if keep.size == 0:
+        return None
+    columns = np.r_[np.arange(_BASE), (_BASE + _PER_MODE * keep[:, None] + np.arange(_PER_MODE)).ravel()]
+    return replace(fit, order=int(keep.size), params=fit.params[columns], half_width=fit.half_width[columns])
 
 
 def _product_poles(n: np.ndarray, y: np.ndarray, modes: _OrderFit, settings: FitSettings) -> _OrderFit:
