@@ -189,7 +189,7 @@ def _fastest_decay(x: np.ndarray) -> float:
 @njit(**_JIT)
 def damped_solve(normal: np.ndarray, damping: np.ndarray, rhs: np.ndarray, out: np.ndarray) -> bool:
     """``(normal + diag(damping))^-1 rhs`` (k,) into ``out`` by Cholesky, and whether the matrix (symmetric, only
-    its lower triangle read) was positive definite to machine precision: the step of
+    its lower triangle read) was positive definite to machine precision and the solution finite: the step of
     :mod:`service.analysis.products`' LM, where LAPACK's LU through ``np.linalg.solve`` cost three times as much
     at k <= 10 (docs/benchmarks.md; the window fit's LM keeps LU: its last digits tipped a short window)."""
     k = rhs.size
@@ -216,6 +216,8 @@ def damped_solve(normal: np.ndarray, damping: np.ndarray, rhs: np.ndarray, out: 
         for p in range(i + 1, k):
             total -= lower[p, i] * out[p]
         out[i] = total / lower[i, i]
+        if not np.isfinite(out[i]):  # a pivot positive but tiny (subnormal): the solution overflows
+            return False
     return True
 
 
