@@ -1,11 +1,9 @@
 """``meniscope bench pipeline``: the one pipeline's two ways of running, side by side on one recording.
 
 - offline: ``meniscope analyze``'s analysis (:func:`service.analysis.offline.analyse_recording`: the stages on a
-  replay at full speed, the windows fitted on the local process pool), the method opened once beforehand as
-  ``analyze`` opens it (:func:`service.analysis.offline.open_offline`);
+  replay at full speed, the windows fitted on the local process pool), the method opened once beforehand;
 - live: the live :class:`service.pipeline.runtime.Pipeline` (acquisition and inference threads, the fit workers)
-  on the same recording replayed at full speed: its capacity, the frames/s it infers when no camera paces it; its
-  method opened once beforehand as ``serve`` opens it.
+  on the same recording replayed at full speed: its capacity, the frames/s it infers when no camera paces it.
 
 Each ``--repeat`` times, alternating, so that both see the same load; medians and the ratio to the camera's rate,
 and the CPU each spent per frame (this process and its fit processes; the fit processes' share beside it), which a loaded machine changes less than it
