@@ -54,10 +54,6 @@ _T = TypeVar("_T")
 CANDIDATES = 10
 #: Frames per read of the replay: large enough that per-call overheads vanish, small enough for the cache.
 READ_FRAMES = 512
-#: onnxruntime threads of the per-frame graph offline: one. The other core reads ahead, hashes and fits the windows,
-#: so a second graph thread only adds its hand-offs: 3-4 us more CPU per frame for the same values
-#: (docs/benchmarks.md, branch spd7).
-GRAPH_THREADS = 1
 
 
 @dataclass(frozen=True)
@@ -96,7 +92,7 @@ def analyse_recording(
     refined on its frames, and one fit per window as independent tasks (:class:`JobRunner`: a local process
     pool of ``workers``, or the Dask cluster at ``scheduler``).
 
-    ``opened``: the method and database :func:`open_offline` returned, when analysing several
+    ``opened``: the method and database :func:`open_method` returned, when analysing several
     recordings with one (they are opened here otherwise). With ``refine`` the windows keep their own poles
     (``settings.poles`` becomes "series"): the refined motion is the window's inversion. The network method's
     windows are fitted first with the window model and their series' own poles (:func:`start_settings`) and searched
@@ -115,7 +111,7 @@ def analyse_recording(
         opening = hasher.submit(_open_replay, path)
         stack.callback(_close_opened, opening)  # last: after the hash (read from its mapping) and the runner
         stack.enter_context(hasher)
-        inverse, db = opened or open_offline(method, scene, models, database)
+        inverse, db = opened or open_method(method, scene, models, database)
         db = db if method == "regularised" else None
         model = window_model_for(first_settings, models, method)
         runner = stack.enter_context(JobRunner(first_settings, scheduler, workers))
@@ -192,13 +188,6 @@ def analyse_recording(
             fitted[w.start : w.end] = series
         per_frame = InverseOutput(coefficients=coefficients_of(records), centre=records["centre"].copy())
     return Analysis(report, per_frame, fitted)
-
-
-def open_offline(
-    method: str, scene: Scene, models: Path, database: Path | None = None
-) -> tuple[InverseMethod, NearestDatabase | None]:
-    """:func:`open_method` as :func:`analyse_recording` runs it: a graph on :data:`GRAPH_THREADS` threads."""
-    return open_method(method, scene, models, database, threads=GRAPH_THREADS)
 
 
 def fps_of(path: Path) -> float:

@@ -21,11 +21,11 @@ from pathlib import Path
 import numpy as np
 
 from service import DEFAULT_MODELS
-from service.analysis.offline import analyse_recording, method_label, open_offline
+from service.analysis.offline import analyse_recording, method_label
 from service.analysis.results import FitSettings
 from service.bench.results import write_results
 from service.errors import MeniscopeError, require_folder_of
-from service.inverse.methods import DATABASE_METHODS, METHODS, database_folder
+from service.inverse.methods import DATABASE_METHODS, METHODS, database_folder, open_method
 from service.scene import Scene
 from service.simulate import truth_path
 from service.validation.score import QUANTITIES, error_statistics, summary
@@ -105,7 +105,7 @@ def run_method(
     :attr:`FitSettings.series_model`."""
     settings = FitSettings(series_model=series)
     start = time.perf_counter()
-    opened = open_offline(method, scene, models, database)
+    opened = open_method(method, scene, models, database)
     setup_s = time.perf_counter() - start
     rows = []
     for path in recordings:

@@ -260,7 +260,6 @@ def run(args: argparse.Namespace) -> int:
     import numpy as np
 
     from service import DEFAULT_MODELS
-    from service.analysis.offline import open_offline
     from service.bench.results import write_results
     from service.errors import MeniscopeError
     from service.inverse.methods import open_method
@@ -272,13 +271,12 @@ def run(args: argparse.Namespace) -> int:
     scene = Scene.load(args.scene)
     with open_recording(args.recording) as rec:
         camera_fps = rec.fps
-    opened = open_offline("network", scene, DEFAULT_MODELS)  # each way its own graph threads, as analyze and serve run
-    method, _ = open_method("network", scene, DEFAULT_MODELS)
+    opened = open_method("network", scene, DEFAULT_MODELS)
     offline, live = [], []
     for k in range(args.repeat):
         print(f"bench pipeline: run {k + 1} of {args.repeat} ...", flush=True)
         offline.append(measure_offline(args.recording, scene, opened, args.workers))
-        live.append(measure_live(args.recording, scene, method, args.workers))
+        live.append(measure_live(args.recording, scene, opened[0], args.workers))
     results = {"recording": str(args.recording), "camera_fps": camera_fps, "offline": offline, "live": live}
     for name, runs in (("offline", offline), ("live", live)):
         results[f"{name}_median_frames_per_s"] = float(np.median([r["frames_per_s"] for r in runs]))

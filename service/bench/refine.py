@@ -122,9 +122,9 @@ def markdown(results: dict) -> str:
 
 def run(args: argparse.Namespace) -> int:
     from service import DEFAULT_MODELS
-    from service.analysis.offline import open_offline
     from service.bench.results import write_results
     from service.errors import MeniscopeError
+    from service.inverse.methods import open_method
     from service.pipeline.windows import usable_cores
     from service.scene import Scene
 
@@ -139,7 +139,7 @@ def run(args: argparse.Namespace) -> int:
             "bench refine", "needs the Dask distributed package: pip install 'meniscope[scale]'"
         ) from None
     scene = Scene.load(args.scene)
-    opened = open_offline("network", scene, DEFAULT_MODELS)
+    opened = open_method("network", scene, DEFAULT_MODELS)
     cores = usable_cores()
     print(f"bench refine: local pool of {cores} ...", flush=True)
     runs = [{"name": f"local pool, {cores} processes", **measure(args.recording, scene, opened, None, cores)}]
