@@ -82,6 +82,62 @@ def test_measures_match_numpy_whatever_the_pixels_and_the_batching(
             np.testing.assert_array_equal(g, w)
 
 
+def novelty_one_lag_at_a_time(frames: np.ndarray, indices: np.ndarray, near: int, far: int) -> np.ndarray:
+    """:func:`novelty` with each distance summed cell by cell in the cells' order, one earlier frame at a time (the
+    nearest taken first to last), as the measures defined it before they summed every lag together."""
+    n, h, w = frames.shape
+    rows, cols = (np.split(np.arange(k), np.flatnonzero(np.diff(np.arange(k) * min(GRID, k) // k)) + 1) for k in (h, w))
+    x = frames.astype(np.float64)
+    cells = np.stack([x[:, r][:, :, c].sum(axis=(1, 2)) / (r.size * c.size) for r in rows for c in cols], axis=1)
+    out = np.full(n, np.nan)
+    for i in range(n):
+        best = np.inf
+        for j in range(i - near, i - far - 1, -1):
+            if j < 0 or indices[i] - indices[j] != i - j:
+                break
+            d = 0.0
+            for a, b in zip(cells[i].tolist(), cells[j].tolist()):
+                d += abs(a - b)
+            best = min(best, d)
+        out[i] = best / cells.shape[1] if best < np.inf else np.nan
+    return out
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    dtype=st.sampled_from([np.uint8, np.uint16]),
+    fill=st.sampled_from(["max", "zero", "random", "steps"]),
+    frames=st.integers(1, 40),
+    side=st.sampled_from([1, 5, 8, 17, 96]),
+    batch=st.integers(1, 40),
+    gap=st.integers(0, 41),
+    seed=st.integers(0, 2**16),
+    near=st.integers(1, 6),
+    span=st.integers(0, 12),
+)
+def test_novelty_is_the_nearest_earlier_frame_summed_cell_by_cell_to_the_last_bit(
+    dtype, fill, frames, side, batch, gap, seed, near, span
+):
+    """Novelty, all earlier frames' distances summed together, equals each distance summed in the cells' order one
+    frame at a time, to the last bit: at full scale, zero, random and few-level pixels (many equal distances), any
+    batching, a lost frame, comparisons as far back as the stream holds or farther."""
+    rng = np.random.default_rng(seed)
+    top = np.iinfo(dtype).max
+    shape = (frames, side, side)
+    pixels = {
+        "max": np.full(shape, top, dtype),
+        "zero": np.zeros(shape, dtype),
+        "random": rng.integers(0, top, shape, dtype, endpoint=True),
+        "steps": (rng.integers(0, 3, shape) * (top // 2)).astype(dtype),
+    }[fill]
+    indices = np.arange(frames) + (np.arange(frames) >= gap)
+    measures = PixelMeasures(near, near + span)
+    got = np.concatenate(
+        [measures.update(pixels[i : i + batch], indices[i : i + batch])[3] for i in range(0, frames, batch)]
+    )
+    np.testing.assert_array_equal(got, novelty_one_lag_at_a_time(pixels, indices, near, near + span))
+
+
 @settings(max_examples=60, deadline=None)
 @given(
     dtype=st.sampled_from([np.uint8, np.uint16]),

@@ -89,19 +89,22 @@ def _words(pixels: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
 @njit(cache=True, nogil=True)
 def _novelty(cells, ring, filled, position, near, out):  # type: ignore[no-untyped-def]
     """Each row of ``cells`` (N, C): its mean absolute distance to the nearest of the frames ``near`` .. ``filled``
-    before it held in ``ring`` (F, C) (the last F frames, the newest at ``position - 1``); NaN with none that
-    far back. Each row then enters the ring; returns the ring's fill and next position."""
-    size, width = ring.shape
+    before it held in ``ring`` (C, F) (the last F frames by column, the newest at ``position - 1``); NaN with none
+    that far back. Each row then enters the ring; returns the ring's fill and next position. The distances to all F
+    are summed together, cell by cell (each in the order of its cells, as one at a time would)."""
+    width, size = ring.shape
+    distance = np.empty(size)
     for i in range(cells.shape[0]):
+        distance[:] = 0.0
+        for k in range(width):
+            c = cells[i, k]
+            for f in range(size):
+                distance[f] += abs(c - ring[k, f])
         best = np.inf
         for lag in range(near, filled + 1):
-            past = ring[(position - lag) % size]
-            d = 0.0
-            for k in range(width):
-                d += abs(cells[i, k] - past[k])
-            best = min(best, d)
+            best = min(best, distance[(position - lag) % size])
         out[i] = best / width if best < np.inf else np.nan
-        ring[position] = cells[i]
+        ring[:, position] = cells[i]
         position = (position + 1) % size
         filled = min(filled + 1, size)
     return filled, position
@@ -127,7 +130,7 @@ class PixelMeasures:
         self._previous: np.ndarray | None = None  # last frame of the previous batch, flattened
         self._last_index: int | None = None
         self._near, self._far = max(1, near), max(near, far, 1)
-        self._ring: np.ndarray | None = None  # the last ``far`` frames' cell means
+        self._ring: np.ndarray | None = None  # the last ``far`` frames' cell means, a column each
         self._filled, self._position = 0, 0
         self._shape: tuple[int, int] | None = None  # the frames' size the cell numbers below are for
         self._band, self._edges, self._counts = np.empty(0, np.int64), np.empty(0, np.int64), np.empty(0)
@@ -170,8 +173,8 @@ class PixelMeasures:
         steps[breaks] = np.nan  # no change across frames lost in between
         novelty = np.empty(n)
         cells /= counts
-        if self._ring is None or self._ring.shape[1] != counts.size:
-            self._ring, self._filled, self._position = np.zeros((self._far, counts.size)), 0, 0
+        if self._ring is None or self._ring.shape[0] != counts.size:
+            self._ring, self._filled, self._position = np.zeros((counts.size, self._far)), 0, 0
         for lo, hi in zip([0, *breaks], [*breaks, n]):  # a gap starts the comparison afresh
             if lo > 0 or not follows:
                 self._filled = 0
