@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import json
+from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -22,7 +24,7 @@ from service.calibration.artifacts import (
     still_pixels,
     with_spheres,
 )
-from service.calibration.fit import _moving, _spheres, crop
+from service.calibration.fit import SCHEDULE, _moving, _spheres, crop, motion_only, parabola_vertex, sphere_material
 from service.calibration.footage import read_footage
 from service.calibration.noise import NoiseFit, fit_noise
 from service.calibration.synthesis import Synthesis
@@ -128,17 +130,33 @@ def test_a_sphere_is_placed_back_from_its_glint(azimuth: float, ring: float, rad
     np.testing.assert_allclose(place(scene, glint, sphere[:, 3]), sphere[:, :3], atol=1e-5)
 
 
-def test_glints_by_the_bore_are_found_within_1_px_where_the_fluid_can_reach(tmp_path: Path) -> None:
-    """A recording by our renderer of eight rough defects round the bore's rim (none behind the meniscus, where
-    the fluid's own highlight hides them), most of them where the fluid can reach in the model: every glint is
-    recovered within 1 px, and nothing else is."""
+@dataclass(frozen=True)
+class Defects:
+    """A recording by our renderer of eight rough defects (alpha 0.2) round the bore's rim (none behind the
+    meniscus, where the fluid's own highlight hides them), most of them where the fluid can reach in the model, and
+    what calibrate has when it looks for them: the true scene without spheres, its static stack, moving pixels and
+    noise, and the motion of four fitted frames."""
+
+    true: Scene
+    scene: Scene
+    synth: Synthesis
+    stack: np.ndarray
+    moving: np.ndarray
+    noise: NoiseFit
+    full_scale: float
+    lab: np.ndarray
+    motion: np.ndarray
+
+
+@pytest.fixture(scope="module")
+def defects(tmp_path_factory: pytest.TempPathFactory) -> Defects:
     data = json.loads(Path(DEFAULT_SCENE).read_text())
     data["camera"].update(width_px=72, height_px=72)
     rim = np.radians([-70, -45, -20, 60, 120, 160, 200, 240])
     spheres = [{"x": 0.3 * np.cos(a), "y": 0.3 * np.sin(a), "z": 0.0, "radius": 0.014} for a in rim]
     data["artifacts"].update(spheres=spheres, material={"roughness": 0.2, "reflectance": 0.9})
     true = Scene.from_dict(data)
-    out = tmp_path / "defects.cine"
+    out = tmp_path_factory.mktemp("defects") / "defects.cine"
     camera = CameraEffects(offset=0.01, blur_sigma_px=0.6, full_well_e=16000, read_noise_dn=5.0, bit_depth=12)
     simulate(true, out, windows=2, seed=5, ejection_hz=1000.0, effects=camera)
     footage = read_footage(out, frames=4, stack=60, ejection_hz=1000.0)
@@ -148,10 +166,63 @@ def test_glints_by_the_bore_are_found_within_1_px_where_the_fluid_can_reach(tmp_
     stack = crop(footage.stack, scene)
     moving = _moving(synth, scene)
     noise = fit_noise(stack, ~moving, 0.01, footage.full_scale)
-    found = _spheres(synth, scene, stack, moving, noise, footage.full_scale)
-    truth = glint_positions(true, true.spheres)
+    lab = crop(footage.frames, scene)
+    motion = motion_only(synth, scene, lab, SCHEDULE[-1].sigmas)
+    return Defects(true, scene, synth, stack, moving, noise, footage.full_scale, lab, motion)
+
+
+def test_glints_by_the_bore_are_found_within_1_px_where_the_fluid_can_reach(defects: Defects) -> None:
+    """Every glint of the rough defects is recovered within 1 px, and nothing else is."""
+    d = defects
+    found = _spheres(d.synth, d.scene, d.stack, d.moving, d.noise, d.full_scale)
+    truth = glint_positions(d.true, d.true.spheres)
     cols, rows = np.rint(truth).astype(int).T
-    assert moving[rows, cols].sum() >= 4  # where the fluid's reach in the model hid them before
-    dist = np.linalg.norm(truth[:, None] - glint_positions(scene, found)[None], axis=-1)
+    assert d.moving[rows, cols].sum() >= 4  # where the fluid's reach in the model hid them before
+    dist = np.linalg.norm(truth[:, None] - glint_positions(d.scene, found)[None], axis=-1)
     assert (dist.min(axis=1) <= 1.0).all()  # every glint is found within 1 px
     assert len(found) == len(truth)  # and nothing else is
+
+
+def test_the_defects_look_is_chosen_by_the_frames_and_not_a_near_mirrors(defects: Defects) -> None:
+    """The defects' roughness is chosen by the fitted frames' cost with the spheres each candidate sizes (the grid,
+    then the vertex between the best and its neighbours where it scores lower). On our renderer's recording of rough
+    defects (0.2) a near-mirror's spheres are not chosen, and those chosen fit the frames at least as well as those
+    sized with the true roughness (the radii trade with it: the choice is a look, not a measurement); the true
+    reflectance is kept, and the spheres kept are the ones found with the roughness chosen."""
+    d = defects
+    grid = (0.02, 0.06, 0.2, 0.54)
+    scene, spheres, tried = sphere_material(
+        d.synth, d.scene, d.stack, d.moving, d.noise, d.full_scale, d.lab, d.motion, SCHEDULE[-1].sigmas, alphas=grid
+    )
+    assert [t["roughness"] for t in tried[: len(grid)]] == list(grid) and len(tried) <= len(grid) + 1
+    chosen = scene.sphere_material
+    cost = {t["roughness"]: t["cost"] for t in tried}
+    assert chosen.roughness >= 0.2 and cost[chosen.roughness] == min(cost.values()) <= cost[0.2]
+    assert chosen.reflectance == 0.9
+    np.testing.assert_array_equal(scene.spheres, spheres)
+    assert len(spheres) == len(d.true.spheres)
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    st.floats(-30.0, 30.0),
+    st.floats(1e-6, 1e6),
+    st.floats(1e-9, 1e9),
+    st.floats(0.01, 0.99),
+    st.floats(-1e6, 1e6),
+)
+def test_a_parabolas_vertex_is_found_between_the_outer_points(
+    x0: float, width: float, curvature: float, share: float, floor: float
+) -> None:
+    """Through three points of a parabola whose middle one is the lowest, the vertex comes back where it is (within
+    the outer two points, at any scale where the parabola's rise shows in its values); with no curvature the middle
+    point is kept."""
+    x = np.array([x0, x0 + share * width, x0 + width])
+    vertex = x[1] + (np.random.default_rng(0).uniform(-0.5, 0.5)) * min(x[1] - x[0], x[2] - x[1])
+    y = floor + curvature * (x - vertex) ** 2
+    if curvature * width**2 < 1e-6 * max(1.0, abs(floor)):  # the rise over the points is lost in the floor's digits
+        return
+    found = parabola_vertex(x, y)
+    assert x[0] <= found <= x[2]
+    assert found == pytest.approx(vertex, abs=1e-6 * width + 1e-9 * abs(x0))
+    assert parabola_vertex(x, np.full(3, floor)) == x[1]

@@ -117,6 +117,8 @@ def document(cal: Calibration, footage: Footage) -> dict[str, Any]:
             "spheres": [dict(zip(("x", "y", "z", "radius"), map(float, s))) for s in cal.scene.spheres]
             if cal.spheres_found
             else None,
+            "material": cal.scene.sphere_material.model_dump(),
+            "materials_tried": cal.materials,
         },
         "motion": {"columns": ["d", "p", "a", "b"], "frames": [[float(v) for v in m] for m in cal.motion]},
         "starts": cal.starts,

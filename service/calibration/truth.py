@@ -73,14 +73,16 @@ def score(found: Scene, truth: dict[str, Any]) -> dict[str, Any]:
 
 
 def _defects(found: Scene, true: Scene) -> dict[str, Any]:
-    """Each true defect's glint (frame px) against the nearest recovered one."""
+    """Each true defect's glint (frame px) against the nearest recovered one, and their material."""
     t = glint_positions(true, true.spheres) + np.array(true.camera.roi)
     f = glint_positions(found, found.spheres) + np.array(found.camera.roi) if len(found.spheres) else np.zeros((0, 2))
+    material = {"true": true.sphere_material.model_dump(), "found": found.sphere_material.model_dump()}
     if not len(f) or not len(t):
-        return {"true": len(t), "found": len(f), "within_1px": 0, "nearest_px": []}
+        return {"true": len(t), "found": len(f), "within_1px": 0, "nearest_px": [], "material": material}
     dist = np.linalg.norm(t[:, None, :] - f[None, :, :], axis=-1)
     nearest = dist.min(axis=1)
     return {
+        "material": material,
         "true": len(t),
         "found": len(f),
         "within_1px": int((nearest <= 1.0).sum()),
