@@ -430,3 +430,18 @@ def test_calibrating_a_model_folder_that_fails_leaves_the_folder_as_it_was(demo_
         calibrate_folder(models, [demo_cine], Scene.load(DEFAULT_SCENE))
     for path in sorted(DEFAULT_MODELS.iterdir()):
         assert (models / path.name).read_bytes() == path.read_bytes(), path.name
+
+
+@pytest.mark.parametrize("latent", [False, True])
+def test_a_built_window_model_names_the_features_it_takes_and_loads_with_them(
+    demo_cine: Path, tmp_path: Path, latent: bool
+) -> None:
+    """``training.window.build`` with or without the network's latent: the record names the channels the graph
+    takes, and the runtime reads the latent exactly when the model was given it."""
+    models = tmp_path / "models"
+    shutil.copytree(DEFAULT_MODELS, models)
+    record = tw.build(models, Scene.load(DEFAULT_SCENE), tmp_path, 0, 1, 0, 0, (demo_cine,), latent=latent)
+    names = wm.FEATURE_NAMES + (wm.LATENT_FEATURES if latent else ())
+    assert record["features"] == list(names)
+    model = wm.WindowModel.of_folder(models)
+    assert model.latent == latent

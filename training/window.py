@@ -306,18 +306,20 @@ def build(
     seed: int,
     calibration: int,
     recordings: tuple[Path, ...] = (),
+    latent: bool = LATENT_INPUT,
 ) -> dict:
     """The window model of ``models``' network: ``windows`` training windows per noise preset rendered into ``data``
     (:func:`render_mix`; with ``recordings``), trained, exported beside the network with its record, and its intervals calibrated on
     ``calibration`` other windows per preset and camera (:func:`render_calibration`; none: the fit's own intervals
-    stay); the folder's manifest rewritten. Returns the record."""
+    stay); the folder's manifest rewritten. ``latent``: the model takes the network's latent per frame too (where the
+    network outputs one). Returns the record."""
     from training.window_intervals import calibrate_folder
 
     recordings = tuple(recordings) + (tuple(render_mix(data, scene, windows, seed)) if windows else ())
     if not recordings:
         raise ValueError("no training recordings: render some windows or name recordings")
     examples = concat([cached_examples(r, scene, models) for r in tqdm(recordings, desc="replay")])
-    if not LATENT_INPUT:
+    if not latent:
         examples = examples.without_latent()
     order = np.random.default_rng(seed).permutation(len(examples.features))
     held = order[: max(1, len(order) // 10)]
@@ -371,6 +373,12 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--scene", type=Path, default=DEFAULT_SCENE, help="scene of the models and the rendered windows")
     p.add_argument("--epochs", type=int, default=300)
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument(
+        "--latent",
+        action=argparse.BooleanOptionalAction,
+        default=LATENT_INPUT,
+        help="give the model the per-frame network's latent too (default: %(default)s)",
+    )
     args = p.parse_args(argv)
     torch.set_num_threads(1)
     if not args.recordings and not args.render:
@@ -384,6 +392,7 @@ def main(argv: list[str] | None = None) -> None:
         args.seed,
         args.calibrate,
         tuple(args.recordings),
+        args.latent,
     )
     print(f"wrote {args.models / wm.FILE}, {wm.RECORD} and the folder's manifest")
 
