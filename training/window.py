@@ -251,7 +251,8 @@ def export(net: WindowNet, path: Path) -> None:
 
 
 #: Whether :func:`build` gives the model the per-frame network's latent (where the network outputs it) besides the
-#: other channels: not yet, its A/B is in docs/window_model.md.
+#: other channels: not by default, since with it the A/B's model was better on our renderer but not on Blender's
+#: recordings (docs/window_model.md, "The per-frame network's latent as input").
 LATENT_INPUT = False
 #: Seeds of the calibration windows lie this far above the training windows' (other motions, other noise).
 CALIBRATION_SEEDS = 100

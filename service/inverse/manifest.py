@@ -28,9 +28,8 @@ OUTPUTS = {
 }
 
 #: The network's third output (``training.export.expose_latent``): the VAE encoder's posterior mean its head reads,
-#: which the window model takes per frame too (the direct CNN's graph has none).
+#: which the window model may take per frame too: float32 (N, 10) (the direct CNN's graph has none).
 LATENT = "latent"
-LATENT_DESCRIPTION = "float32 (N, 10): the VAE encoder's posterior mean, the regressor head's input"
 
 #: Outputs of the VAE's reconstruction graph (``autoencoder.onnx``), which takes the same input.
 AUTOENCODER_OUTPUTS = {
