@@ -96,12 +96,13 @@ def offline(demo_cine: Path) -> dict[int, float]:
     scene, fps = Scene.load(DEFAULT_SCENE), TRUTH["recording"]["fps"]
     with open_recording(demo_cine) as rec:
         frames = roi_frames(rec, scene, 0, len(rec))  # what the pipeline infers: the ROI
-    coeffs, brightness = NetworkMethod(DEFAULT_MODELS, scene).infer(frames).coefficients, frame_brightness(frames)
+    inferred, brightness = NetworkMethod(DEFAULT_MODELS, scene).infer(frames), frame_brightness(frames)
+    coeffs, latent = inferred.coefficients, inferred.latent
     out, window_model, skip = {}, WindowModel.of_folder(DEFAULT_MODELS), FitSettings().transient_frames(fps)
     for w in TRUTH["windows"]:
         s, e = w["start_frame"], w["end_frame"]
         steady = window_steady_centre(coeffs[s:e], scene.nozzle.radius_mm, skip, True)
-        steady = window_model.correct(coeffs[s:e], brightness[s:e], steady, skip)  # serve's default (issue 17)
+        steady = window_model.correct(coeffs[s:e], brightness[s:e], steady, skip, latent[s:e])  # serve's (issue 17)
         result = fit_window(steady, fps, starts_at_ejection=True, ends_at_ejection=True, brightness=brightness[s:e])
         out[s] = result.modes[0].frequency_hz if result.modes else float("nan")
     return out

@@ -19,7 +19,7 @@ from service.analysis.segment import Window
 from service.errors import MeniscopeError
 from service.inverse import window_model as wm
 from service.inverse.manifest import sha256_file
-from service.pipeline.records import FRAME
+from service.pipeline.records import FRAME, LATENT_SIZE
 from service.pipeline.windows import WindowJob, fit_job, job_for, window_model_for
 from service.scene import Scene
 from service.simulate import WindowRanges
@@ -65,7 +65,7 @@ def test_the_onnx_graph_gives_torch_s_correction_at_any_window_length(graph, fra
     features = wm.window_features(coefficients, r["brightness"], steady, 6)
     with torch.no_grad():
         expected = net(torch.from_numpy(features[None]))[0].numpy()
-    corrected = wm.WindowModel(path).correct(coefficients, r["brightness"], steady, 6)
+    corrected = wm.WindowModel(path).correct(coefficients, r["brightness"], steady, 6, r["latent"])
     np.testing.assert_allclose((corrected - steady) / wm.SCALE_MM, expected, rtol=1e-4, atol=1e-5)
 
 
@@ -108,6 +108,81 @@ def test_a_window_model_trained_on_another_per_frame_network_is_refused(graph, t
     (tmp_path / wm.NETWORK).write_bytes(b"a network trained again")
     with pytest.raises(MeniscopeError, match="trained on another network.onnx"):
         wm.WindowModel.of_folder(tmp_path)
+
+
+@pytest.fixture(scope="module")
+def latent_graph(tmp_path_factory: pytest.TempPathFactory) -> tuple[WindowNet, Path]:
+    """An untrained net taking the network's latent too, exported with the record that names its features."""
+    torch.manual_seed(2)
+    net = WindowNet(wm.FEATURES + LATENT_SIZE)
+    torch.nn.init.normal_(net.out.weight, std=0.3)
+    path = tmp_path_factory.mktemp("latent") / wm.FILE
+    export(net.eval(), path)
+    network = path.with_name(wm.NETWORK)
+    network.write_bytes(b"a per-frame network with a latent")
+    features = list(wm.FEATURE_NAMES + wm.LATENT_FEATURES)
+    path.with_name(wm.RECORD).write_text(json.dumps({"network_sha256": sha256_file(network), "features": features}))
+    return net, path
+
+
+def test_a_window_model_taking_the_latent_gives_torch_s_correction_and_reads_it(latent_graph) -> None:
+    net, path = latent_graph
+    rng = np.random.default_rng(5)
+    r = _records(190, rng)
+    r["latent"] = rng.normal(0, 1, (190, LATENT_SIZE))
+    coefficients = np.column_stack([r[k] for k in ("d", "p", "a", "b")])
+    steady = 0.01 + 0.05 * 0.25 + r["a"] + r["b"]
+    features = wm.window_features(coefficients, r["brightness"], steady, 6, r["latent"])
+    with torch.no_grad():
+        expected = net(torch.from_numpy(features[None]))[0].numpy()
+    model = wm.WindowModel(path)
+    corrected = model.correct(coefficients, r["brightness"], steady, 6, r["latent"])
+    assert model.latent
+    np.testing.assert_allclose((corrected - steady) / wm.SCALE_MM, expected, rtol=1e-4, atol=1e-5)
+    other = model.correct(coefficients, r["brightness"], steady, 6, r["latent"][::-1])
+    assert np.abs(other - corrected).max() > 0  # the latent is read, not ignored
+
+
+@settings(max_examples=40, deadline=None)
+@given(missing=st.lists(st.integers(0, 99), max_size=30), scale=st.floats(-1e3, 1e3), skip=st.integers(0, 120))
+def test_the_latent_adds_its_channels_after_the_others_and_a_frame_without_one_is_missing(
+    missing: list[int], scale: float, skip: int
+) -> None:
+    """The first :data:`wm.FEATURES` channels are those of a model without the latent, but for the frames whose
+    latent is not there: those are missing in every channel."""
+    r = _records(100, np.random.default_rng(1))
+    latent = scale * np.random.default_rng(2).normal(0, 1, (100, LATENT_SIZE)).astype(np.float32)
+    latent[missing] = np.nan
+    coefficients = np.column_stack([r[k] for k in ("d", "p", "a", "b")])
+    steady = coefficients[:, 0] + coefficients[:, 2]
+    plain = wm.window_features(coefficients, r["brightness"], steady, skip)
+    with_latent = wm.window_features(coefficients, r["brightness"], steady, skip, latent)
+    kept = np.setdiff1d(np.arange(100), missing)
+    assert with_latent.shape == (wm.FEATURES + LATENT_SIZE, 100) and np.isfinite(with_latent).all()
+    np.testing.assert_array_equal(with_latent[wm.FEATURES :, kept], latent[kept].T)
+    assert not with_latent[wm.PRESENT, missing].any() and not with_latent[wm.FEATURES :, missing].any()
+    assert with_latent[wm.PRESENT, kept].all() and plain[wm.PRESENT].all()
+    np.testing.assert_array_equal(with_latent[[6, 7]], plain[[6, 7]])  # time and transient do not depend on it
+
+
+@pytest.mark.parametrize(
+    ("features", "message"),
+    [
+        (list(wm.FEATURE_NAMES + wm.LATENT_FEATURES), "takes 9 features per frame, not the 19 window.json names"),
+        (["d", "p"], "its features .* are not ones the window model is given"),
+    ],
+)
+def test_a_window_model_whose_record_names_other_features_than_its_graph_takes_is_refused_in_one_line(
+    graph, tmp_path: Path, features: list[str], message: str
+) -> None:
+    _, path = graph
+    for name in (wm.FILE, wm.NETWORK):
+        shutil.copy(path.with_name(name), tmp_path / name)
+    record = json.loads(path.with_name(wm.RECORD).read_text()) | {"features": features}
+    (tmp_path / wm.RECORD).write_text(json.dumps(record))
+    with pytest.raises(MeniscopeError, match=message) as refused:
+        wm.WindowModel.of_folder(tmp_path)
+    assert "\n" not in str(refused.value) and str(tmp_path) in str(refused.value)
 
 
 def test_the_settings_choose_the_shipped_window_model_for_analyze_and_serve_alike() -> None:
@@ -355,3 +430,18 @@ def test_calibrating_a_model_folder_that_fails_leaves_the_folder_as_it_was(demo_
         calibrate_folder(models, [demo_cine], Scene.load(DEFAULT_SCENE))
     for path in sorted(DEFAULT_MODELS.iterdir()):
         assert (models / path.name).read_bytes() == path.read_bytes(), path.name
+
+
+@pytest.mark.parametrize("latent", [False, True])
+def test_a_built_window_model_names_the_features_it_takes_and_loads_with_them(
+    demo_cine: Path, tmp_path: Path, latent: bool
+) -> None:
+    """``training.window.build`` with or without the network's latent: the record names the channels the graph
+    takes, and the runtime reads the latent exactly when the model was given it."""
+    models = tmp_path / "models"
+    shutil.copytree(DEFAULT_MODELS, models)
+    record = tw.build(models, Scene.load(DEFAULT_SCENE), tmp_path, 0, 1, 0, 0, (demo_cine,), latent=latent)
+    names = wm.FEATURE_NAMES + (wm.LATENT_FEATURES if latent else ())
+    assert record["features"] == list(names)
+    model = wm.WindowModel.of_folder(models)
+    assert model.latent == latent

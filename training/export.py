@@ -25,7 +25,7 @@ import torch
 from onnx import TensorProto, helper
 from torch import nn
 
-from service.inverse.manifest import INPUT, OUTPUTS
+from service.inverse.manifest import INPUT, LATENT, OUTPUTS
 from service.inverse.network import onnx_outputs
 
 OPSET = 17
@@ -80,6 +80,27 @@ def _cast_input(proto: onnx.ModelProto, elem_type: int) -> None:
     inp.name = INPUT
     inp.type.tensor_type.elem_type = elem_type
     graph.node.insert(0, helper.make_node("Cast", [INPUT], [_FLOAT_INPUT], to=TensorProto.FLOAT, name="cast_frames"))
+
+
+def expose_latent(path: Path, head_weight: str = "head.mlp.0.weight") -> Path:
+    """Add the latent regressor's encoder mean (the input of its head's first layer, named by that layer's
+    ``head_weight``) to the graph at ``path`` as the output :data:`LATENT` (N, latent), in place: the window model
+    reads it, and the per-frame pass has already computed it. The other outputs and weights stay as they were."""
+    proto = onnx.load(str(path))
+    graph = proto.graph
+    if any(o.name == LATENT for o in graph.output):
+        return Path(path)
+    heads = [n for n in graph.node if n.op_type == "Gemm" and n.input[1] == head_weight]
+    if len(heads) != 1:
+        raise ValueError(f"{path}: no single Gemm reads {head_weight!r}: not a latent regressor's graph")
+    (weight,) = (w for w in graph.initializer if w.name == head_weight)
+    transposed = {a.name: a.i for a in heads[0].attribute}.get("transB", 0)
+    size = weight.dims[1] if transposed else weight.dims[0]
+    graph.node.append(helper.make_node("Identity", [heads[0].input[0]], [LATENT], name="latent_output"))
+    graph.output.append(helper.make_tensor_value_info(LATENT, TensorProto.FLOAT, ["batch", size]))
+    onnx.checker.check_model(proto, full_check=True)
+    onnx.save_model(proto, str(path), save_as_external_data=False)
+    return Path(path)
 
 
 def parity(model: nn.Module, path: Path, frames: np.ndarray, outputs: tuple[str, ...] = tuple(OUTPUTS)) -> float:

@@ -41,7 +41,7 @@ from service.scene import Scene
 from service.validation.truth import oscillation_truth, read_truth, score
 from training.dataset import Dataset, DatasetConfig, generate, open_dataset
 from training.direct import DirectCNN
-from training.export import export_onnx, parity
+from training.export import export_onnx, expose_latent, parity
 from training.normalise import Normalise, downsample_factor
 from training.regressor import Head, LatentRegressor, targets
 from training.vae import VAE, Encoder, NetConfig, Reconstruction, vae_loss
@@ -390,6 +390,8 @@ def train_models(
     methods = {}
     for name, model in models.items():
         path = export_onnx(model, out / f"{name}.onnx", height, width, config.input_dtype)
+        if name == "network":  # its encoder mean, the window model's per-frame input too
+            expose_latent(path)
         methods[name] = MethodEntry(
             file=path.name, description=DESCRIPTIONS[name], parity_max_abs=parity(model, path, probe)
         )

@@ -41,8 +41,9 @@ OPSET = 17
 
 @dataclass(frozen=True)
 class Examples:
-    """Windows padded to one length: features (W, FEATURES, m), targets (W, m) (the correction, SCALE_MM units) and
-    which frames are scored (W, m): the oscillating frames with values."""
+    """Windows padded to one length: features (W, channels, m) (:data:`wm.FEATURE_NAMES`, then the network's
+    :data:`wm.LATENT_FEATURES` where it has them), targets (W, m) (the correction, SCALE_MM units) and which frames are
+    scored (W, m): the oscillating frames with values."""
 
     features: np.ndarray
     targets: np.ndarray
@@ -51,6 +52,10 @@ class Examples:
     def select(self, windows: np.ndarray) -> Examples:
         """These examples' ``windows`` (indices)."""
         return Examples(self.features[windows], self.targets[windows], self.scored[windows])
+
+    def without_latent(self) -> Examples:
+        """These examples' :data:`wm.FEATURES` channels alone: a model that does not take the latent."""
+        return Examples(self.features[:, : wm.FEATURES], self.targets, self.scored)
 
 
 #: The motion of the training windows: the simulator's ranges (:class:`service.simulate.WindowRanges`) widened down
@@ -111,9 +116,10 @@ def recording_records(path: Path, scene: Scene, models: Path) -> np.ndarray:
 
 
 def recording_examples(path: Path, scene: Scene, models: Path, settings: FitSettings = FitSettings()) -> Examples:
-    """One example per true window of a simulated recording."""
+    """One example per true window of a simulated recording, with the network's latent where it outputs one."""
     truth = read_truth(path)
     records = recording_records(path, scene, models)
+    latent = records["latent"] if np.isfinite(records["latent"]).any() else None
     true = truth_centre(truth)
     fps, radius = truth["recording"]["fps"], scene.nozzle.radius_mm
     skip = settings.transient_frames(fps)
@@ -123,10 +129,10 @@ def recording_examples(path: Path, scene: Scene, models: Path, settings: FitSett
         r = records[lo:hi]
         coefficients = coefficients_of(r)
         steady = window_steady_centre(coefficients, radius, skip, True)
-        f = wm.window_features(coefficients, r["brightness"], steady, skip)
+        f = wm.window_features(coefficients, r["brightness"], steady, skip, None if latent is None else latent[lo:hi])
         feats.append(f)
         targets.append(np.nan_to_num((true[lo:hi] - steady) / wm.SCALE_MM).astype(np.float32))
-        keep = f[8] > 0
+        keep = f[wm.PRESENT] > 0
         keep[: w["oscillation_start_frame"] - lo] = False
         scored.append(keep)
     return pad(feats, targets, scored)
@@ -150,7 +156,7 @@ def pad(feats: list[np.ndarray], targets: list[np.ndarray], scored: list[np.ndar
     """Windows of different lengths zero-padded (not scored) to the longest."""
     m = max(f.shape[1] for f in feats)
     out = Examples(
-        np.zeros((len(feats), wm.FEATURES, m), np.float32),
+        np.zeros((len(feats), feats[0].shape[0], m), np.float32),
         np.zeros((len(feats), m), np.float32),
         np.zeros((len(feats), m), bool),
     )
@@ -173,9 +179,11 @@ class WindowNet(nn.Module):
     block also fed the mean of the window's present frames (what holds for the whole window: its amplitude,
     the shrink of its per-frame estimates)."""
 
-    def __init__(self, width: int = 48, dilations: tuple[int, ...] = (1, 2, 4, 8, 16, 32)) -> None:
+    def __init__(
+        self, features: int = wm.FEATURES, width: int = 48, dilations: tuple[int, ...] = (1, 2, 4, 8, 16, 32)
+    ) -> None:
         super().__init__()
-        self.inp = nn.Conv1d(wm.FEATURES, width, 1)
+        self.inp = nn.Conv1d(features, width, 1)
         self.convs = nn.ModuleList(nn.Conv1d(width, width, 5, dilation=d, padding=2 * d) for d in dilations)
         self.context = nn.ModuleList(nn.Linear(width, width) for _ in dilations)
         self.out = nn.Conv1d(width, 1, 1)
@@ -183,7 +191,7 @@ class WindowNet(nn.Module):
         nn.init.zeros_(self.out.bias)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        present = x[:, 8:9]
+        present = x[:, wm.PRESENT : wm.PRESENT + 1]
         count = present.sum(-1).clamp(min=1.0)
         h = self.inp(x)
         for conv, context in zip(self.convs, self.context):
@@ -193,9 +201,10 @@ class WindowNet(nn.Module):
 
 
 def train(train_set: Examples, check: Examples, epochs: int = 300, seed: int = 0) -> tuple[WindowNet, list[float]]:
-    """The net with the lowest scored MSE on ``check`` over ``epochs`` of Adam on ``train_set``; check losses."""
+    """The net (taking ``train_set``'s channels) with the lowest scored MSE on ``check`` over ``epochs`` of Adam on
+    ``train_set``; check losses."""
     torch.manual_seed(seed)
-    net = WindowNet()
+    net = WindowNet(train_set.features.shape[1])
     opt = torch.optim.AdamW(net.parameters(), 2e-3, weight_decay=1e-4)
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, epochs)
     x, y, s = (torch.from_numpy(a) for a in (train_set.features, train_set.targets, train_set.scored))
@@ -221,9 +230,9 @@ def train(train_set: Examples, check: Examples, epochs: int = 300, seed: int = 0
 
 
 def export(net: WindowNet, path: Path) -> None:
-    """``net`` as an ONNX graph features (1, FEATURES, m) -> correction (1, m), m dynamic, weights inside."""
+    """``net`` as an ONNX graph features (1, channels, m) -> correction (1, m), m dynamic, weights inside."""
     buffer = io.BytesIO()
-    example = torch.zeros(1, wm.FEATURES, 190)
+    example = torch.zeros(1, net.inp.in_channels, 190)
     with warnings.catch_warnings():  # the TorchScript exporter's deprecation notices (see training.export)
         warnings.simplefilter("ignore", DeprecationWarning)
         torch.onnx.export(
@@ -241,6 +250,10 @@ def export(net: WindowNet, path: Path) -> None:
     onnx.save(model, str(path))
 
 
+#: Whether :func:`build` gives the model the per-frame network's latent (where the network outputs it) besides the
+#: other channels: not by default, since with it the A/B's model was better on our renderer but not on Blender's
+#: recordings (docs/window_model.md, "The per-frame network's latent as input").
+LATENT_INPUT = False
 #: Seeds of the calibration windows lie this far above the training windows' (other motions, other noise).
 CALIBRATION_SEEDS = 100
 #: Seeds of the training windows at the simulator's nominal motion lie this far above the widened ones'.
@@ -294,17 +307,21 @@ def build(
     seed: int,
     calibration: int,
     recordings: tuple[Path, ...] = (),
+    latent: bool = LATENT_INPUT,
 ) -> dict:
     """The window model of ``models``' network: ``windows`` training windows per noise preset rendered into ``data``
     (:func:`render_mix`; with ``recordings``), trained, exported beside the network with its record, and its intervals calibrated on
     ``calibration`` other windows per preset and camera (:func:`render_calibration`; none: the fit's own intervals
-    stay); the folder's manifest rewritten. Returns the record."""
+    stay); the folder's manifest rewritten. ``latent``: the model takes the network's latent per frame too (where the
+    network outputs one). Returns the record."""
     from training.window_intervals import calibrate_folder
 
     recordings = tuple(recordings) + (tuple(render_mix(data, scene, windows, seed)) if windows else ())
     if not recordings:
         raise ValueError("no training recordings: render some windows or name recordings")
     examples = concat([cached_examples(r, scene, models) for r in tqdm(recordings, desc="replay")])
+    if not latent:
+        examples = examples.without_latent()
     order = np.random.default_rng(seed).permutation(len(examples.features))
     held = order[: max(1, len(order) // 10)]
     rest = order[len(held) :]
@@ -314,6 +331,7 @@ def build(
     export(net, models / wm.FILE)
     record = {
         "network_sha256": sha256_file(models / wm.NETWORK),
+        "features": list(wm.FEATURE_NAMES + wm.LATENT_FEATURES)[: examples.features.shape[1]],
         "recordings": [str(r) for r in recordings],
         "windows_trained": int(len(rest)),
         "windows_checked": int(len(held)),
@@ -356,6 +374,12 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--scene", type=Path, default=DEFAULT_SCENE, help="scene of the models and the rendered windows")
     p.add_argument("--epochs", type=int, default=300)
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument(
+        "--latent",
+        action=argparse.BooleanOptionalAction,
+        default=LATENT_INPUT,
+        help="give the model the per-frame network's latent too (default: %(default)s)",
+    )
     args = p.parse_args(argv)
     torch.set_num_threads(1)
     if not args.recordings and not args.render:
@@ -369,6 +393,7 @@ def main(argv: list[str] | None = None) -> None:
         args.seed,
         args.calibrate,
         tuple(args.recordings),
+        args.latent,
     )
     print(f"wrote {args.models / wm.FILE}, {wm.RECORD} and the folder's manifest")
 

@@ -16,10 +16,13 @@ class InverseOutput:
 
     coefficients : float64 (N, 4), columns d (mm), p (-), a (mm), b (mm) of Eq. 1
     centre       : float64 (N,), centre displacement D(0, t) in mm
+    latent       : float32 (N, 10), the network's encoder mean (:data:`service.inverse.manifest.LATENT`), or None
+                   for a method or graph without one
     """
 
     coefficients: np.ndarray
     centre: np.ndarray
+    latent: np.ndarray | None = None
 
     def as_coefficients(self) -> Coefficients:
         return Coefficients.from_array(self.coefficients)

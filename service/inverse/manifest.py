@@ -27,6 +27,10 @@ OUTPUTS = {
     "centre": "float32 (N,): centre displacement D(0, t) (mm)",
 }
 
+#: The network's third output (``training.export.expose_latent``): the VAE encoder's posterior mean its head reads,
+#: which the window model may take per frame too: float32 (N, 10) (the direct CNN's graph has none).
+LATENT = "latent"
+
 #: Outputs of the VAE's reconstruction graph (``autoencoder.onnx``), which takes the same input.
 AUTOENCODER_OUTPUTS = {
     "normalised": "float32 (N, 1, h, w): the frames as the networks see them (pooled, standardised)",

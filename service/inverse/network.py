@@ -15,7 +15,8 @@ import onnxruntime as ort
 from service.errors import MeniscopeError
 from service.inverse import pooling
 from service.inverse.base import InverseMethod, InverseOutput
-from service.inverse.manifest import INPUT, OUTPUTS, load_manifest
+from service.inverse.manifest import INPUT, LATENT, OUTPUTS, load_manifest
+from service.pipeline.records import LATENT_SIZE
 from service.scene import Scene
 
 #: onnxruntime's graph optimisation levels by name (``meniscope bench inference`` compares them).
@@ -83,10 +84,20 @@ class NetworkMethod(InverseMethod):
             raise MeniscopeError(path, f"onnxruntime cannot load it: {str(exc).splitlines()[0]}") from None
         self.name = method
         self.batch = batch
+        self._outputs = list(OUTPUTS) + self._latent_output(path)
         self._dtype = np.dtype(manifest.input.dtype)
         self._shape = (manifest.input.height, manifest.input.width)
         self._input, self.pooling = INPUT, 0
         self._pool_outside(path, manifest.input.downsample, options)
+
+    def _latent_output(self, path: Path) -> list[str]:
+        """[:data:`LATENT`] where the graph outputs the encoder's mean (``training.export.expose_latent``), else []."""
+        (latent,) = [o for o in self._session.get_outputs() if o.name == LATENT] or [None]
+        if latent is None:
+            return []
+        if latent.shape[-1] != LATENT_SIZE:
+            raise MeniscopeError(path, f"its {LATENT} output has shape {latent.shape}, not (N, {LATENT_SIZE})")
+        return [LATENT]
 
     def _pool_outside(self, path: Path, factor: int, options: ort.SessionOptions) -> None:
         """Run the graph from its input pooling on, the pooling done by :func:`pooling.block_means`, where the
@@ -97,8 +108,8 @@ class NetworkMethod(InverseMethod):
             return
         session = ort.InferenceSession(split[0], options, providers=["CPUExecutionProvider"])
         frames = np.random.default_rng(0).integers(0, 4096, (8, *self._shape), endpoint=True).astype(self._dtype)
-        whole = self._session.run(list(OUTPUTS), {INPUT: frames})
-        pooled = session.run(list(OUTPUTS), {split[1]: pooling.block_means(frames, factor)})
+        whole = self._session.run(self._outputs, {INPUT: frames})
+        pooled = session.run(self._outputs, {split[1]: pooling.block_means(frames, factor)})
         if all(np.abs(a - b).max() <= pooling.PARITY_ABS for a, b in zip(whole, pooled)):
             self._session, self._input, self.pooling = session, split[1], factor
             pooling.block_means(frames[:1].astype(np.uint8), factor)  # the 8-bit kernel compiled now, not mid-stream
@@ -124,10 +135,14 @@ class NetworkMethod(InverseMethod):
     def infer_prepared(self, inputs: np.ndarray) -> InverseOutput:
         coefficients = np.empty((len(inputs), 4), np.float64)
         centre = np.empty(len(inputs), np.float64)
+        latent = np.empty((len(inputs), LATENT_SIZE), np.float32) if len(self._outputs) > len(OUTPUTS) else None
         for start in range(0, len(inputs), self.batch):
             part = slice(start, start + self.batch)
-            coefficients[part], centre[part] = self._session.run(list(OUTPUTS), {self._input: inputs[part]})
-        return InverseOutput(coefficients=coefficients, centre=centre)
+            outputs = self._session.run(self._outputs, {self._input: inputs[part]})
+            coefficients[part], centre[part] = outputs[:2]
+            if latent is not None:
+                latent[part] = outputs[2]
+        return InverseOutput(coefficients=coefficients, centre=centre, latent=latent)
 
     def infer(self, frames: np.ndarray) -> InverseOutput:
         return self.infer_prepared(self.prepare(frames))

@@ -24,6 +24,7 @@ import numpy as np
 from service.analysis.results import Interval, WindowResult
 from service.errors import MeniscopeError
 from service.inverse.manifest import sha256_file
+from service.pipeline.records import LATENT_SIZE
 
 #: File name of the window model in a model folder (it reads that folder's per-frame network's outputs).
 FILE = "window.onnx"
@@ -42,16 +43,34 @@ BRIGHTNESS_SCALE = 20.0
 TIME_SCALE = 200.0
 #: Channels per frame: d, p, a, b, steady D(0, t), brightness, time since the window start, whether the frame
 #: is in the ejection's transient, whether its values are there (missing frames are zeros).
-FEATURES = 9
+FEATURE_NAMES = ("d", "p", "a", "b", "steady", "brightness", "time", "transient", "present")
+FEATURES = len(FEATURE_NAMES)
+#: The channel that says which frames are there (the model averages over them).
+PRESENT = FEATURE_NAMES.index("present")
+#: Channels a model may take after those: the per-frame network's latent (its encoder mean, as it comes), which
+#: says more of a frame than the 5 numbers its head squeezes out of it. ``window.json``'s ``features`` names a
+#: model's channels (:data:`FEATURE_NAMES`, then these or not; a record without them: the first alone).
+LATENT_FEATURES = tuple(f"latent{i}" for i in range(LATENT_SIZE))
 
 
-def window_features(coefficients: np.ndarray, brightness: np.ndarray, steady: np.ndarray, skip: int) -> np.ndarray:
-    """The model's input (FEATURES, m) float32 of one window of m frames: its per-frame coefficients (m, 4), mean
-    brightness (m,), steady D(0, t) (m,, mm) and the number of transient frames at its start (``skip``)."""
+def window_features(
+    coefficients: np.ndarray,
+    brightness: np.ndarray,
+    steady: np.ndarray,
+    skip: int,
+    latent: np.ndarray | None = None,
+) -> np.ndarray:
+    """The model's input (channels, m) float32 of one window of m frames: its per-frame coefficients (m, 4), mean
+    brightness (m,), steady D(0, t) (m,, mm) and the number of transient frames at its start (``skip``): the
+    :data:`FEATURES` channels; with the network's ``latent`` (m, LATENT_SIZE), its :data:`LATENT_FEATURES` after
+    them (a frame without one counts as missing)."""
     c = np.asarray(coefficients, np.float64)
     m = len(c)
     present = np.isfinite(c).all(axis=1) & np.isfinite(steady) & np.isfinite(brightness)
-    out = np.zeros((FEATURES, m), np.float32)
+    out = np.zeros((FEATURES + (0 if latent is None else LATENT_SIZE), m), np.float32)
+    if latent is not None:
+        present &= np.isfinite(latent).all(axis=1)
+        out[FEATURES:] = np.where(present, np.asarray(latent, np.float32).T, 0.0)
     if not present.any():
         return out
     b = np.asarray(brightness, np.float64)
@@ -61,7 +80,7 @@ def window_features(coefficients: np.ndarray, brightness: np.ndarray, steady: np
     out[5] = np.where(present, BRIGHTNESS_SCALE * (b / mean - 1.0) if mean > 0 else 0.0, 0.0)
     out[6] = np.arange(m) / TIME_SCALE
     out[7, : min(skip, m)] = 1.0
-    out[8] = present
+    out[PRESENT] = present
     return out
 
 
@@ -177,20 +196,31 @@ class WindowModel:
                 f"trained on another {NETWORK} than the one beside it: its corrections would be wrong "
                 "(train it again: `python -m training.window`)",
             )
+        features = tuple(stored.get("features", FEATURE_NAMES))
+        if features not in (FEATURE_NAMES, FEATURE_NAMES + LATENT_FEATURES):
+            raise MeniscopeError(record, f"its features {list(features)} are not ones the window model is given")
         self.path = path
+        #: Whether the model takes the network's latent per frame (:data:`LATENT_FEATURES`).
+        self.latent = len(features) > FEATURES
         #: The calibration of the windows' intervals (None for a model trained before it: the fit's own stay).
         self.intervals = Intervals.from_record(stored)
         self._session = ort.InferenceSession(str(path), session_options(1), providers=["CPUExecutionProvider"])
+        (taken,) = [i.shape[1] for i in self._session.get_inputs() if i.name == INPUT] or [None]
+        if taken != len(features):
+            raise MeniscopeError(path, f"takes {taken} features per frame, not the {len(features)} {RECORD} names")
 
     @classmethod
     def of_folder(cls, models: Path) -> WindowModel:
         """The window model beside the per-frame network of ``models``."""
         return cls(Path(models) / FILE)
 
-    def correct(self, coefficients: np.ndarray, brightness: np.ndarray, steady: np.ndarray, skip: int) -> np.ndarray:
-        """The window's steady D(0, t) (m,, mm) with the model's correction added; missing frames stay NaN."""
-        features = window_features(coefficients, brightness, steady, skip)
-        if len(steady) == 0 or not features[8].any():
+    def correct(
+        self, coefficients: np.ndarray, brightness: np.ndarray, steady: np.ndarray, skip: int, latent: np.ndarray
+    ) -> np.ndarray:
+        """The window's steady D(0, t) (m,, mm) with the model's correction added; missing frames stay NaN.
+        ``latent`` (m, LATENT_SIZE): the network's per frame, read where the model takes it (:attr:`latent`)."""
+        features = window_features(coefficients, brightness, steady, skip, latent if self.latent else None)
+        if len(steady) == 0 or not features[PRESENT].any():
             return steady
         correction = self._session.run([OUTPUT], {INPUT: features[None]})[0][0].astype(np.float64)
         return steady + SCALE_MM * correction

@@ -9,11 +9,14 @@ from __future__ import annotations
 
 import numpy as np
 
+#: Width of the per-frame network's latent (:data:`service.inverse.manifest.LATENT`): the VAE's 10 dimensions.
+LATENT_SIZE = 10
 #: d, p, a, b (Eq. 1: mm, 1, mm, mm), D(0, t) (mm), mean brightness (stored pixel units), highlight (how far
 #: the brightest pixel stands above the mean, as a fraction of full scale: the meniscus is seen only through its
 #: highlights), change (mean absolute difference from the frame before, pixel units; NaN without one) and novelty (the
 #: coarse picture's distance from the nearest of the last few milliseconds' frames, pixel units; NaN without
-#: them: :mod:`service.pipeline.measures`) of one frame.
+#: them: :mod:`service.pipeline.measures`) and the per-frame network's latent (its encoder's posterior mean, float32;
+#: NaN for the other methods: the window model's input) of one frame.
 FRAME = np.dtype(
     [
         ("d", "f8"),
@@ -25,6 +28,7 @@ FRAME = np.dtype(
         ("highlight", "f8"),
         ("change", "f8"),
         ("novelty", "f8"),
+        ("latent", "f4", (LATENT_SIZE,)),
     ]
 )
 #: A frame whose brightest pixel stands less than this fraction of full scale above its mean shows no highlight

@@ -65,4 +65,6 @@ class FrameStages:
         for name, column in zip(COEFFICIENTS, out.coefficients.T):
             records[name] = column
         records["centre"] = out.centre
+        if out.latent is not None:
+            records["latent"] = out.latent
         return records

@@ -59,7 +59,7 @@ def job_for(
     series = steady
     if model is not None:
         skip = transient if window.starts_at_ejection else 0
-        series = model.correct(coefficients, records["brightness"], steady, skip)
+        series = model.correct(coefficients, records["brightness"], steady, skip, records["latent"])
     highlight = records["highlight"][np.isfinite(records["highlight"])]
     return WindowJob(
         window,
