@@ -152,3 +152,53 @@ def test_randomised_windows_come_in_chunks_of_the_training_mix_at_seeds_of_their
     offsets = {0, tw.EIGHT_BIT_SEEDS, tw.NOMINAL_SEEDS, tw.NOMINAL_SEEDS + tw.EIGHT_BIT_SEEDS}
     used = [s + o + k for _, s, _ in asked for o in offsets for k in range(len(tw.TRAINING_NOISE))]
     assert len(used) == len(set(used))
+
+
+class _Asked(Exception):
+    """Stops :func:`training.window.build` once its training recordings are known."""
+
+
+@settings(max_examples=30, deadline=None)
+@given(windows=st.integers(1, 3000), share=st.floats(0, 1), seed=st.integers(0, 10**6))
+def test_build_draws_its_randomised_share_at_seeds_no_default_scene_window_uses(
+    windows: int, share: float, seed: int
+) -> None:
+    """``build(..., randomised=N)`` trains on ``windows - N`` windows per preset of the scene itself and ``N`` of
+    randomised scenes (in a folder of their own, at seeds from ``seed + RANDOMISED_SEEDS``: beyond the scene's
+    training and calibration windows'), all replayed through the scene's own network."""
+    randomised = int(share * windows)
+    asked: dict[str, tuple[Path, int, int]] = {}
+
+    def mix(data: Path, scene: Scene, n: int, s: int) -> list[Path]:
+        asked["scene"] = (data, n, s)
+        return [data / "a.cine"]
+
+    def rand(data: Path, scene: Scene, n: int, s: int) -> list[Path]:
+        asked["randomised"] = (data, n, s)
+        return [data / "b.cine"]
+
+    def replayed(path: Path, scene: Scene, models: Path) -> tw.Examples:
+        assert scene is SCENE
+        raise _Asked
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(tw, "render_mix", mix)
+        patch.setattr(ws, "render_randomised", rand)
+        patch.setattr(tw, "cached_examples", replayed)
+        with pytest.raises(_Asked):
+            tw.build(Path("models"), SCENE, Path("data"), windows, 1, seed, 0, randomised=randomised)
+    assert asked["scene"] == (Path("data"), windows - randomised, seed)
+    if not randomised:
+        assert "randomised" not in asked
+        return
+    folder, n, first = asked["randomised"]
+    assert folder != Path("data") and n == randomised
+    # the scene's own windows use seeds up to seed + NOMINAL + EIGHT_BIT + presets, calibration seed + CALIBRATION..
+    assert first > seed + max(tw.NOMINAL_SEEDS + tw.EIGHT_BIT_SEEDS, tw.CALIBRATION_SEEDS + 6) + len(tw.TRAINING_NOISE)
+
+
+@pytest.mark.parametrize("randomised", [-1, 11])
+def test_build_refuses_a_randomised_share_outside_its_windows(randomised: int) -> None:
+    """More randomised windows than windows, or fewer than none, is an error before anything renders."""
+    with pytest.raises(ValueError, match="randomised windows"):
+        tw.build(Path("models"), SCENE, Path("data"), 10, 1, 0, 0, randomised=randomised)

@@ -263,6 +263,9 @@ def export(net: WindowNet, path: Path) -> None:
 CALIBRATION_SEEDS = 100
 #: Seeds of the training windows at the simulator's nominal motion lie this far above the widened ones'.
 NOMINAL_SEEDS = 200
+#: Seeds of the windows from randomised scenes (:func:`training.window_scenes.render_randomised`) start this far
+#: above the training windows' (in a folder of their own).
+RANDOMISED_SEEDS = 1000
 #: One training window in this many (of each half, nominal and widened) is recorded through the 8-bit camera, at seeds
 #: :data:`EIGHT_BIT_SEEDS` above its half's 12-bit ones.
 EIGHT_BIT_SHARE, EIGHT_BIT_SEEDS = 4, 50
@@ -312,14 +315,23 @@ def build(
     seed: int,
     calibration: int,
     recordings: tuple[Path, ...] = (),
+    randomised: int = 0,
 ) -> dict:
     """The window model of ``models``' network: ``windows`` training windows per noise preset rendered into ``data``
-    (:func:`render_mix`; with ``recordings``), trained, exported beside the network with its record, and its intervals calibrated on
+    (:func:`render_mix`; with ``recordings``), ``randomised`` of them from scenes randomised around ``scene``
+    (:func:`training.window_scenes.render_randomised`, replayed through ``scene``'s network as a recording of the
+    real set-up is), trained, exported beside the network with its record, and its intervals calibrated on
     ``calibration`` other windows per preset and camera (:func:`render_calibration`; none: the fit's own intervals
     stay); the folder's manifest rewritten. Returns the record."""
     from training.window_intervals import calibrate_folder
 
-    recordings = tuple(recordings) + (tuple(render_mix(data, scene, windows, seed)) if windows else ())
+    if not 0 <= randomised <= windows:
+        raise ValueError(f"randomised windows ({randomised}) must lie between 0 and the windows ({windows})")
+    recordings = tuple(recordings) + (tuple(render_mix(data, scene, windows - randomised, seed)) if windows else ())
+    if randomised:
+        from training.window_scenes import render_randomised
+
+        recordings += tuple(render_randomised(data / "randomised", scene, randomised, seed + RANDOMISED_SEEDS))
     if not recordings:
         raise ValueError("no training recordings: render some windows or name recordings")
     examples = concat([cached_examples(r, scene, models) for r in tqdm(recordings, desc="replay")])
@@ -337,6 +349,7 @@ def build(
         "windows_checked": int(len(held)),
         "epochs": epochs,
         "seed": seed,
+        "randomised_windows": randomised,
         "check_mse": float(min(history)),
         "check_mse_steady": baseline,
     }
@@ -369,6 +382,13 @@ def main(argv: list[str] | None = None) -> None:
         help="calibrate the intervals on N held-out windows per noise preset and camera (12 and 8 bits) rendered "
         "into --data (0: not)",
     )
+    p.add_argument(
+        "--randomised",
+        type=int,
+        default=0,
+        metavar="N",
+        help="of the --render windows per preset, N from scenes randomised around --scene (training.window_scenes)",
+    )
     p.add_argument("--data", type=Path, default=Path("data/window"), help="folder of the rendered windows")
     p.add_argument("--models", type=Path, default=DEFAULT_MODELS, help="model folder: its network, and the output")
     p.add_argument("--scene", type=Path, default=DEFAULT_SCENE, help="scene of the models and the rendered windows")
@@ -387,6 +407,7 @@ def main(argv: list[str] | None = None) -> None:
         args.seed,
         args.calibrate,
         tuple(args.recordings),
+        args.randomised,
     )
     print(f"wrote {args.models / wm.FILE}, {wm.RECORD} and the folder's manifest")
 
