@@ -373,6 +373,7 @@ def asked_of(render_some: Callable[[], list[Path]]) -> tuple[list[Path], Asked]:
         ranges: WindowRanges = tw.TRAINING_RANGES,
         name: str = "window",
         bit_depth: int = 12,
+        vary: object = None,
     ) -> list[Path]:
         asked.append((n, s, ranges, name, bit_depth))
         return [folder / f"{name}-{noise}-{s + k}.cine" for k, noise in enumerate(tw.TRAINING_NOISE)]

@@ -14,8 +14,10 @@ import argparse
 import io
 import json
 import warnings
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import onnx
@@ -35,6 +37,9 @@ from service.scene import Scene
 from service.simulate import WindowRanges
 from service.sources.replay import ReplaySource
 from service.validation.truth import read_truth, truth_centre
+
+if TYPE_CHECKING:
+    from service.camera_effects import CameraEffects
 
 OPSET = 17
 
@@ -64,6 +69,8 @@ class Examples:
 TRAINING_RANGES = WindowRanges(A1=(0.0, 0.025), A2=(0.0, 0.012), g1=(100.0, 5000.0))
 #: Camera noise presets the training windows are rendered at, so that the model holds at each.
 TRAINING_NOISE = ("low", "lab", "high")
+#: A recording's world drawn from the scene and the noise preset's camera (:func:`training.window_scenes.vary`).
+Vary = Callable[[Scene, "CameraEffects", np.random.Generator], tuple[Scene, "CameraEffects"]]
 
 
 def render_training(
@@ -74,10 +81,12 @@ def render_training(
     ranges: WindowRanges = TRAINING_RANGES,
     name: str = "window",
     bit_depth: int = 12,
+    vary: Vary | None = None,
 ) -> list[Path]:
     """Recordings of ``windows`` windows each at every :data:`TRAINING_NOISE` preset (``bit_depth`` bits, our
     renderer, motion from ``ranges``), written to ``folder`` (kept: reused when there) with their truth. One
-    renderer serves them all (its set-up costs as much as thousands of frames)."""
+    renderer serves them all (its set-up costs as much as thousands of frames), unless ``vary`` draws each
+    recording's scene and camera (seeded by the recording's seed), written beside it (``REC.world.json``)."""
     from service.camera_effects import noise_preset
     from service.render import Renderer
     from service.simulate import simulate, truth_path
@@ -87,19 +96,28 @@ def render_training(
     for k, noise in enumerate(TRAINING_NOISE):
         path = folder / f"{name}-{noise}-{seed + k}.cine"
         if not truth_path(path).exists():
-            renderer = renderer or Renderer(scene)
+            world, effects = scene, noise_preset(noise, bit_depth)
+            if vary:
+                world, effects = vary(scene, effects, np.random.default_rng([VARY_KEY, seed + k]))
+                record = {"scene": world.model_dump(mode="json"), "effects": effects.model_dump(mode="json")}
+                path.with_name(path.name + ".world.json").write_text(json.dumps(record, indent=1) + "\n")
+            renderer = Renderer(world) if vary or renderer is None else renderer
             simulate(
-                scene,
+                world,
                 path,
                 windows=windows,
                 seed=seed + k,
-                effects=noise_preset(noise, bit_depth),
+                effects=effects,
                 noise=noise,
                 ranges=ranges,
                 renderer=renderer,
             )
         paths.append(path)
     return paths
+
+
+#: Mixed into a varied recording's seed for its world's draw, so that it is not its motion's.
+VARY_KEY = 17
 
 
 def recording_records(path: Path, scene: Scene, models: Path) -> np.ndarray:
@@ -258,6 +276,9 @@ LATENT_INPUT = False
 CALIBRATION_SEEDS = 100
 #: Seeds of the training windows at the simulator's nominal motion lie this far above the widened ones'.
 NOMINAL_SEEDS = 200
+#: Seeds of the windows from randomised scenes (:func:`training.window_scenes.render_randomised`) start this far
+#: above the training windows' (in a folder of their own).
+RANDOMISED_SEEDS = 1000
 #: One training window in this many (of each half, nominal and widened) is recorded through the 8-bit camera, at seeds
 #: :data:`EIGHT_BIT_SEEDS` above its half's 12-bit ones.
 EIGHT_BIT_SHARE, EIGHT_BIT_SEEDS = 4, 50
@@ -267,12 +288,12 @@ EIGHT_BIT_SHARE, EIGHT_BIT_SEEDS = 4, 50
 CALIBRATION_BIT_DEPTHS = (12, 8)
 
 
-def render_mix(data: Path, scene: Scene, windows: int, seed: int) -> list[Path]:
+def render_mix(data: Path, scene: Scene, windows: int, seed: int, vary: Vary | None = None) -> list[Path]:
     """``windows`` training windows per noise preset: half at the simulator's nominal motion (what the held-out
     recordings and the calibration are), half at the widened :data:`TRAINING_RANGES` (windows that barely move or
     settle), one in :data:`EIGHT_BIT_SHARE` of each half through the 8-bit camera. Trained on the widened ones alone
     the model's held-out amplitude error was larger, on 12-bit ones alone its series was biased through an 8-bit
-    camera (docs/window_model.md)."""
+    camera (docs/window_model.md). ``vary``: each recording's own scene and camera (:func:`render_training`)."""
     nominal = windows // 2
     halves = (
         (windows - nominal, seed, TRAINING_RANGES, "window"),
@@ -282,9 +303,9 @@ def render_mix(data: Path, scene: Scene, windows: int, seed: int) -> list[Path]:
     for count, first, ranges, name in halves:
         eight = count // EIGHT_BIT_SHARE
         if count > eight:
-            paths += render_training(data, scene, count - eight, first, ranges, name)
+            paths += render_training(data, scene, count - eight, first, ranges, name, vary=vary)
         if eight:
-            paths += render_training(data, scene, eight, first + EIGHT_BIT_SEEDS, ranges, f"{name}-8bit", 8)
+            paths += render_training(data, scene, eight, first + EIGHT_BIT_SEEDS, ranges, f"{name}-8bit", 8, vary)
     return paths
 
 
@@ -308,15 +329,24 @@ def build(
     calibration: int,
     recordings: tuple[Path, ...] = (),
     latent: bool = LATENT_INPUT,
+    randomised: int = 0,
 ) -> dict:
     """The window model of ``models``' network: ``windows`` training windows per noise preset rendered into ``data``
-    (:func:`render_mix`; with ``recordings``), trained, exported beside the network with its record, and its intervals calibrated on
+    (:func:`render_mix`; with ``recordings``), ``randomised`` of them from scenes randomised around ``scene``
+    (:func:`training.window_scenes.render_randomised`, replayed through ``scene``'s network as a recording of the
+    real set-up is), trained, exported beside the network with its record, and its intervals calibrated on
     ``calibration`` other windows per preset and camera (:func:`render_calibration`; none: the fit's own intervals
     stay); the folder's manifest rewritten. ``latent``: the model takes the network's latent per frame too (where the
     network outputs one). Returns the record."""
     from training.window_intervals import calibrate_folder
 
-    recordings = tuple(recordings) + (tuple(render_mix(data, scene, windows, seed)) if windows else ())
+    if not 0 <= randomised <= windows:
+        raise ValueError(f"randomised windows ({randomised}) must lie between 0 and the windows ({windows})")
+    recordings = tuple(recordings) + (tuple(render_mix(data, scene, windows - randomised, seed)) if windows else ())
+    if randomised:
+        from training.window_scenes import render_randomised
+
+        recordings += tuple(render_randomised(data / "randomised", scene, randomised, seed + RANDOMISED_SEEDS))
     if not recordings:
         raise ValueError("no training recordings: render some windows or name recordings")
     examples = concat([cached_examples(r, scene, models) for r in tqdm(recordings, desc="replay")])
@@ -337,6 +367,7 @@ def build(
         "windows_checked": int(len(held)),
         "epochs": epochs,
         "seed": seed,
+        "randomised_windows": randomised,
         "check_mse": float(min(history)),
         "check_mse_steady": baseline,
     }
@@ -369,6 +400,13 @@ def main(argv: list[str] | None = None) -> None:
         help="calibrate the intervals on N held-out windows per noise preset and camera (12 and 8 bits) rendered "
         "into --data (0: not)",
     )
+    p.add_argument(
+        "--randomised",
+        type=int,
+        default=0,
+        metavar="N",
+        help="of the --render windows per preset, N from scenes randomised around --scene (training.window_scenes)",
+    )
     p.add_argument("--data", type=Path, default=Path("data/window"), help="folder of the rendered windows")
     p.add_argument("--models", type=Path, default=DEFAULT_MODELS, help="model folder: its network, and the output")
     p.add_argument("--scene", type=Path, default=DEFAULT_SCENE, help="scene of the models and the rendered windows")
@@ -394,6 +432,7 @@ def main(argv: list[str] | None = None) -> None:
         args.calibrate,
         tuple(args.recordings),
         args.latent,
+        args.randomised,
     )
     print(f"wrote {args.models / wm.FILE}, {wm.RECORD} and the folder's manifest")
 

@@ -1,0 +1,204 @@
+"""Scenes randomised around a scene (training/window_scenes.py): valid at the extremes, reproducible by seed, and
+rendered one world per recording with the world kept beside it."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from service import DEFAULT_SCENE
+from service.camera_effects import CameraEffects, noise_preset
+from service.scene import Scene
+from training import window as tw
+from training import window_scenes as ws
+
+SCENE = Scene.load(DEFAULT_SCENE)
+
+
+def _scene(roughness: float, reflectance: float, elevation: float, angle: float, exposure: float) -> Scene:
+    """The default scene with its fluid, light and exposure at the given values."""
+    return SCENE.model_copy(
+        update={
+            "fluid": {"roughness": roughness, "reflectance": reflectance},
+            "light": SCENE.light.model_copy(update={"elevation_deg": elevation, "angle_deg": angle}),
+            "camera": SCENE.camera.model_copy(update={"exposure": exposure}),
+        }
+    )
+
+
+@settings(max_examples=80, deadline=None)
+@given(
+    seed=st.integers(0, 2**32 - 1),
+    roughness=st.sampled_from([1e-4, 0.003, 0.06, 0.9, 1.0]),
+    reflectance=st.sampled_from([0.0, 0.05, 0.9, 1.0]),
+    elevation=st.sampled_from([-90.0, -89.0, -40.0, 89.5, 90.0]),
+    angle=st.sampled_from([0.0, 0.5, 4.0, 178.0, 179.0]),
+    exposure=st.sampled_from([1e-3, 1.0, 50.0]),
+    wide=st.booleans(),
+)
+def test_a_randomised_scene_is_valid_within_its_spread_and_keeps_the_geometry_and_pose(
+    seed: int, roughness: float, reflectance: float, elevation: float, angle: float, exposure: float, wide: bool
+) -> None:
+    """At the scene file's limits (and with a spread far wider than the default) the drawn scene still validates,
+    each quantity stays within its spread of the original (but where clipped to its valid range), and the nozzle,
+    the camera's pose and the light's strength are the original's."""
+    spread = ws.Spread(4.0, 0.8, 30.0, 4.0, 4.0, 5.0, 0.5, 10.0) if wide else ws.SPREAD
+    scene = _scene(roughness, reflectance, elevation, angle, exposure)
+    out = Scene.model_validate(ws.randomised(scene, np.random.default_rng(seed), spread).model_dump())
+    ratio = out.fluid.roughness / scene.fluid.roughness
+    assert 0 < out.fluid.roughness <= 1
+    assert 1 / spread.roughness_factor - 1e-9 <= ratio <= spread.roughness_factor + 1e-9 or out.fluid.roughness in (
+        1e-4,
+        1.0,
+    )
+    assert abs(out.fluid.reflectance - reflectance) <= spread.reflectance + 1e-12
+    assert abs(out.light.azimuth_deg - scene.light.azimuth_deg) <= spread.light_deg
+    assert abs(out.light.elevation_deg - elevation) <= spread.light_deg and -90 <= out.light.elevation_deg <= 90
+    assert 0 <= out.light.angle_deg <= 179
+    assert out.light.angle_deg <= angle * spread.angle_factor + 1e-9
+    assert 1 / spread.exposure_factor - 1e-9 <= out.camera.exposure / exposure <= spread.exposure_factor + 1e-9
+    assert out.nozzle == scene.nozzle and out.light.strength == scene.light.strength
+    assert out.camera.model_copy(update={"exposure": exposure}) == scene.camera
+    assert all(math.isfinite(v) for v in (out.fluid.roughness, out.light.azimuth_deg, out.camera.exposure))
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    seed=st.integers(0, 2**32 - 1),
+    blur=st.sampled_from([0.0, 0.1, 9.9, 10.0]),
+    offset=st.sampled_from([-1.0, -0.005, 0.0, 0.02, 1.0]),
+    full_well=st.sampled_from([0.0, 1.0, 4000.0, 1e8]),
+)
+def test_a_randomised_camera_is_valid_at_its_limits(seed: int, blur: float, offset: float, full_well: float) -> None:
+    """Blur, black level and full well drawn around a camera at the limits of each stay valid settings; a camera
+    without shot noise (full well 0) stays without; the bit depth and read noise are the preset's."""
+    effects = CameraEffects(blur_sigma_px=blur, offset=offset, full_well_e=full_well, read_noise_dn=1.5, bit_depth=12)
+    out = CameraEffects.model_validate(ws.randomised_effects(effects, np.random.default_rng(seed)).model_dump())
+    assert abs(out.blur_sigma_px - blur) <= ws.SPREAD.blur_px + 1e-12 and 0 <= out.blur_sigma_px <= 10
+    assert abs(out.offset - offset) <= ws.SPREAD.black_level + 1e-12 and -1 <= out.offset <= 1
+    assert (out.full_well_e == 0) == (full_well == 0)
+    assert (out.bit_depth, out.read_noise_dn) == (12, 1.5)
+
+
+@settings(max_examples=20, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1))
+def test_a_world_is_reproducible_by_its_seed_and_another_seed_draws_another(seed: int) -> None:
+    """The same seed draws the same scene and camera; the next seed another."""
+    effects = noise_preset("lab", 12)
+    first = ws.vary(SCENE, effects, np.random.default_rng(seed))
+    assert first == ws.vary(SCENE, effects, np.random.default_rng(seed))
+    assert first != ws.vary(SCENE, effects, np.random.default_rng(seed + 1))
+
+
+@pytest.mark.parametrize("varied", [False, True])
+def test_each_varied_recording_is_rendered_from_its_own_world_written_beside_it(
+    varied: bool, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """With ``vary``, :func:`training.window.render_training` renders each preset's recording from a world of its
+    own, drawn from the recording's seed, and writes it beside the recording (read back, the same scene and camera);
+    without, one renderer of the scene itself serves every preset and nothing more is written."""
+    import service.render
+    import service.simulate
+
+    renderers: list[Scene] = []
+    rendered: list[tuple[Scene, CameraEffects, int]] = []
+
+    def simulate(scene: Scene, out: Path, *, effects: CameraEffects, seed: int, **_: object) -> None:
+        rendered.append((scene, effects, seed))
+        service.simulate.truth_path(out).write_text("{}")
+
+    monkeypatch.setattr(service.render, "Renderer", lambda scene: renderers.append(scene) or scene)
+    monkeypatch.setattr(service.simulate, "simulate", simulate)
+    paths = tw.render_training(tmp_path, SCENE, 3, 500, name="w", vary=ws.vary if varied else None)
+    assert [seed for *_, seed in rendered] == [500, 501, 502]
+    if not varied:
+        assert renderers == [SCENE] and all(s == SCENE for s, *_ in rendered)
+        assert not list(tmp_path.glob("*.world.json"))
+        return
+    assert renderers == [s for s, *_ in rendered] and len(set(renderers)) == 3 and SCENE not in renderers
+    for path, (scene, effects, seed), noise in zip(paths, rendered, tw.TRAINING_NOISE):
+        world = json.loads(path.with_name(path.name + ".world.json").read_text())
+        assert Scene.model_validate(world["scene"]) == scene
+        assert CameraEffects.model_validate(world["effects"]) == effects
+        drawn = ws.vary(SCENE, noise_preset(noise, 12), np.random.default_rng([tw.VARY_KEY, seed]))
+        assert drawn == (scene, effects)
+
+
+@settings(max_examples=30, deadline=None)
+@given(windows=st.integers(1, 3000), chunk=st.integers(1, 200), seed=st.integers(0, 10**6))
+def test_randomised_windows_come_in_chunks_of_the_training_mix_at_seeds_of_their_own(
+    windows: int, chunk: int, seed: int
+) -> None:
+    """:func:`training.window_scenes.render_randomised` asks :func:`training.window.render_mix` for ``windows`` per
+    preset in all, in chunks of at most ``chunk``, each varied and at seeds no other chunk's recordings use."""
+    asked: list[tuple[int, int, object]] = []
+
+    def render_mix(data: Path, scene: Scene, n: int, s: int, vary: object = None) -> list[Path]:
+        asked.append((n, s, vary))
+        return [data / f"{s}.cine"]
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(ws, "render_mix", render_mix)
+        paths = ws.render_randomised(Path("data"), SCENE, windows, seed, chunk)
+    assert sum(n for n, *_ in asked) == windows and all(0 < n <= chunk for n, *_ in asked)
+    assert all(v is ws.vary for *_, v in asked) and len(paths) == len(asked)
+    # render_mix's recordings use seeds s + {0, EIGHT_BIT_SEEDS, NOMINAL_SEEDS, both} + preset
+    offsets = {0, tw.EIGHT_BIT_SEEDS, tw.NOMINAL_SEEDS, tw.NOMINAL_SEEDS + tw.EIGHT_BIT_SEEDS}
+    used = [s + o + k for _, s, _ in asked for o in offsets for k in range(len(tw.TRAINING_NOISE))]
+    assert len(used) == len(set(used))
+
+
+class _Asked(Exception):
+    """Stops :func:`training.window.build` once its training recordings are known."""
+
+
+@settings(max_examples=30, deadline=None)
+@given(windows=st.integers(1, 3000), share=st.floats(0, 1), seed=st.integers(0, 10**6))
+def test_build_draws_its_randomised_share_at_seeds_no_default_scene_window_uses(
+    windows: int, share: float, seed: int
+) -> None:
+    """``build(..., randomised=N)`` trains on ``windows - N`` windows per preset of the scene itself and ``N`` of
+    randomised scenes (in a folder of their own, at seeds from ``seed + RANDOMISED_SEEDS``: beyond the scene's
+    training and calibration windows'), all replayed through the scene's own network."""
+    randomised = int(share * windows)
+    asked: dict[str, tuple[Path, int, int]] = {}
+
+    def mix(data: Path, scene: Scene, n: int, s: int) -> list[Path]:
+        asked["scene"] = (data, n, s)
+        return [data / "a.cine"]
+
+    def rand(data: Path, scene: Scene, n: int, s: int) -> list[Path]:
+        asked["randomised"] = (data, n, s)
+        return [data / "b.cine"]
+
+    def replayed(path: Path, scene: Scene, models: Path) -> tw.Examples:
+        assert scene is SCENE
+        raise _Asked
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(tw, "render_mix", mix)
+        patch.setattr(ws, "render_randomised", rand)
+        patch.setattr(tw, "cached_examples", replayed)
+        with pytest.raises(_Asked):
+            tw.build(Path("models"), SCENE, Path("data"), windows, 1, seed, 0, randomised=randomised)
+    assert asked["scene"] == (Path("data"), windows - randomised, seed)
+    if not randomised:
+        assert "randomised" not in asked
+        return
+    folder, n, first = asked["randomised"]
+    assert folder != Path("data") and n == randomised
+    # the scene's own windows use seeds up to seed + NOMINAL + EIGHT_BIT + presets, calibration seed + CALIBRATION..
+    assert first > seed + max(tw.NOMINAL_SEEDS + tw.EIGHT_BIT_SEEDS, tw.CALIBRATION_SEEDS + 6) + len(tw.TRAINING_NOISE)
+
+
+@pytest.mark.parametrize("randomised", [-1, 11])
+def test_build_refuses_a_randomised_share_outside_its_windows(randomised: int) -> None:
+    """More randomised windows than windows, or fewer than none, is an error before anything renders."""
+    with pytest.raises(ValueError, match="randomised windows"):
+        tw.build(Path("models"), SCENE, Path("data"), 10, 1, 0, 0, randomised=randomised)
