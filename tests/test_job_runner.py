@@ -4,6 +4,10 @@ those whose task no worker has taken yet) goes one a task; released, the workers
 
 from __future__ import annotations
 
+import gc
+import os
+from pathlib import Path
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -80,3 +84,29 @@ def test_a_released_runner_hands_back_its_results_and_closes() -> None:
         r.release()  # the workers exit while the caller goes on
         r.release()  # twice does nothing
     assert results == [fit_job(j, FPS, FitSettings()) for j in jobs]
+
+
+class _Freed:
+    """Cyclic garbage that notes, when finalised, the process that freed it."""
+
+    def __init__(self, log: Path) -> None:
+        self.log, self.cycle = log, self
+
+    def __del__(self) -> None:
+        with self.log.open("a") as out:
+            out.write(f"{os.getpid()}\n")
+
+
+def test_a_forked_worker_never_frees_what_it_inherited(tmp_path):
+    """Garbage the parent holds when the pool forks is freed by the parent alone, never by a worker's collector: an
+    onnxruntime session freed in a worker waits on threads the fork did not copy (a test run hung so)."""
+    log = tmp_path / "freed"
+    gc.disable()  # the garbage must still be there when the workers fork
+    try:
+        _Freed(log)
+        with JobRunner(FitSettings(), workers=1) as r:
+            r.call(gc.collect).result()
+    finally:
+        gc.enable()
+    gc.collect()
+    assert log.read_text().split() == [str(os.getpid())]

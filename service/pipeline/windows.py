@@ -7,6 +7,7 @@ Dask cluster for an offline analysis (:func:`run_jobs`).
 
 from __future__ import annotations
 
+import gc
 import math
 import os
 import threading
@@ -171,8 +172,10 @@ class JobRunner:
             # fork: a worker starts in milliseconds with everything imported (spawned ones took seconds of the two
             # cores the frames need). Safe here although the caller may run inference threads: a worker only fits
             # (numpy, numba) and never takes a lock those threads hold; the runner is made before the analysis
-            # starts threads of its own.
-            self._pool = ProcessPoolExecutor(count, multiprocessing.get_context("fork"))
+            # starts threads of its own. The worker freezes what it inherits (gc.freeze) so that its collector never
+            # frees the parent's garbage: an onnxruntime session freed so waits on threads the fork did not copy
+            # (a test run hung in one).
+            self._pool = ProcessPoolExecutor(count, multiprocessing.get_context("fork"), initializer=gc.freeze)
             for _ in range(count):  # the pool starts its processes as work comes: start them all now
                 self._pool.submit(int)
 
