@@ -25,12 +25,11 @@ class Spread:
     """How far a randomised scene strays from its scene: multiplicative ``*_factor`` (drawn log-uniformly in
     [1/f, f]) and additive ``*_deg``, ``*_px``, ``reflectance`` and ``black_level`` (uniform in [-x, x]).
 
-    From docs/calibration.md's fits on Blender Cycles recordings of known scenes: alpha came out 10-25 % off,
-    the light angle 7-26 %, the light's direction 0.2-1 deg, the blur 0.1-0.3 px, the reflectance 0.05-0.15; the
-    exposure and black level are the camera's own (a 25 % exposure error clips or darkens the highlights); the noise
-    presets' full wells span a factor 10, so a factor 2 around each preset fills the gaps between them. The light
-    within +-0.75 deg: at +-2 deg its direction drove the windows' errors to twice Blender's, and a model trained on
-    them did worse (docs/window_model.md, "Windows from scenes randomised around the scene")."""
+    The defaults span what docs/calibration.md's fits on Blender Cycles recordings of known scenes left uncertain
+    (fluid, light, blur, reflectance), the camera's own exposure and black level, and full wells between the noise
+    presets'; the light's direction is kept narrower than that, since a wider one made the windows' errors larger
+    than Blender's and the model trained on them worse (docs/window_model.md, "Windows from scenes randomised around
+    the scene", with the figures)."""
 
     roughness_factor: float = 1.5
     reflectance: float = 0.1

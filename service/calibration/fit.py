@@ -79,9 +79,8 @@ LIGHT = ("light.azimuth_deg", "light.elevation_deg")
 LIGHT_EVALUATIONS = 6
 #: GGX roughness of the defects' material tried (:func:`sphere_material`, then the parabola's vertex in log alpha
 #: round the best), from near-mirrors to rough specks that glint from many directions. The frames tell a defect that
-#: glints only towards the camera from one that glints widely, not 0.2 from 0.5 (the radii, sized from the flux, take
-#: that up): on Blender's near-mirror video, defects of 0.2, the fitted frames chose 0.48, whose spheres leave the
-#: true motion's frames as the truth's do (docs/new_camera.md, "The defects' look").
+#: glints only towards the camera from one that glints widely, not two rough ones apart (the radii, sized from the
+#: flux, take that up): what is chosen is the look that fits (docs/new_camera.md, "The defects' look").
 SPHERE_ALPHAS = (0.015, 0.03, 0.06, 0.12, 0.24, 0.48)
 
 

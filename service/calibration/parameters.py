@@ -70,8 +70,7 @@ UNIDENTIFIABLE: dict[str, str] = {
     "(the gauge: kept, the light's azimuth is fitted relative to it)",
     "camera.distance_mm": "with fov_deg only their ratio (the scale in px/mm) is seen; kept",
     "artifacts.material.roughness": "a defect is 1-3 px across and its radius is sized from its glint's flux: "
-    "the roughness chosen (fit.SPHERE_ALPHAS, by the fitted frames' cost) is the look that fits, not a measurement "
-    "(0.48 chosen for 0.2 on Blender's video)",
+    "the roughness chosen (fit.SPHERE_ALPHAS, by the fitted frames' cost) is the look that fits, not a measurement",
     "artifacts.material.reflectance": "a glint's flux grows as reflectance x radius^2: the radii take it up; kept",
 }
 
