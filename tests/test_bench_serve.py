@@ -4,10 +4,12 @@
 from __future__ import annotations
 
 import argparse
+import time
 from pathlib import Path
 
 import pytest
 
+from service.bench import serve
 from service.bench.serve import markdown, parse_variants, register
 from service.errors import MeniscopeError
 
@@ -54,3 +56,25 @@ def test_with_the_lane_the_tables_say_which_runs_had_it_and_what_it_refined() ->
     text = markdown(results)
     assert "| 512 x 1 | defaults | off | x1 |" in text and "| 512 x 1 | defaults | on | x1 |" in text
     assert "| 512 x 1 | defaults | x1 | 3 | 1.5 | 197 | 30.0 / 55.5 | 28.0 |" in text
+
+
+class _CatchingUp:
+    """A pipeline's counters that ran behind at the start: frames come at 3x the camera's rate for ``burst`` s,
+    then at its rate (what a drift-free replay does after a stall)."""
+
+    def __init__(self, rate: float, burst: float) -> None:
+        self.t0, self.rate, self.burst = time.monotonic(), rate, burst
+
+    @property
+    def frames_acquired(self) -> int:
+        t = time.monotonic() - self.t0
+        return int(self.rate * (3 * min(t, self.burst) + max(t - self.burst, 0.0)))
+
+    frames_inferred = frames_acquired
+
+
+def test_a_run_is_counted_from_when_the_catch_up_after_its_start_is_over(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(serve, "SETTLE_STEP_S", 0.1)
+    assert serve._settle(_CatchingUp(19_000, 0.6), 19_000) >= 0.6  # not while frames come faster than they are made
+    assert serve._settle(_CatchingUp(19_000, 0.0), 19_000) < 0.5  # at once when on schedule
+    assert serve._settle(_CatchingUp(5_000, 0.0), 19_000) < 0.5  # and when slower than the camera

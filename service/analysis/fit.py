@@ -297,7 +297,8 @@ class _Window:
 def _slow_swing(params: np.ndarray, span: float) -> bool:
     """Whether a mode of ``params`` turns less than ``_SWING_CYCLES`` over ``span`` samples: with a drift beside
     it, it may be a slower swing made into a cycle, or a swing standing in for a drift."""
-    return any(w * span < 2 * np.pi * _SWING_CYCLES for w in params[_BASE + 2 :: _PER_MODE].tolist())
+    turns = 2 * np.pi * _SWING_CYCLES / float(span)  # w < this, not w * span: a huge w would overflow the product
+    return any(w < turns for w in params[_BASE + 2 :: _PER_MODE].tolist())
 
 
 def _unresolved(params: np.ndarray, half: np.ndarray, span: float) -> str | None:

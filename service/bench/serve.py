@@ -32,6 +32,7 @@ import os
 import tempfile
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 from pydantic import ValidationError
@@ -40,8 +41,12 @@ from service.analysis.results import FitSettings
 from service.bench import parse_pairs
 from service.bench.results import write_results
 from service.errors import MeniscopeError
+from service.recordings import open_recording
 from service.server.settings import ServiceSettings, default_data_dir
 from service.sources.replay import replay_uri
+
+if TYPE_CHECKING:
+    from service.pipeline.runtime import PipelineStats
 
 CONFIGS = "512x1,512x2,128x1"
 #: The issue's target: a window's result published within this many ms of its close.
@@ -88,8 +93,29 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
-def measure(settings: ServiceSettings, seconds: float) -> dict:
-    """One run: start the pipeline with publishers, wait until frames flow, count for ``seconds``."""
+#: Steady state: frames read and inferred no faster than this x the stream's own rate over a :data:`SETTLE_STEP_S`.
+SETTLE_RATE, SETTLE_STEP_S, SETTLE_MAX_S = 1.05, 0.5, 30.0
+
+
+def _settle(stats: PipelineStats, due_per_s: float) -> float:
+    """Wait until the run is past its start (s waited): the replay runs on a drift-free schedule, so a pipeline
+    that fell behind while its fit workers warmed catches up in a burst, and counting through that burst would
+    credit it with more frames a second than the camera makes. Steady: over one step, frames read and inferred at
+    no more than :data:`SETTLE_RATE` x ``due_per_s`` (a pipeline slower than the camera is steady at once)."""
+    t0 = time.monotonic()
+    time.sleep(SETTLE_STEP_S)
+    while True:
+        t, acquired, inferred = time.monotonic(), stats.frames_acquired, stats.frames_inferred
+        time.sleep(SETTLE_STEP_S)
+        span = time.monotonic() - t
+        rates = ((stats.frames_acquired - acquired) / span, (stats.frames_inferred - inferred) / span)
+        if due_per_s <= 0 or max(rates) <= SETTLE_RATE * due_per_s or time.monotonic() - t0 > SETTLE_MAX_S:
+            return time.monotonic() - t0
+
+
+def measure(settings: ServiceSettings, seconds: float, due_per_s: float) -> dict:
+    """One run: start the pipeline with publishers, wait until frames flow at the stream's rate ``due_per_s``
+    (frames/s), count for ``seconds``."""
     from service.pipeline.refining import RefinedUpdate
     from service.pipeline.runtime import FittedWindow, PipelineStats
     from service.pipeline.supervisor import Supervisor
@@ -137,7 +163,7 @@ def measure(settings: ServiceSettings, seconds: float) -> dict:
                 if time.monotonic() > deadline:
                     raise MeniscopeError("bench serve", f"no frames inferred in 120 s: {supervisor.health().reason}")
                 time.sleep(0.05)
-            time.sleep(1.0)  # past the start: fit workers warm, queues in their steady state
+            settled_s = _settle(stats, due_per_s)
 
             def snapshot() -> tuple:
                 """When, the load, the counters and the stage timings taken so far: one end of the measured run."""
@@ -188,6 +214,7 @@ def measure(settings: ServiceSettings, seconds: float) -> dict:
     pct = lambda v, q: float(np.nanpercentile(v, q)) if np.isfinite(v).any() else None
     return {
         "seconds": elapsed,
+        "settled_s": settled_s,
         "load_average": [start[1], end[1]],
         "frames_per_s_in": acquired / elapsed,
         "frames_per_s_inferred": inferred / elapsed,
@@ -365,6 +392,8 @@ def run(args: argparse.Namespace) -> int:
     recording = (args.source or demo_recording(default_data_dir())).resolve()
     if not recording.is_file():
         raise MeniscopeError(recording, "no such recording")
+    with open_recording(recording) as rec:
+        fps = rec.fps
     args.out.mkdir(parents=True, exist_ok=True)
     results: dict = {
         "source": str(recording),
@@ -406,7 +435,7 @@ def run(args: argparse.Namespace) -> int:
                     "variant": variant,
                     "run": name,
                     "max_modes": modes,
-                    **measure(settings, args.seconds),
+                    **measure(settings, args.seconds, fps * speed),
                 }
             )
     results["stage_costs"] = stage_costs(recording, configs)
