@@ -5,7 +5,8 @@ Per configuration (inference batch x onnxruntime threads), replay speed (1: the 
 ``--variants "batch_ms=1000,read_frames=128;batch_ms=2"`` to compare an inference batch bounded in frames
 with one bounded in time) one run of ``--seconds`` through the real supervisor, pipeline, fit
 workers and publishers (SQLite history in a temporary folder, ZeroMQ on a free port, metrics; only
-HTTP is left out): frames read and inferred per second, the fraction dropped, windows closed,
+HTTP is left out), counted from when frames come no faster than the camera makes them (the start's catch-up
+over, ``settled_s`` after the first frame): frames read and inferred per second, the fraction dropped, windows closed,
 published and left unfitted, and how long after a window closed (the frame that closed it was
 read) its result was published (sent on ZeroMQ and to the WebSocket clients; p50, p99, and the share
 of closed windows published within 10 ms, which counts a window left unfitted as late). No "as fast
