@@ -14,8 +14,12 @@ from hypothesis import strategies as st
 
 from service import DEFAULT_SCENE
 from service.camera_effects import CameraEffects, noise_preset
+from service.inverse import window_model as wm
 from service.scene import Scene
+from service.simulate import WindowRanges
+from service.validation.score import QUANTITIES
 from training import window as tw
+from training import window_intervals as wi
 from training import window_scenes as ws
 
 SCENE = Scene.load(DEFAULT_SCENE)
@@ -202,3 +206,104 @@ def test_build_refuses_a_randomised_share_outside_its_windows(randomised: int) -
     """More randomised windows than windows, or fewer than none, is an error before anything renders."""
     with pytest.raises(ValueError, match="randomised windows"):
         tw.build(Path("models"), SCENE, Path("data"), 10, 1, 0, 0, randomised=randomised)
+
+
+@settings(max_examples=40, deadline=None)
+@given(windows=st.integers(0, 400), randomised=st.integers(0, 2000), seed=st.integers(0, 10**6))
+def test_randomised_calibration_windows_come_from_worlds_of_their_own_at_seeds_no_other_window_uses(
+    windows: int, randomised: int, seed: int
+) -> None:
+    """:func:`training.window.render_calibration` with ``randomised``: besides the scene's ``windows`` per preset
+    and camera, ``randomised`` more per preset and camera at the nominal motion from at most
+    :data:`training.window.CALIBRATION_WORLDS` varied recordings, at seeds that neither the scene's calibration nor
+    any training window (:func:`training.window.render_mix`, :func:`training.window_scenes.render_randomised`) uses."""
+    asked: list[tuple[int, int, object, str, int, object]] = []
+
+    def render(
+        folder: Path, scene: Scene, n: int, s: int, ranges: object, name: str, bits: int, vary: object = None
+    ) -> list[Path]:
+        asked.append((n, s, ranges, name, bits, vary))
+        return [folder / f"{name}-{noise}-{s + k}.cine" for k, noise in enumerate(tw.TRAINING_NOISE)]
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(tw, "render_training", render)
+        paths = tw.render_calibration(Path("data"), SCENE, windows, seed, randomised)
+    assert all(n > 0 and r == WindowRanges() for n, _, r, *_ in asked)
+    for bits in tw.CALIBRATION_BIT_DEPTHS:
+        scene_own = [n for n, _, _, _, b, v in asked if b == bits and v is None]
+        varied = [n for n, _, _, _, b, v in asked if b == bits and v is ws.vary]
+        assert sum(scene_own) == windows and len(scene_own) == (windows > 0)
+        assert sum(varied) == randomised and len(varied) <= tw.CALIBRATION_WORLDS
+        assert not varied or max(varied) - min(varied) <= 1  # the worlds share the windows evenly
+    used = [s + k for _, s, *_ in asked for k in range(len(tw.TRAINING_NOISE))]
+    assert len(used) == len(set(used)) == len(paths) == len(set(paths))
+    # render_mix's recordings lie at seed + {0, EIGHT_BIT, NOMINAL, NOMINAL + EIGHT_BIT} + preset; the randomised
+    # training windows from seed + RANDOMISED_SEEDS on
+    mix = {seed + o + k for o in (0, tw.EIGHT_BIT_SEEDS) for k in range(len(tw.TRAINING_NOISE))}
+    assert not mix & set(used)
+    assert all(seed + tw.CALIBRATION_SEEDS <= s < seed + tw.NOMINAL_SEEDS for s in used)
+
+
+@pytest.mark.parametrize("calibration", [(-1, None), (80, -1), (0, -5)])
+def test_build_refuses_negative_calibration_windows(calibration: tuple[int, int | None]) -> None:
+    """Fewer than no calibration windows, of the scene's or randomised, is an error before anything renders."""
+    with pytest.raises(ValueError, match="calibration windows"):
+        tw.build(Path("models"), SCENE, Path("data"), 10, 1, 0, calibration[0], calibration_randomised=calibration[1])
+
+
+def test_intervals_cli_pools_randomised_windows_with_the_named_ones(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``python -m training.window_intervals --randomised N`` renders N windows per preset and camera from
+    randomised worlds into ``--data`` (none of the scene's own) and calibrates on them and the named recordings
+    together; without recordings or with ``--score`` it is refused in one line."""
+    asked: dict[str, object] = {}
+
+    def render(data: Path, scene: Scene, windows: int, seed: int, randomised: int) -> list[Path]:
+        asked["render"] = (data, windows, seed, randomised)
+        return [data / "r.cine"]
+
+    def calibrate_folder(models: Path, recordings: list[Path], scene: Scene) -> wm.Intervals:
+        asked["calibrate"] = recordings
+        one = dict.fromkeys(wm.QUANTITIES, 1.0)
+        return wm.Intervals(one, dict.fromkeys(wm.QUANTITIES, 0.0), dict.fromkeys(wm.QUANTITIES, False), 2, 0.95)
+
+    monkeypatch.setattr(tw, "render_calibration", render)
+    monkeypatch.setattr(wi, "calibrate_folder", calibrate_folder)
+    wi.main(["--models", str(tmp_path), "--randomised", "3", "--data", str(tmp_path / "d"), "--seed", "7", "a.cine"])
+    assert asked == {"render": (tmp_path / "d", 0, 7, 3), "calibrate": [Path("a.cine"), tmp_path / "d" / "r.cine"]}
+    assert json.loads(capsys.readouterr().out)["windows"] == 2
+    for argv in (["--randomised", "0"], ["--score", "--randomised", "2", "a.cine"], ["--randomised", "-1", "a.cine"]):
+        with pytest.raises(SystemExit):
+            wi.main(argv)
+        assert "--randomised" in capsys.readouterr().err
+
+
+@settings(max_examples=30, deadline=None)
+@given(seed=st.integers(0, 2**16), shift=st.floats(0.3, 2.0), share=st.floats(0.3, 0.7))
+def test_windows_of_randomised_worlds_pooled_in_widen_the_intervals_to_hold_them(
+    seed: int, shift: float, share: float
+) -> None:
+    """Windows whose world is not the scene's err further than the fit can see: intervals calibrated on the scene's
+    windows alone hold fewer of them than 95 %, and calibrated on both pooled they hold >= 95 % of the pool."""
+    rng = np.random.default_rng(seed)
+
+    def pairs(n: int, extra: float) -> dict[str, np.ndarray]:
+        true = rng.uniform(-0.01, 0.01, n)  # an offset (mm)
+        half = rng.uniform(2e-4, 5e-4, n)
+        est = true + half * (rng.standard_normal(n) + extra * rng.standard_normal(n) * 3)
+        return {
+            f"{key}_{part}": value
+            for key in QUANTITIES
+            for part, value in (("est", est), ("true", true), ("lo", est - half), ("hi", est + half))
+        }
+
+    def coverage(p: dict[str, np.ndarray], intervals: wm.Intervals) -> float:
+        est, true, lo, hi = (p[f"offset_mm_{part}"] for part in ("est", "true", "lo", "hi"))
+        low, high = intervals.bounds("offset", est, np.maximum(hi - est, est - lo))
+        return float(np.mean((low <= true) & (true <= high)))
+
+    scene_own, worlds = pairs(400, 0.0), pairs(int(400 * share / (1 - share)), shift)
+    pooled = {key: np.concatenate([scene_own[key], worlds[key]]) for key in scene_own}
+    assert coverage(worlds, wi.calibrate(scene_own, 0.95)) < 0.95
+    assert coverage(pooled, wi.calibrate(pooled, 0.95)) >= 0.95

@@ -26,7 +26,8 @@ if TYPE_CHECKING:
 #: ``train``'s window model: windows per noise preset it is trained on (half at the nominal motion, half widened,
 #: one in ``EIGHT_BIT_SHARE`` of each through the 8-bit camera: ``training.window.render_mix``), its epochs, and
 #: the windows per preset and camera (12 and 8 bits: ``training.window.render_calibration``) that calibrate its
-#: intervals (docs/window_model.md: its error fell with the windows trained on).
+#: intervals, with as many more from scenes randomised around the scene (docs/window_model.md: its error fell with
+#: the windows trained on; the intervals held on Blender's camera with the randomised ones).
 WINDOW_WINDOWS, WINDOW_EPOCHS, WINDOW_CALIBRATION = 1300, 80, 80
 #: Top-level modules of the train extra -> the extra (the scale extra's Dask is checked where --scheduler is read).
 EXTRA_OF = {"torch": "train", "onnx": "train"}
@@ -141,7 +142,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "--window-windows",
         type=int,
         help=f"windows per noise preset the window model is trained on (default {WINDOW_WINDOWS}; --quick 2; 0: no "
-        f"window model), rendered by our renderer from the scene; {WINDOW_CALIBRATION} more per preset at 12 and 8 bits calibrate its intervals",
+        f"window model), rendered by our renderer from the scene; {WINDOW_CALIBRATION} more per preset at 12 and 8 bits, "
+        f"and {WINDOW_CALIBRATION} from scenes randomised around it, calibrate its intervals",
     )
     p.set_defaults(func=run_train)
 

@@ -286,6 +286,10 @@ EIGHT_BIT_SHARE, EIGHT_BIT_SEEDS = 4, 50
 #: errors of their own; calibrated on 12-bit windows alone the offset's intervals held the truth in fewer of
 #: Blender's windows: docs/window_model.md, "Coverage after the polynomial brightness").
 CALIBRATION_BIT_DEPTHS = (12, 8)
+#: The calibration windows of a preset and camera from scenes randomised around the scene (:func:`build` pools as
+#: many as the scene's own by default) come from this many worlds (recordings) of their own, at seeds from
+#: :data:`RANDOMISED_CALIBRATION_SEEDS` above the training windows' (below the nominal ones').
+CALIBRATION_WORLDS, RANDOMISED_CALIBRATION_SEEDS = 8, 110
 
 
 def render_mix(data: Path, scene: Scene, windows: int, seed: int, vary: Vary | None = None) -> list[Path]:
@@ -309,13 +313,23 @@ def render_mix(data: Path, scene: Scene, windows: int, seed: int, vary: Vary | N
     return paths
 
 
-def render_calibration(data: Path, scene: Scene, windows: int, seed: int) -> list[Path]:
+def render_calibration(data: Path, scene: Scene, windows: int, seed: int, randomised: int = 0) -> list[Path]:
     """``windows`` calibration windows per noise preset and :data:`CALIBRATION_BIT_DEPTHS` camera, at the
-    simulator's nominal motion, at seeds from ``seed + CALIBRATION_SEEDS`` on that no training window uses."""
+    simulator's nominal motion, at seeds from ``seed + CALIBRATION_SEEDS`` on that no training window uses; and
+    ``randomised`` more per preset and camera from :data:`CALIBRATION_WORLDS` scenes randomised around ``scene``
+    (:func:`training.window_scenes.vary`), at seeds from ``seed + RANDOMISED_CALIBRATION_SEEDS``."""
+    from training.window_scenes import vary
+
+    per_world = [len(part) for part in np.array_split(np.arange(randomised), CALIBRATION_WORLDS) if len(part)]
     paths = []
     for k, bits in enumerate(CALIBRATION_BIT_DEPTHS):
-        first = seed + CALIBRATION_SEEDS + k * len(TRAINING_NOISE)
-        paths += render_training(data, scene, windows, first, WindowRanges(), f"calibrate-{bits}bit", bits)
+        if windows:
+            first = seed + CALIBRATION_SEEDS + k * len(TRAINING_NOISE)
+            paths += render_training(data, scene, windows, first, WindowRanges(), f"calibrate-{bits}bit", bits)
+        for j, count in enumerate(per_world):
+            first = seed + RANDOMISED_CALIBRATION_SEEDS + (k * CALIBRATION_WORLDS + j) * len(TRAINING_NOISE)
+            name = f"calibrate-randomised-{bits}bit"
+            paths += render_training(data, scene, count, first, WindowRanges(), name, bits, vary)
     return paths
 
 
@@ -330,18 +344,26 @@ def build(
     recordings: tuple[Path, ...] = (),
     latent: bool = LATENT_INPUT,
     randomised: int = 0,
+    calibration_randomised: int | None = None,
 ) -> dict:
     """The window model of ``models``' network: ``windows`` training windows per noise preset rendered into ``data``
     (:func:`render_mix`; with ``recordings``), ``randomised`` of them from scenes randomised around ``scene``
     (:func:`training.window_scenes.render_randomised`, replayed through ``scene``'s network as a recording of the
     real set-up is), trained, exported beside the network with its record, and its intervals calibrated on
-    ``calibration`` other windows per preset and camera (:func:`render_calibration`; none: the fit's own intervals
-    stay); the folder's manifest rewritten. ``latent``: the model takes the network's latent per frame too (where the
-    network outputs one). Returns the record."""
+    ``calibration`` other windows per preset and camera and ``calibration_randomised`` (None: as many) from scenes
+    randomised around ``scene`` (:func:`render_calibration`; none at all: the fit's own intervals stay); the folder's
+    manifest rewritten. The randomised windows make the intervals hold on a camera whose world is not the scene's
+    (docs/window_model.md, "Intervals calibrated on randomised worlds"). ``latent``: the model takes the network's latent per frame too (where the network outputs
+    one). Returns the record."""
     from training.window_intervals import calibrate_folder
 
     if not 0 <= randomised <= windows:
         raise ValueError(f"randomised windows ({randomised}) must lie between 0 and the windows ({windows})")
+    calibration_randomised = calibration if calibration_randomised is None else calibration_randomised
+    if min(calibration, calibration_randomised) < 0:
+        raise ValueError(
+            f"calibration windows ({calibration}, {calibration_randomised} randomised) must not be negative"
+        )
     recordings = tuple(recordings) + (tuple(render_mix(data, scene, windows - randomised, seed)) if windows else ())
     if randomised:
         from training.window_scenes import render_randomised
@@ -374,8 +396,8 @@ def build(
     (models / wm.RECORD).write_text(json.dumps(record, indent=1) + "\n")
     # the folder's manifest lists every file with its sha256: the window model's two files too
     write_manifest(models, Manifest.model_validate_json((models / MANIFEST).read_text()))
-    if calibration:
-        held_out = render_calibration(data, scene, calibration, seed)
+    if calibration or calibration_randomised:
+        held_out = render_calibration(data, scene, calibration, seed, calibration_randomised)
         intervals = calibrate_folder(models, held_out, scene)
         record["intervals"] = intervals.as_record()
         print(f"intervals calibrated on {intervals.windows} windows: factors {intervals.factor}")
@@ -398,7 +420,14 @@ def main(argv: list[str] | None = None) -> None:
         default=80,
         metavar="N",
         help="calibrate the intervals on N held-out windows per noise preset and camera (12 and 8 bits) rendered "
-        "into --data (0: not)",
+        "into --data (0: not, unless --calibrate-randomised)",
+    )
+    p.add_argument(
+        "--calibrate-randomised",
+        type=int,
+        metavar="N",
+        help="and on N more per preset and camera from scenes randomised around --scene (default: as many as "
+        "--calibrate; 0: the scene's windows alone)",
     )
     p.add_argument(
         "--randomised",
@@ -433,6 +462,7 @@ def main(argv: list[str] | None = None) -> None:
         tuple(args.recordings),
         args.latent,
         args.randomised,
+        args.calibrate_randomised,
     )
     print(f"wrote {args.models / wm.FILE}, {wm.RECORD} and the folder's manifest")
 

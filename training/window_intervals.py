@@ -9,7 +9,13 @@ are. The floor (per quantity, from a short grid) and the space (linear or log) a
 narrowest. Usage::
 
     python -m training.window_intervals --models models/default CAL1.cine CAL2.cine ...
+    python -m training.window_intervals --models models/default --randomised 80 --data DIR CAL1.cine ...
     python -m training.window_intervals --models models/default --score TEST1.cine TEST2.cine ...
+
+``--randomised N`` pools N windows per noise preset and camera from scenes randomised around the scene
+(:func:`training.window.render_calibration`, rendered into ``--data`` where absent) with the named ones, so that the
+intervals make room for a camera whose world is not the scene's (docs/window_model.md, "Intervals calibrated on
+randomised worlds").
 """
 
 from __future__ import annotations
@@ -147,12 +153,28 @@ def calibrate_folder(models: Path, recordings: list[Path], scene: Scene, confide
 
 def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(prog="python -m training.window_intervals", description=__doc__.splitlines()[0])
-    p.add_argument("recordings", nargs="+", type=Path, help="simulated recordings (with .truth.json)")
+    p.add_argument("recordings", nargs="*", type=Path, help="simulated recordings (with .truth.json)")
     p.add_argument("--models", type=Path, default=DEFAULT_MODELS, help="model folder of the window model")
     p.add_argument("--score", action="store_true", help="score the recordings (coverage) instead of calibrating")
     p.add_argument("--scene", type=Path, default=DEFAULT_SCENE)
     p.add_argument("--out", type=Path, help="with --score: JSON of the figures")
+    p.add_argument(
+        "--randomised",
+        type=int,
+        default=0,
+        metavar="N",
+        help="calibrate on N more windows per noise preset and camera (12 and 8 bits) from scenes randomised around "
+        "--scene, rendered into --data where absent (default 0)",
+    )
+    p.add_argument("--data", type=Path, default=Path("data/window"), help="folder of the --randomised windows")
+    p.add_argument("--seed", type=int, default=0, help="seed of the --randomised windows (training.window's)")
     args = p.parse_args(argv)
+    if args.randomised < 0:
+        p.error(f"--randomised must be zero or positive, got {args.randomised}")
+    if args.score and args.randomised:
+        p.error("--randomised calibrates: not with --score")
+    if not args.recordings and not args.randomised:
+        p.error("no recordings: name some or --randomised N")
     scene = Scene.load(args.scene)
     if args.score:
         figures = scores(reports(args.recordings, scene, args.models))
@@ -160,7 +182,12 @@ def main(argv: list[str] | None = None) -> None:
         if args.out:
             args.out.write_text(json.dumps(figures, indent=1) + "\n")
         return
-    intervals = calibrate_folder(args.models, args.recordings, scene)
+    recordings = list(args.recordings)
+    if args.randomised:
+        from training.window import render_calibration
+
+        recordings += render_calibration(args.data, scene, 0, args.seed, args.randomised)
+    intervals = calibrate_folder(args.models, recordings, scene)
     print(json.dumps(intervals.as_record(), indent=1))
 
 
