@@ -353,8 +353,8 @@ def build(
     ``calibration`` other windows per preset and camera and ``calibration_randomised`` (None: as many) from scenes
     randomised around ``scene`` (:func:`render_calibration`; none at all: the fit's own intervals stay); the folder's
     manifest rewritten. The randomised windows make the intervals hold on a camera whose world is not the scene's
-    (docs/window_model.md, "Intervals calibrated on randomised worlds"). ``latent``: the model takes the network's latent per frame too (where the network outputs
-    one). Returns the record."""
+    (docs/window_model.md, "Intervals calibrated on randomised worlds"). ``latent``: the model takes the network's
+    latent per frame too (where the network outputs one). Returns the record."""
     from training.window_intervals import calibrate_folder
 
     if not 0 <= randomised <= windows:
