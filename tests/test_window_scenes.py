@@ -307,3 +307,35 @@ def test_windows_of_randomised_worlds_pooled_in_widen_the_intervals_to_hold_them
     pooled = {key: np.concatenate([scene_own[key], worlds[key]]) for key in scene_own}
     assert coverage(worlds, wi.calibrate(scene_own, 0.95)) < 0.95
     assert coverage(pooled, wi.calibrate(pooled, 0.95)) >= 0.95
+
+
+@settings(max_examples=20, deadline=None)
+@given(given_recordings=st.integers(1, 5), randomised=st.integers(1, 3000), seed=st.integers(0, 10**6))
+def test_randomised_windows_go_on_top_of_named_recordings_when_render_equals_randomised(
+    given_recordings: int, randomised: int, seed: int
+) -> None:
+    """``python -m training.window RECS... --render N --randomised N`` trains on every named recording, in its
+    order, plus ``N`` randomised windows per preset, and renders none of the scene's own: the recipe of
+    docs/window_model.md's "All the shipped windows plus randomised ones on top"."""
+    named = tuple(Path(f"default-{k}.cine") for k in range(given_recordings))
+    replayed: list[Path] = []
+
+    def rand(data: Path, scene: Scene, n: int, s: int) -> list[Path]:
+        assert n == randomised and s == seed + tw.RANDOMISED_SEEDS
+        return [data / "r.cine"]
+
+    def replay(path: Path, scene: Scene, models: Path) -> Path:
+        replayed.append(path)
+        return path
+
+    def stop(parts: list[object]) -> tw.Examples:
+        raise _Asked
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(tw, "render_training", lambda *a, **k: pytest.fail("rendered a window of the scene itself"))
+        patch.setattr(ws, "render_randomised", rand)
+        patch.setattr(tw, "cached_examples", replay)
+        patch.setattr(tw, "concat", stop)
+        with pytest.raises(_Asked):
+            tw.build(Path("models"), SCENE, Path("data"), randomised, 1, seed, 0, named, randomised=randomised)
+    assert replayed == [*named, Path("data") / "randomised" / "r.cine"]

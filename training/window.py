@@ -434,7 +434,8 @@ def main(argv: list[str] | None = None) -> None:
         type=int,
         default=0,
         metavar="N",
-        help="of the --render windows per preset, N from scenes randomised around --scene (training.window_scenes)",
+        help="of the --render windows per preset, N from scenes randomised around --scene (training.window_scenes); "
+        "--render N --randomised N: the named recordings plus N randomised windows per preset on top",
     )
     p.add_argument("--data", type=Path, default=Path("data/window"), help="folder of the rendered windows")
     p.add_argument("--models", type=Path, default=DEFAULT_MODELS, help="model folder: its network, and the output")
