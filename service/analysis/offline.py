@@ -147,8 +147,8 @@ def analyse_recording(
                     jobs += _send(runner, [(c.window, c.values) for c in closed], radius, transient, model, fps)
                     closed = []
                 bar.update(len(batch))
-        # every frame is read: the file's mapping is let go on the hash's thread once the hash is done (unmapping
-        # rec200's 701 MB took ~12 ms), beside the last windows' fits, rather than when this function returns
+        # every frame is read: the file's mapping is let go on the hash's thread once the hash is done, beside the
+        # last windows' fits, rather than unmapped on this thread as it returns (docs/benchmarks.md, branch spd8)
         batch = inputs = None
         hasher.submit(replay.close)
         records = np.concatenate(parts) if parts else np.empty(0, FRAME)
