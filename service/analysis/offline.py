@@ -147,6 +147,10 @@ def analyse_recording(
                     jobs += _send(runner, [(c.window, c.values) for c in closed], radius, transient, model, fps)
                     closed = []
                 bar.update(len(batch))
+        # every frame is read: the file's mapping is let go on the hash's thread once the hash is done, beside the
+        # last windows' fits, rather than unmapped on this thread as it returns (docs/benchmarks.md, branch spd8)
+        batch = inputs = None
+        hasher.submit(replay.close)
         records = np.concatenate(parts) if parts else np.empty(0, FRAME)
         n = len(records)
         if n < 2:
