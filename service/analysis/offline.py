@@ -150,7 +150,7 @@ def analyse_recording(
         # every frame is read: the file's mapping is let go on the hash's thread once the hash is done, beside the
         # last windows' fits, rather than unmapped on this thread as it returns (docs/benchmarks.md, branch spd8)
         batch = inputs = None
-        hasher.submit(replay.close)
+        released = hasher.submit(replay.close)
         records = np.concatenate(parts) if parts else np.empty(0, FRAME)
         n = len(records)
         if n < 2:
@@ -184,6 +184,7 @@ def analyse_recording(
         results = [refined[w.index].result if w.index in refined else next(results) for w in windows]
         runner.release()  # its workers exit while the report is built
         source = Source(path=str(path), frames=n, fps=fps, width=width, height=height, blake3=digest.result())
+        released.result()  # a failure to let go of the file is this analysis' error, not lost on the hash's thread
         report = Report(
             source=source, method=method_label(method, refine), ejections=cuts.tolist(), windows=results, fit=settings
         )
