@@ -116,6 +116,15 @@ def _one_blas_thread() -> Iterator[None]:
                 lib.set_num_threads(threads)
 
 
+def hold_blas_to_one_thread() -> None:
+    """Every BLAS of this process on one thread from now on, in a process that exists to fit windows or that forks
+    those that do. :func:`fit_window` runs its BLAS on one thread anyway, but a library left at several keeps idle
+    threads that cost CPU all the same: each process forked from one re-creates them, and they spin at their start
+    (3-4 us of CPU per frame of ``meniscope analyze`` on two cores: docs/benchmarks.md)."""
+    for lib in _BLAS:
+        lib.set_num_threads(1)
+
+
 #: The linear parameters' indices (offset, drift and each mode's a and b) by number of modes.
 _LINEAR = [np.r_[0, 1, (_BASE + _PER_MODE * np.arange(m)[:, None] + np.array([0, 1])).ravel()] for m in range(3)]
 

@@ -278,10 +278,12 @@ def fit_or_failed(job: WindowJob, fps: float, settings: FitSettings) -> WindowRe
 
 
 def _warm() -> None:
-    """Load the fit and its compiled kernels (from numba's cache; milliseconds once loaded)."""
-    from service.analysis.fit import warm
+    """Load the fit and its compiled kernels (from numba's cache; milliseconds once loaded), and hold this process's
+    BLAS to one thread, so that the workers it forks have none of a BLAS's threads to re-create and spin."""
+    from service.analysis.fit import hold_blas_to_one_thread, warm
 
     warm()
+    hold_blas_to_one_thread()
 
 
 def _dask_client(scheduler: str):  # type: ignore[no-untyped-def]
