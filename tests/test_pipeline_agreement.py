@@ -102,8 +102,8 @@ def test_a_live_start_publishes_no_failed_fragment_before_the_first_ejection(liv
 
 def test_an_analysis_opens_its_recording_once(demo_cine: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """Opening a .cine reads every image's offset, ~1 us of CPU per frame: ``analyze`` opens it once and replays
-    that; its digest, the file's BLAKE3, is hashed from that opening's mapping of the file, not a second one."""
-    from blake3 import blake3
+    that; its digest, the file's XXH3-128, is hashed from that opening's mapping of the file, not a second one."""
+    from xxhash import xxh3_128
 
     from service.analysis import offline
     from service.recordings import cine
@@ -117,19 +117,19 @@ def test_an_analysis_opens_its_recording_once(demo_cine: Path, monkeypatch: pyte
 
     monkeypatch.setattr(cine.CineRecording, "__init__", counted)
     hashed: list[bool] = []
-    digest = offline.blake3_file
+    digest = offline.xxh3_file
 
     def from_mapping(path: Path, mapped: np.ndarray | None = None) -> str:
         hashed.append(mapped is not None)
         return digest(path, mapped)
 
-    monkeypatch.setattr(offline, "blake3_file", from_mapping)
+    monkeypatch.setattr(offline, "xxh3_file", from_mapping)
     scene = Scene.load(DEFAULT_SCENE)
     analysis = analyse_recording(
         demo_cine, scene, "network", DEFAULT_MODELS, progress=False, opened=(NetworkMethod(DEFAULT_MODELS, scene), None)
     )
     assert analysis.report.windows and opened == [demo_cine]
-    assert hashed == [True] and analysis.report.source.blake3 == blake3(demo_cine.read_bytes()).hexdigest()
+    assert hashed == [True] and analysis.report.source.xxh3_128 == xxh3_128(demo_cine.read_bytes()).hexdigest()
 
 
 def test_an_analysis_lets_go_of_its_recording_on_the_hash_thread(
@@ -140,7 +140,7 @@ def test_an_analysis_lets_go_of_its_recording_on_the_hash_thread(
     it); the digest and windows as ever."""
     import weakref
 
-    from blake3 import blake3
+    from xxhash import xxh3_128
 
     from service.recordings import cine
 
@@ -156,5 +156,5 @@ def test_an_analysis_lets_go_of_its_recording_on_the_hash_thread(
     analysis = analyse_recording(
         demo_cine, scene, "network", DEFAULT_MODELS, progress=False, opened=(NetworkMethod(DEFAULT_MODELS, scene), None)
     )
-    assert analysis.report.windows and analysis.report.source.blake3 == blake3(demo_cine.read_bytes()).hexdigest()
+    assert analysis.report.windows and analysis.report.source.xxh3_128 == xxh3_128(demo_cine.read_bytes()).hexdigest()
     assert len(released) == 1 and released[0].startswith("meniscope-hash")

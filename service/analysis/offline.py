@@ -41,7 +41,7 @@ from service.pipeline.segmenter import StreamingSegmenter
 from service.pipeline.stages import FrameStages
 from service.pipeline.windows import JobRunner, WindowJob, fit_or_failed, job_for, window_model_for
 from service.recordings import open_recording
-from service.recordings.digest import blake3_file
+from service.recordings.digest import xxh3_file
 from service.recordings.roi import roi_frames
 from service.render.renderer import Renderer
 from service.scene import Scene
@@ -117,7 +117,7 @@ def analyse_recording(
         runner = stack.enter_context(JobRunner(first_settings, scheduler, workers))
         replay = opening.result()
         # the hash lets go of the interpreter lock: read while it hashes, from the replay's own mapping of the file
-        digest = hasher.submit(blake3_file, path, replay.mapped)
+        digest = hasher.submit(xxh3_file, path, replay.mapped)
         fps, frames, width, height = replay.fps, replay.frames, replay.width, replay.height
         transient, radius = settings.transient_frames(fps), scene.nozzle.radius_mm
         detecting = ejections.file is None and ejections.hz is None
@@ -183,7 +183,7 @@ def analyse_recording(
         results = iter(runner.results(progress))
         results = [refined[w.index].result if w.index in refined else next(results) for w in windows]
         runner.release()  # its workers exit while the report is built
-        source = Source(path=str(path), frames=n, fps=fps, width=width, height=height, blake3=digest.result())
+        source = Source(path=str(path), frames=n, fps=fps, width=width, height=height, xxh3_128=digest.result())
         released.result()  # a failure to let go of the file is this analysis' error, not lost on the hash's thread
         report = Report(
             source=source, method=method_label(method, refine), ejections=cuts.tolist(), windows=results, fit=settings

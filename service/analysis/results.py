@@ -196,7 +196,9 @@ class Source(_Frozen):
     fps: Annotated[float, Field(gt=0, allow_inf_nan=False)]
     width: Annotated[int, Field(gt=0)] | None = None
     height: Annotated[int, Field(gt=0)] | None = None
-    #: hex BLAKE3 of the file (:mod:`service.recordings.digest`; ``b3sum`` checks it)
+    #: hex XXH3-128 of the file (:mod:`service.recordings.digest`; ``xxhsum -H2`` checks it)
+    xxh3_128: str | None = None
+    #: hex BLAKE3 of the file, in reports written before the XXH3-128 digest (``b3sum`` checks it)
     blake3: str | None = None
     #: hex SHA-256 of the file, in reports written before the BLAKE3 digest
     sha256: str | None = None

@@ -213,7 +213,7 @@ def run_fit(args: argparse.Namespace) -> int:
     from service.analysis.plot import plot_report
     from service.analysis.results import Source
     from service.csvtable import read_columns, write_columns
-    from service.recordings.digest import blake3_file
+    from service.recordings.digest import xxh3_file
 
     if not (math.isfinite(args.fps) and args.fps > 0):
         raise MeniscopeError("--fps", f"must be a positive number, got {args.fps}")
@@ -222,7 +222,7 @@ def run_fit(args: argparse.Namespace) -> int:
     values = read_columns(args.series, (args.column,), allow_empty=True)[:, 0]
     if values.size == 0:
         raise MeniscopeError(args.series, f"no rows in column {args.column!r}")
-    source = Source(path=str(args.series), frames=values.size, fps=args.fps, blake3=blake3_file(args.series))
+    source = Source(path=str(args.series), frames=values.size, fps=args.fps, xxh3_128=xxh3_file(args.series))
     report = analyse_series(
         values, args.fps, source, Ejections(args.ejections, args.ejection_hz), settings, progress=not args.quiet
     )
