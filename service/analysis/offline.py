@@ -128,13 +128,14 @@ def analyse_recording(
         )
         # the window-level methods need every window's frames first
         streamed = db is None and (not refine or fitted_first)
-        # one pass over the frames (each read once: reading was a fifth of the CPU)
+        # one pass over the frames (each read once: reading was a fifth of the CPU), in three stages on three threads:
+        # read and measured, inferred (the graph, no longer on the thread that segments: docs/benchmarks.md), then
+        # segmented and the closed windows sent to be fitted on this one
         parts, found, closed, jobs = [], [], [], []
         with tqdm(total=frames, unit="frame", desc=f"{inverse.name} {path.name}", disable=not progress) as bar:
-            for stages, batch, part, inputs in _ahead(_measured(replay, scene, inverse)):
-                if db is None:
-                    stages.infer(inputs, part)
-                else:  # the window fit picks every frame's values among these; one search serves
+            measured = _ahead(_measured(replay, scene, inverse), "meniscope-read-ahead")
+            for batch, part in _ahead(_inferred(measured, db is None), "meniscope-infer"):
+                if db is not None:  # the window fit picks every frame's values among these; one search serves
                     index = db.search(batch.pixels, k=CANDIDATES, exact=True).index
                     _set_coefficients(part, db.coeffs[index[:, 0]], db.centre[index[:, 0]])
                     found.append(index)
@@ -149,7 +150,7 @@ def analyse_recording(
                 bar.update(len(batch))
         # every frame is read: the file's mapping is let go on the hash's thread once the hash is done, beside the
         # last windows' fits, rather than unmapped on this thread as it returns (docs/benchmarks.md, branch spd8)
-        batch = inputs = None
+        batch = None
         released = hasher.submit(replay.close)
         records = np.concatenate(parts) if parts else np.empty(0, FRAME)
         n = len(records)
@@ -201,26 +202,35 @@ def fps_of(path: Path) -> float:
         return rec.fps
 
 
-def _measured(
-    source: ReplaySource, scene: Scene, inverse: InverseMethod
-) -> Iterator[tuple[FrameStages, FrameBatch, np.ndarray, np.ndarray]]:
+#: A read of the replay, measured: its frames, their records and the inverse method's input, and the stream's stages.
+_Measured = tuple[FrameBatch, np.ndarray, np.ndarray, FrameStages]
+
+
+def _measured(source: ReplaySource, scene: Scene, inverse: InverseMethod) -> Iterator[_Measured]:
     """The open replay ``source`` read at full speed in reads of :data:`READ_FRAMES`: each read's ROI, its records
     as far as the pixels alone fill them and the inverse method's input (:meth:`FrameStages.measure`), with the
     stages of the stream."""
     stages = FrameStages(scene, source.format, str(source.path), inverse)
     while (batch := source.read(READ_FRAMES)) is not None:
         batch = stages.roi(batch)
-        yield stages, batch, *stages.measure(batch)
+        yield batch, *stages.measure(batch), stages
+
+
+def _inferred(measured: Iterator[_Measured], infer: bool) -> Iterator[tuple[FrameBatch, np.ndarray]]:
+    """Each read of ``measured``: its frames and records, with ``infer`` the inverse method's values filled in
+    (:meth:`FrameStages.infer`)."""
+    for batch, part, inputs, stages in measured:
+        yield batch, stages.infer(inputs, part) if infer else part
 
 
 _END = object()
 
 
-def _ahead(items: Iterator[_T], depth: int = 2) -> Iterator[_T]:
-    """``items``, each made on a thread of its own up to ``depth`` ahead, in order: reading and measuring the next
-    frames overlaps the inference of these on two cores (the file reads, numpy, OpenCV and onnxruntime let go of
-    the interpreter lock)."""
-    with ThreadPoolExecutor(1, "meniscope-read-ahead") as thread:  # one thread: ``items`` advanced by it alone
+def _ahead(items: Iterator[_T], name: str, depth: int = 2) -> Iterator[_T]:
+    """``items``, each made on a thread of its own (``name``) up to ``depth`` ahead, in order: reading and measuring
+    the next frames, inferring these and segmenting those before overlap on two cores (the file reads, numpy, OpenCV,
+    numba's passes and onnxruntime let go of the interpreter lock)."""
+    with ThreadPoolExecutor(1, name) as thread:  # one thread: ``items`` advanced by it alone
         pending = deque(thread.submit(next, items, _END) for _ in range(depth))
         while (item := pending.popleft().result()) is not _END:
             pending.append(thread.submit(next, items, _END))
