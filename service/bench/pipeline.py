@@ -6,9 +6,10 @@
   on the same recording replayed at full speed: its capacity, the frames/s it infers when no camera paces it.
 
 Each ``--repeat`` times, alternating, so that both see the same load; medians and the ratio to the camera's rate,
-and the CPU each spent per frame (this process and its fit processes; the fit processes' share beside it), which a loaded machine changes less than it
-changes frames/s, and where it went: each thread's CPU per frame (sampled from ``/proc`` while it runs, Linux only),
-the live fit workers' from after they started (their start, importing the service, is no cost per frame).
+and the CPU each spent per frame (this process and its fit processes; the fit processes' share beside it), which a
+loaded machine changes less than it changes frames/s, and where it went: each thread's CPU per frame (sampled from
+``/proc`` while it runs, Linux only). The live fit workers count from after they started: spawning them and importing
+the service in each is a second or more of CPU, once per service, no cost per frame.
 """
 
 from __future__ import annotations
@@ -127,6 +128,10 @@ class ThreadCpu:
         return {name: 1e6 * seconds / max(frames, 1) for name, seconds in by.items()}
 
 
+#: The live fit workers, counted from after their start.
+LIVE_FITS = "fit workers (after their start)"
+
+
 def cpu_per_frame(before: tuple[float, float], frames: int) -> dict:
     """CPU us per frame since ``before`` (:func:`cpu_seconds`): in all, and of it the fit processes'."""
     own, fits = (now - then for now, then in zip(cpu_seconds(), before))
@@ -195,7 +200,7 @@ def measure_live(recording: Path, scene, method, workers: int | None) -> dict:  
             pass
 
     stats, ended = PipelineStats(), False
-    cpu0 = cpu_seconds()
+    own0, _ = cpu_seconds()
     pool = FitPool(settings.fit_workers, settings.fit, settings.fit_nice)
     try:
         with open_source(settings.source) as source, ThreadCpu() as threads:
@@ -210,15 +215,20 @@ def measure_live(recording: Path, scene, method, workers: int | None) -> dict:  
     finally:
         pool.close()
     pool.join(10.0)
+    frames = stats.frames_inferred
+    by_thread = threads.per_frame(frames, LIVE_FITS)
+    fits = by_thread.get(LIVE_FITS, 0.0)  # from after their start: spawning them and importing the service is no
+    own = 1e6 * (cpu_seconds()[0] - own0) / max(frames, 1)  # cost per frame (a second or more of CPU each)
     return {
         "seconds": seconds,
-        "frames_per_s": stats.frames_inferred / seconds,
-        **cpu_per_frame(cpu0, stats.frames_inferred),  # the fit workers have ended (joined): their CPU is counted
-        "inferred_frames_per_s": stats.frames_inferred / inferred,
+        "frames_per_s": frames / seconds,
+        "cpu_us_per_frame": own + fits,
+        "fit_cpu_us_per_frame": fits,
+        "inferred_frames_per_s": frames / inferred,
         "frames_dropped": stats.frames_dropped,
         "windows": len(fitted),
         "windows_skipped": stats.windows_skipped,
-        "threads_us_per_frame": threads.per_frame(stats.frames_inferred, "fit workers (after their start)"),
+        "threads_us_per_frame": by_thread,
     }
 
 
