@@ -379,6 +379,8 @@ def simulate(
         truth = truth_document(
             plan, scene, out, effects, seed, ejection_hz, noise, type(renderer).__name__, (camera.width, camera.height)
         )
+        if isinstance(getattr(renderer, "sun_samples", None), int):  # ours: how finely it drew the sun's disc
+            truth["sun_samples"] = renderer.sun_samples
         for k, window in enumerate(truth["windows"]) if kind_names else ():
             window["kind"] = kind_names[k % len(kind_names)]
         try:

@@ -243,6 +243,24 @@ def test_the_verb_writes_a_recording_and_its_truth(tmp_path: Path, capsys: pytes
     assert truth["noise"] == "none" and truth["recording"]["bit_depth"] == 12
 
 
+def test_the_verb_draws_the_sun_as_finely_as_asked(scene: Scene, tmp_path: Path) -> None:
+    """``--sun-samples 24`` draws the sun's disc as ``calibrate``'s renders do: the frames are those of our renderer
+    at 24 directions (noise off, the same seed), not the default's 4, and the truth says how it was drawn."""
+    out = tmp_path / "fine.cine"
+    argv = ["simulate", "--out", str(out), "--windows", "1", "--seed", "4", "--noise", "none", "--sun-samples", "24"]
+    assert main(argv) == 0
+    truth = json.loads(truth_path(out).read_text())
+    assert truth["sun_samples"] == 24 and truth["renderer"] == "Renderer"
+    effects = noise_preset("none", 12)
+    for samples, name in ((24, "same.cine"), (4, "coarse.cine")):
+        simulate(
+            scene, tmp_path / name, windows=1, seed=4, effects=effects, renderer=Renderer(scene, sun_samples=samples)
+        )
+    fine, same, coarse = (frames_of(tmp_path / name) for name in ("fine.cine", "same.cine", "coarse.cine"))
+    assert np.array_equal(fine, same) and not np.array_equal(fine, coarse)
+    assert json.loads(truth_path(tmp_path / "coarse.cine").read_text())["sun_samples"] == 4
+
+
 @pytest.mark.parametrize(
     "argv, message",
     [
@@ -250,6 +268,8 @@ def test_the_verb_writes_a_recording_and_its_truth(tmp_path: Path, capsys: pytes
         (["--ejection-hz", "nan"], "--ejection-hz: must be a positive number"),
         (["--bit-depth", "10"], ".cine stores bit depths [8, 12, 16], not 10"),
         (["--scene", "no-such-scene.json"], "no-such-scene.json: scene file not found"),
+        (["--sun-samples", "0"], "--sun-samples: must be 1 to 64, got 0"),
+        (["--sun-samples", "8", "--renderer", "blender"], "--sun-samples: is our renderer's"),
     ],
 )
 def test_the_verb_reports_bad_input_in_one_line(

@@ -90,6 +90,7 @@ class Renderer:
             if not 1 <= value <= 4096:
                 raise MeniscopeError("renderer", f"{name} must be between 1 and 4096, got {value}")
         self.scene, self.supersample, self.batch_frames = scene, supersample, batch_frames
+        self.sun_samples = sun_samples
         self.threads = max(1, threads if threads is not None else (os.cpu_count() or 1))
         cam, R = scene.camera, scene.nozzle.radius_mm
         self.shape = (cam.height_px, cam.width_px)

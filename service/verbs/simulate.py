@@ -10,6 +10,9 @@ from service.errors import MeniscopeError
 from service.noise_presets import NOISE_PRESETS
 from service.verbs import add_scene_option
 
+#: The most sun directions ``--sun-samples`` takes (as the simulated camera source, ``sim://``).
+MAX_SUN_SAMPLES = 64
+
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
@@ -53,6 +56,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "heavy, light, 4khz, faint, drift, skip, spatter (default: the nominal ranges)",
     )
     p.add_argument("--blender-samples", type=int, default=32, help="Cycles samples per pixel (default 32)")
+    p.add_argument(
+        "--sun-samples",
+        type=int,
+        help=f"directions our renderer integrates the sun's disc over, 1-{MAX_SUN_SAMPLES} (default 4; `calibrate` "
+        "draws its renders with 24: a test recording for it drawn as it draws)",
+    )
     p.set_defaults(func=run)
 
 
@@ -71,6 +80,7 @@ def run(args: argparse.Namespace) -> int:
     from service.camera_effects import noise_preset, sensor_effects
     from service.scene import Scene
     from service.simulate import (  # the renderer loads only when a verb needs it
+        canvas,
         check_output,
         simulate,
         truth_path,
@@ -90,16 +100,24 @@ def run(args: argparse.Namespace) -> int:
             kinds, names = kinds_named(args.kinds), tuple(n.strip() for n in args.kinds.split(","))
         except ValueError as exc:
             raise MeniscopeError("--kinds", str(exc)) from None
+    if args.sun_samples is not None:
+        if args.renderer == "blender":
+            raise MeniscopeError("--sun-samples", "is our renderer's: Blender Cycles samples the sun's disc itself")
+        if not 1 <= args.sun_samples <= MAX_SUN_SAMPLES:
+            raise MeniscopeError("--sun-samples", f"must be 1 to {MAX_SUN_SAMPLES}, got {args.sun_samples}")
     scene = Scene.load(args.scene)
     bit_depth = args.bit_depth or (8 if args.out.suffix.lower() == ".avi" else 12)
     check_output(args.out, bit_depth)
+    shown = canvas(scene, args.frame)[0] if args.frame else scene
     renderer = None
     if args.renderer == "blender":
         from service.render.blender import BlenderRenderer
-        from service.simulate import canvas
 
-        shown = canvas(scene, args.frame)[0] if args.frame else scene
         renderer = BlenderRenderer(shown, samples=args.blender_samples, seed=args.seed)
+    elif args.sun_samples is not None:
+        from service.render import Renderer
+
+        renderer = Renderer(shown, sun_samples=args.sun_samples)
     noise = args.noise or ("scene" if scene.sensor else "lab")
     if noise == "scene":
         if scene.sensor is None:
