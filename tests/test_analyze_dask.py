@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from service import DEFAULT_SCENE
+from service import DEFAULT_SCENE, blas
 from service.analysis.offline import refine_task
 from service.analysis.results import FitSettings
 from service.camera_effects import CameraEffects
@@ -96,7 +96,7 @@ def test_a_window_refined_on_a_dask_worker_is_the_bits_the_local_pool_gives(
 def test_a_task_s_threads_are_its_share_of_the_cores() -> None:
     """A local pool's processes share the machine's cores between them (one each at the default of one process per
     core, never none); a Dask worker thread is one core, the cluster's workers being how it grows."""
-    cores = windows.usable_cores()
+    cores = blas.usable_cores()
     for workers, threads in ((1, cores), (cores, 1), (2 * cores, 1)):
         with windows.JobRunner(FitSettings(), workers=workers) as runner:
             assert runner.threads == threads

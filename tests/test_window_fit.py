@@ -831,23 +831,6 @@ def test_a_fit_s_modes_are_resolved_exactly_when_the_judge_has_nothing_to_say(mo
     assert fit_module._slow_swing(params, np.float64(span)) == slow
 
 
-def test_each_fit_runs_its_blas_on_one_thread_and_leaves_it_as_it_found_it():
-    """Inside a fit every BLAS the process loaded runs one thread; after it, each runs as many as before (one
-    included), as threadpoolctl's limit left them."""
-    from threadpoolctl import threadpool_info, threadpool_limits
-
-    def blas_threads() -> list[int]:
-        return [lib["num_threads"] for lib in threadpool_info() if lib["user_api"] == "blas"]
-
-    assert fit_module._BLAS, "no BLAS found to limit"
-    for threads in (1, 2):
-        with threadpool_limits(threads, user_api="blas"):
-            before = blas_threads()
-            with fit_module._one_blas_thread():
-                assert set(blas_threads()) == {1}
-            assert blas_threads() == before == [threads] * len(before)
-
-
 @settings(max_examples=150, deadline=None)
 @given(
     values=arrays(

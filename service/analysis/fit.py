@@ -25,17 +25,16 @@ from __future__ import annotations
 import copy
 import functools
 import math
-from collections.abc import Iterator, Sequence
-from contextlib import contextmanager
+from collections.abc import Sequence
 from dataclasses import dataclass, replace
 from typing import Literal
 
 import numpy as np
 from numpy.typing import ArrayLike
 from scipy.special import stdtrit
-from threadpoolctl import ThreadpoolController
 from tqdm import tqdm
 
+from service import blas
 from service.analysis import kernels, pencil, products
 from service.analysis.kernels import BASE as _BASE
 from service.analysis.kernels import PER_MODE as _PER_MODE
@@ -95,34 +94,6 @@ _PRODUCT_SHIFT, _PRODUCT_FACTOR = 0.05, 2.0
 #: >= 3.1): to start the brightness' polynomial fit as mode 1, and to be handed to the window's series.
 _UNDERDAMPED = 2.0
 _IRLS_STEPS = 100  # at most; the order-0 cost settles to 1e-6 (relative) in ~5-10 rounds
-#: The fit's matrices are small: a multi-threaded BLAS only fights the other threads for the cores
-#: (7x slower per window on a loaded 2-core machine), so each fit runs its BLAS on one thread.
-_BLAS = [lib for lib in ThreadpoolController().lib_controllers if lib.user_api == "blas"]
-
-
-@contextmanager
-def _one_blas_thread() -> Iterator[None]:
-    """Each BLAS on one thread inside, as it was after: threadpoolctl's ``limit`` without its query of every
-    library's version and path each time (~30 us a window); nothing set where a BLAS already runs one."""
-    before = [lib.get_num_threads() for lib in _BLAS]
-    for lib, threads in zip(_BLAS, before):
-        if threads != 1:
-            lib.set_num_threads(1)
-    try:
-        yield
-    finally:
-        for lib, threads in zip(_BLAS, before):
-            if threads != 1:
-                lib.set_num_threads(threads)
-
-
-def hold_blas_to_one_thread() -> None:
-    """Every BLAS of this process on one thread from now on, in a process that exists to fit windows or that forks
-    those that do. :func:`fit_window` runs its BLAS on one thread anyway, but a library left at several keeps idle
-    threads that cost CPU all the same: each process forked from one re-creates them, and they spin at their start
-    (3-4 us of CPU per frame of ``meniscope analyze`` on two cores: docs/benchmarks.md)."""
-    for lib in _BLAS:
-        lib.set_num_threads(1)
 
 
 #: The linear parameters' indices (offset, drift and each mode's a and b) by number of modes.
@@ -400,7 +371,7 @@ def fit_window(
     -------
     WindowResult with modes in mm, Hz, 1/s, rad (dominant, i.e. smallest decay rate, first).
     """
-    with _one_blas_thread():
+    with blas.threads(1):  # small matrices: a multi-threaded BLAS made a window 7x slower on a loaded 2-core machine
         return _fit_window(values, fps, settings, index, start_frame, starts_at_ejection, ends_at_ejection, brightness)
 
 

@@ -123,9 +123,9 @@ def markdown(results: dict) -> str:
 def run(args: argparse.Namespace) -> int:
     from service import DEFAULT_MODELS
     from service.bench.results import write_results
+    from service.blas import usable_cores
     from service.errors import MeniscopeError
     from service.inverse.methods import open_method
-    from service.pipeline.windows import usable_cores
     from service.scene import Scene
 
     try:

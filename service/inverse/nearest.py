@@ -23,6 +23,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from service import blas
 from service.errors import MeniscopeError
 from service.inverse.base import InverseMethod, InverseOutput
 from service.jsonfile import read_schema_json
@@ -137,6 +138,14 @@ class NearestDatabase:
         k = int(min(max(k, 1), len(self)))
         index = np.empty((len(frames), k), np.int64)
         distance = np.empty((len(frames), k), np.float64)
+        with blas.threads(blas.usable_cores()):  # the one large product: on every core, where an analysis holds one
+            self._search(frames, k, exact, batch, index, distance)
+        return Neighbours(index=index, distance=distance)
+
+    def _search(
+        self, frames: np.ndarray, k: int, exact: bool, batch: int, index: np.ndarray, distance: np.ndarray
+    ) -> None:
+        """:meth:`search`'s loop over batches of frames, into ``index`` and ``distance`` (N, k)."""
         for start in range(0, len(frames), batch):
             part = slice(start, start + batch)
             x = normalise(frames[part], self.factor)
@@ -151,7 +160,6 @@ class NearestDatabase:
             order = dist.argsort(axis=1, kind="stable")
             index[part] = np.take_along_axis(found, order, axis=1)
             distance[part] = np.take_along_axis(dist, order, axis=1)
-        return Neighbours(index=index, distance=distance)
 
 
 def recall_at_k(approximate: Neighbours, exact: Neighbours) -> float:

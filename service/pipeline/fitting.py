@@ -45,10 +45,10 @@ BACKLOG = 16
 def _serve(conn: Connection, settings: FitSettings, nice: int) -> None:
     """A worker process: fit each (job, fps) the pipe brings until None, answering each with (result, started,
     finished) (monotonic s) or, if the fit raised, the error as text."""
-    from service.analysis.fit import hold_blas_to_one_thread
+    from service import blas
 
     os.nice(nice)
-    hold_blas_to_one_thread()
+    blas.hold_one_thread()
     try:
         _fit_until_told(conn, settings)
     except (EOFError, OSError):  # the service went away (killed, or stopped without waiting): nothing to answer

@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import gc
 import math
-import os
 import threading
 from collections.abc import Callable
 from concurrent.futures import Future
@@ -19,6 +18,7 @@ from typing import Any
 
 import numpy as np
 
+from service import blas
 from service.analysis.results import FitSettings, Status, WindowResult
 from service.analysis.segment import Window
 from service.analysis.steady import window_steady_centre
@@ -141,14 +141,16 @@ CHUNK = 8
 
 class JobRunner:
     """Runs window jobs as independent tasks: in a local process pool of ``workers`` (default: one per core it may
-    use, :func:`usable_cores`), or on the Dask cluster whose scheduler listens at ``scheduler``
+    use, :func:`service.blas.usable_cores`), or on the Dask cluster whose scheduler listens at ``scheduler``
     (``tcp://host:8786``; the ``scale`` extra).
 
     ``threads``: the threads a task may run (a renderer's), its share of the cores: the pool's processes share the
     machine's; a Dask worker thread is one core (as Dask's nanny gives BLAS and OpenMP one thread), the workers
     being how a cluster grows. More, and the tasks' threads fight for the cores they share.
 
-    Started before the frames are read, so that its workers load the compiled fit while inference runs; jobs
+    A local pool holds its maker's BLAS to one thread for good (:func:`service.blas.hold_one_thread`: its workers
+    fork without a BLAS's idle threads to re-create and spin). Started before the frames are read, so that its
+    workers load the compiled fit while inference runs; jobs
     :meth:`send` as windows close start :data:`CHUNK` at a time, so that fits run beside the frames' inference."""
 
     def __init__(self, settings: FitSettings, scheduler: str | None = None, workers: int | None = None) -> None:
@@ -165,7 +167,7 @@ class JobRunner:
             import multiprocessing
             from concurrent.futures import ProcessPoolExecutor
 
-            cores = usable_cores()
+            cores = blas.usable_cores()
             count = workers or cores
             self.threads = max(1, cores // count)
             _warm()  # here, once: the forked workers inherit the compiled fit instead of each loading it again
@@ -246,11 +248,6 @@ class JobRunner:
         self.close()
 
 
-def usable_cores() -> int:
-    """The cores this process may run on: its CPU affinity (a container's or ``taskset``'s share), not the machine's."""
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
-
-
 def gather(started: list[tuple[int, Future]], progress: bool = False) -> list[WindowResult]:
     """The results of tasks (their number of jobs, the future of their results) in order, with a progress bar over
     windows."""
@@ -279,11 +276,12 @@ def fit_or_failed(job: WindowJob, fps: float, settings: FitSettings) -> WindowRe
 
 def _warm() -> None:
     """Load the fit and its compiled kernels (from numba's cache; milliseconds once loaded), and hold this process's
-    BLAS to one thread, so that the workers it forks have none of a BLAS's threads to re-create and spin."""
-    from service.analysis.fit import hold_blas_to_one_thread, warm
+    BLAS to one thread for good (:func:`service.blas.hold_one_thread`), so that the workers it forks have none of a
+    BLAS's threads to re-create and spin, nor does it start them again by raising it back."""
+    from service.analysis.fit import warm
 
     warm()
-    hold_blas_to_one_thread()
+    blas.hold_one_thread()
 
 
 def _dask_client(scheduler: str):  # type: ignore[no-untyped-def]
