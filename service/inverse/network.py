@@ -67,7 +67,7 @@ class NetworkMethod(InverseMethod):
         model_dir: str | Path,
         scene: Scene,
         method: str = "network",
-        threads: int = 2,
+        threads: int = 1,
         batch: int = 64,
         optimisation: str = "all",
     ) -> None:
