@@ -23,8 +23,9 @@ fi
 # Debian packages: python3-venv (Debian's Python makes virtual environments only with it); harminv
 # (peer fit), prometheus (promtool, metrics check); Aravis and its GObject bindings (GigE Vision /
 # USB3 cameras, with a fake camera for tests) plus what PyGObject builds against; for --dev also
-# Blender (reference renderer), ffmpeg, xxhash (xxhsum: checks a report's digest), docker-compose (validates docker-compose.yml offline; no
-# Docker engine is needed or started), and Chromium with its WebDriver (the dashboard's browser test).
+# Blender (reference renderer), ffmpeg, xxhash (xxhsum: checks a report's digest), docker-compose
+# (validates docker-compose.yml offline; no Docker engine is needed or started), and Chromium with its
+# WebDriver (the dashboard's browser test).
 # Installed only when missing, so reruns are quick.
 need=(python3-venv harminv prometheus aravis-tools gir1.2-aravis-0.8 libgirepository1.0-dev libcairo2-dev pkg-config gcc)
 [ "$dev" = 1 ] && need+=(blender ffmpeg docker-compose chromium chromium-driver xxhash)

@@ -139,27 +139,21 @@ class NearestDatabase:
         index = np.empty((len(frames), k), np.int64)
         distance = np.empty((len(frames), k), np.float64)
         with blas.threads(blas.usable_cores()):  # the one large product: on every core, where an analysis holds one
-            self._search(frames, k, exact, batch, index, distance)
+            for start in range(0, len(frames), batch):
+                part = slice(start, start + batch)
+                x = normalise(frames[part], self.factor)
+                if exact:
+                    d2 = self.sq_norms[None, :] - 2.0 * (x @ self.vectors.T) + np.einsum("np,np->n", x, x)[:, None]
+                    found = np.argpartition(d2, k - 1, axis=1)[:, :k]
+                else:
+                    q = np.ascontiguousarray((x - self.mean) @ self.basis, dtype=np.float32)
+                    found, _ = self._flann.knnSearch(q, k, params={"checks": CHECKS})
+                # distances of the k found, directly (the expansion above cancels in float32), nearest first
+                dist = np.linalg.norm(self.vectors[found].astype(np.float64) - x[:, None, :], axis=2)
+                order = dist.argsort(axis=1, kind="stable")
+                index[part] = np.take_along_axis(found, order, axis=1)
+                distance[part] = np.take_along_axis(dist, order, axis=1)
         return Neighbours(index=index, distance=distance)
-
-    def _search(
-        self, frames: np.ndarray, k: int, exact: bool, batch: int, index: np.ndarray, distance: np.ndarray
-    ) -> None:
-        """:meth:`search`'s loop over batches of frames, into ``index`` and ``distance`` (N, k)."""
-        for start in range(0, len(frames), batch):
-            part = slice(start, start + batch)
-            x = normalise(frames[part], self.factor)
-            if exact:
-                d2 = self.sq_norms[None, :] - 2.0 * (x @ self.vectors.T) + np.einsum("np,np->n", x, x)[:, None]
-                found = np.argpartition(d2, k - 1, axis=1)[:, :k]
-            else:
-                q = np.ascontiguousarray((x - self.mean) @ self.basis, dtype=np.float32)
-                found, _ = self._flann.knnSearch(q, k, params={"checks": CHECKS})
-            # distances of the k found, directly (the expansion above cancels in float32), nearest first
-            dist = np.linalg.norm(self.vectors[found].astype(np.float64) - x[:, None, :], axis=2)
-            order = dist.argsort(axis=1, kind="stable")
-            index[part] = np.take_along_axis(found, order, axis=1)
-            distance[part] = np.take_along_axis(dist, order, axis=1)
 
 
 def recall_at_k(approximate: Neighbours, exact: Neighbours) -> float:
