@@ -71,8 +71,8 @@ def write_columns(path: str | Path, names: tuple[str, ...], columns: list[np.nda
 
     Integer columns are written as integers, floats with 9 significant digits, NaN/Inf as empty
     cells (read back as missing by :func:`read_columns` with ``allow_empty``). Cells are formatted from the
-    columns' Python values, not numpy's string arrays: 2.5-3x faster (a 38,000-frame per-frame table in ~90 ms
-    instead of ~250), the same bytes.
+    columns' Python values, not numpy's string arrays, which cost ``meniscope analyze`` more than twice the time
+    for the same bytes (docs/benchmarks.md).
     """
     path = Path(path)
     cells = [_cells(np.asarray(col)) for col in columns]
