@@ -28,7 +28,7 @@ if TYPE_CHECKING:
 #: the windows per preset and camera (12 and 8 bits: ``training.window.render_calibration``) that calibrate its
 #: intervals, with as many more from scenes randomised around the scene (docs/window_model.md: its error fell with
 #: the windows trained on; the intervals held on Blender's camera with the randomised ones).
-WINDOW_WINDOWS, WINDOW_EPOCHS, WINDOW_CALIBRATION = 1300, 80, 80
+WINDOW_WINDOWS, WINDOW_EPOCHS, WINDOW_CALIBRATION = 2100, 80, 80
 #: Top-level modules of the train extra -> the extra (the scale extra's Dask is checked where --scheduler is read).
 EXTRA_OF = {"torch": "train", "onnx": "train"}
 
