@@ -23,7 +23,6 @@ all of this against peers and the Cramer-Rao bound (docs/benchmarks.md).
 from __future__ import annotations
 
 import copy
-import functools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
@@ -31,7 +30,6 @@ from typing import Literal
 
 import numpy as np
 from numpy.typing import ArrayLike
-from scipy.special import stdtrit
 from tqdm import tqdm
 
 from service import blas
@@ -42,6 +40,7 @@ from service.analysis.kernels import robust_sigma
 from service.analysis.results import FitSettings, WindowResult
 from service.analysis.segment import Window
 from service.analysis.settling import Settling, damping_ratio, quality_factor, settle, tolerance
+from service.analysis.student import t_quantile
 from service.physics import damped_mode
 
 _MIN_DOF = 3  # residual degrees of freedom a model order needs to be tried
@@ -103,13 +102,6 @@ _LINEAR = [np.r_[0, 1, (_BASE + _PER_MODE * np.arange(m)[:, None] + np.array([0,
 def min_samples(order: int) -> int:
     """Finite samples needed to fit ``order`` modes with at least 3 residual degrees of freedom."""
     return _BASE + _PER_MODE * order + _MIN_DOF
-
-
-@functools.cache
-def _t_quantile(dof: int, confidence: float) -> float:
-    """Student t's two-sided ``confidence`` quantile at ``dof`` degrees of freedom (a window asks for it about 8
-    times, a few values over all windows; scipy's call costs ~3 us)."""
-    return float(stdtrit(dof, 0.5 + confidence / 2))
 
 
 @dataclass(frozen=True)
@@ -207,7 +199,7 @@ class _Window:
         free = np.ones(start.size, dtype=np.bool_)
         if drift_first:
             with_drift = self._judge(order, self._refine(start, free))
-            t = _t_quantile(max(self.n.size - start.size, 1), self.settings.confidence)
+            t = t_quantile(max(self.n.size - start.size, 1), self.settings.confidence)
             evident = abs(with_drift.params[1]) * t >= _DRIFT_TEST * with_drift.half_width[1]
             if evident and not _slow_swing(with_drift.params, self.span):
                 return with_drift
@@ -253,14 +245,14 @@ class _Window:
         n, k = self.n.size, params.size
         half = poles.half_width.copy()
         variance = kernels.covariance_diagonal(np.ascontiguousarray(j[:, linear])) * cost / max(n - k, 1)
-        half[linear] = _t_quantile(max(n - k, 1), self.settings.confidence) * np.sqrt(variance)
+        half[linear] = t_quantile(max(n - k, 1), self.settings.confidence) * np.sqrt(variance)
         return _OrderFit(poles.order, params, half, cost, self.bic(cost, k), None, "frames")
 
     def _judge(self, order: int, params: np.ndarray, drift: bool = True) -> _OrderFit:
         """Cost, BIC, CI half-widths and (for modes) whether they are resolved; without ``drift`` its parameter
         (held at 0) is neither counted nor given an interval."""
         n, k = self.n.size, params.size - (not drift)
-        t = _t_quantile(n - k, self.settings.confidence)
+        t = t_quantile(n - k, self.settings.confidence)
         # a singular Jacobian's infinite variance: the mode is judged unresolved
         cost, half = kernels.judged(self.n, self.y, self.scale, self.robust, params, drift, t)
         return _OrderFit(

@@ -21,12 +21,12 @@ from pathlib import Path
 from typing import TypeVar
 
 import numpy as np
-from scipy.special import stdtrit
 from tqdm import tqdm
 
 from service.analysis.fit import fit_windows
 from service.analysis.results import FitSettings, Report, Source, WindowResult
 from service.analysis.segment import Window, find_ejections, frame_activity, series_activity, windows_between
+from service.analysis.student import t_quantile
 from service.csvtable import write_columns
 from service.errors import MeniscopeError
 from service.inverse import regularised, synthesis
@@ -429,7 +429,7 @@ def _with_pixel_intervals(
     from the pixel fit's cluster-robust covariance (:func:`synthesis.covariance`; the mode of the motion nearest in
     frequency; Student's t with ``clusters`` - 1 degrees of freedom), not from the window fit of its noise-free
     D(0, t), whose intervals are round-off."""
-    z = float(stdtrit(max(clusters - 1, 1), 0.5 + confidence / 2))  # Student t's quantile, as scipy.stats' t.ppf
+    z = t_quantile(max(clusters - 1, 1), confidence)
     names = list(motion.as_dict())  # the covariance's order
 
     def half(*weights: tuple[str, float]) -> float:

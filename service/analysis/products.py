@@ -16,9 +16,9 @@ from dataclasses import dataclass
 
 import numpy as np
 from numba import njit
-from scipy.special import stdtrit
 
 from service.analysis.kernels import damped_solve
+from service.analysis.student import t_quantile
 
 #: Degree of F's Taylor polynomial in (x1, x2): the highest of 2, 3 and 4 was the closest on Blender Cycles (docs).
 ORDER = 4
@@ -252,7 +252,7 @@ def fit(n: np.ndarray, y: np.ndarray, w1: float, g1: float, confidence: float) -
         variance = np.diag(np.linalg.inv(normal)) * cost / dof
     except np.linalg.LinAlgError:
         return None
-    half = float(stdtrit(dof, 0.5 + confidence / 2)) * np.sqrt(np.maximum(variance, 0.0))
+    half = t_quantile(dof, confidence) * np.sqrt(np.maximum(variance, 0.0))
     if not np.all(np.isfinite(half)):  # a Jacobian gone non-finite where a mode's powers underflowed
         return None
     return ProductFit(w, g, half[0::3], half[1::3])

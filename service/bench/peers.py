@@ -12,9 +12,9 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike
 from scipy.optimize import curve_fit
-from scipy.special import stdtrit
 
 from service.analysis import pencil
+from service.analysis.student import t_quantile
 from service.errors import MeniscopeError
 
 
@@ -138,7 +138,7 @@ def curve_fit_found(values: np.ndarray, fps: float, confidence: float = 0.95) ->
         cost = float(np.sum((_curve_model(t, *p) - y) ** 2))
         bic = n * np.log(cost / n + 1e-300) + k * np.log(n)
         if bic < best_bic:
-            half = stdtrit(n - k, 0.5 + confidence / 2) * np.sqrt(np.abs(np.diag(cov)))
+            half = t_quantile(n - k, confidence) * np.sqrt(np.abs(np.diag(cov)))
             modes = np.reshape(p[2:], (-1, 4))
             halves = np.reshape(half[2:], (-1, 4))
             best_bic, best = (

@@ -43,8 +43,8 @@ def open_method(
     """The per-frame method behind ``name`` and, for the nearest-neighbour ones, its database.
 
     ``threads``: a graph's onnxruntime threads, one by default as in ``serve`` (its settings' ``threads``): the graph
-    has a thread of its own in both pipelines, and a second onnxruntime thread cost 1.5-3 us of CPU per frame offline
-    for no more frames/s (docs/benchmarks.md).
+    has a thread of its own in both pipelines, and a second onnxruntime thread cost CPU for no more frames/s
+    (docs/benchmarks.md).
 
     ``regularised`` returns the exact nearest method (its per-frame fallback) with the database
     whose candidates the window fit chooses among.
