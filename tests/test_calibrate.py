@@ -245,6 +245,21 @@ def test_what_trades_with_an_unpinned_parameter_is_not_identified_either(
     assert verdict["light.azimuth_deg"] and verdict["camera.exposure"]  # no profile, no ridge: left to their sigma
 
 
+@given(st.floats(-60.0, -10.0), st.sampled_from([0.2, 0.4, 0.75, 2.0]), st.booleans())
+def test_the_cameras_elevation_counts_only_when_its_profile_with_the_lights_refitted_pins_it(
+    elevation: float, half: float, opened: bool
+) -> None:
+    """The camera's and the light's elevation both move where the highlights sit: the camera's counts as identified
+    only when its profile (the light's elevation refitted at each value) brackets it within 0.5 deg, and the light's
+    elevation is pinned no better than that ridge."""
+    profiles = {"camera.elevation_deg": _profile("camera.elevation_deg", elevation, half, opened)}
+    verdict = profile_verdicts(profiles, {"camera.elevation_deg": elevation})
+    pinned = not opened and half <= 0.5
+    assert PARTNERS["camera.elevation_deg"] == ("light.elevation_deg",)
+    assert verdict["camera.elevation_deg"] == verdict["light.elevation_deg"] == pinned
+    assert verdict["light.azimuth_deg"]
+
+
 def test_without_a_rate_or_a_file_the_ejections_are_found_from_the_video(tmp_path: Path) -> None:
     """``calibrate REC`` alone (no printer file, no rate): the detector ``analyze`` runs finds the lab's ejections, and
     each fitted frame falls in the window between the true ejections it lies in."""

@@ -27,14 +27,19 @@ PROFILED: dict[str, tuple[float, ...]] = {
     "light.azimuth_deg": (-2.0, -0.75, 0.75, 2.0),
     "light.elevation_deg": (-2.0, -0.75, 0.75, 2.0),
     "sensor.blur_sigma_px": (-0.5, -0.15, 0.15, 0.5),
+    "camera.elevation_deg": (-1.5, -0.4, 0.4, 1.5),
 }
 #: The parameters refitted at each value of a profiled one, because they trade with it on a highlight's width and
 #: brightness: a wider sun or a rougher fluid, and a dimmer one (Blender's recording of a light of 8 deg, alpha 0.06,
 #: reflectance 0.9: the calibration found 5.9 deg, 0.10, 0.50, and the frames could not tell the two scenes apart).
-#: Held, they would make the profile sharp along a ridge the video cannot resolve.
+#: The camera's elevation and the light's trade on where the highlights sit (both move the half-vector): a Gauss-Newton
+#: sigma at the optimum called the camera's elevation pinned to 0.004 deg where it was 1.2 deg off, beside a light
+#: 1.4 deg low (docs/calibration.md, "All at once, 20 windows"). Held, they would make the profile sharp along a
+#: ridge the video cannot resolve.
 PARTNERS: dict[str, tuple[str, ...]] = {
     "fluid.roughness": ("light.angle_deg", "fluid.reflectance"),
     "light.angle_deg": ("fluid.roughness", "fluid.reflectance"),
+    "camera.elevation_deg": ("light.elevation_deg",),
 }
 #: Least-squares evaluations refitting the partners and every frame's motion at each profiled value.
 PARTNER_EVALUATIONS = 6
