@@ -10,6 +10,7 @@ import sqlite3
 import threading
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -239,3 +240,50 @@ def test_the_lane_runs_in_the_idle_class_at_the_lowest_niceness_and_its_threads_
         normal = pool.apply(_priority_after, (5,))
     assert idle == (os.SCHED_IDLE, 19, os.SCHED_IDLE)
     assert normal == (os.SCHED_OTHER, min(19, os.nice(0) + 5), os.SCHED_OTHER)  # niceness adds to this process's
+
+
+@pytest.mark.parametrize("with_first", [True, False])
+def test_a_refinement_that_leaves_the_coefficient_ranges_reports_the_unrefined_window(monkeypatch, with_first) -> None:  # type: ignore[no-untyped-def]
+    """A search that ends at a motion no meniscus makes (a Blender recording analysed through an uncalibrated scene:
+    its tilt p far outside the ranges, the offset reported 42 mm off) is not reported as refined: the window keeps its
+    records and its first fit (else the fit of its records) and says why; inside the ranges the refined motion is
+    what the window reports."""
+    from service import DEFAULT_SCENE
+    from service.analysis import offline
+    from service.analysis.fit import fit_window
+    from service.analysis.results import FitSettings
+    from service.analysis.segment import Window
+    from service.inverse.synthesis import within_ranges
+    from service.physics import WindowMotion, centre_displacement
+    from service.pipeline.records import COEFFICIENTS, FRAME
+    from service.scene import Scene
+
+    scene, fps, n = Scene.load(DEFAULT_SCENE), 19000.0, 190
+    radius = scene.nozzle.radius_mm
+    truth = WindowMotion(
+        d=0.01, p=0.05, A1=0.02, g1=300.0, f1=1500.0, phi1=0.3, A2=0.004, g2=700.0, f2=3600.0, phi2=1.0
+    )
+    records = np.zeros(n, FRAME)
+    for name, column in zip(COEFFICIENTS, truth.coefficients(np.arange(n) / fps).to_array().T):
+        records[name] = column
+    records["centre"] = centre_displacement(*(records[name] for name in COEFFICIENTS), radius)
+    records["highlight"] = 0.5  # a highlight in every frame: the meniscus is seen
+    settings = offline.refined_settings(FitSettings())
+    first = fit_window(records["centre"], fps, settings) if with_first else None
+    window = Window(0, 0, n, True, True)
+    astray = WindowMotion(**{**truth.__dict__, "p": 160.0})  # D(0, t) 40 mm from the truth's
+    for motion, refined in ((astray, False), (truth, True)):
+        assert within_ranges(motion, np.arange(n) / fps) == refined
+
+        def search(scene, frames, t, start, threads=1, fitted=None, motion=motion):  # type: ignore[no-untyped-def]
+            return motion.coefficients(t).to_array(), motion, np.eye(10), 20
+
+        monkeypatch.setattr(offline, "refine_task", search)
+        out = offline.refine_window(scene, window, records, np.zeros((n, 96, 96), np.uint16), fps, settings, first)
+        offset = out.result.offset_mm
+        assert offset is not None and abs(offset - (truth.d + truth.p * radius)) < 0.005
+        assert (offline.UNREFINED in (out.result.reason or "")) != refined
+        if not refined:
+            assert out.records.tobytes() == records.tobytes()
+            if first is not None:
+                assert out.result.modes == first.modes

@@ -356,6 +356,10 @@ def refined_from(window: Window, fps: float, settings: FitSettings) -> int | Non
     return lo if window.end - lo >= synthesis.MIN_FRAMES else None
 
 
+#: The reason a window whose refinement left the coefficient ranges gives for its unrefined result.
+UNREFINED = "the refinement by synthesis ended outside the coefficient ranges: the unrefined fit is reported"
+
+
 def refine_window(
     scene: Scene,
     window: Window,
@@ -370,7 +374,10 @@ def refine_window(
     from both): its motion refined on its ROI ``frames`` (as stored, one per record) through the renderer, searched
     from its ``first`` fit where there is one (:func:`synthesis.window_start`), else from its per-frame values
     (``records``, :data:`FRAME`), then the refined D(0, t)'s fit with ``settings`` (the refined motion's own series
-    and poles) and the pixel fit's intervals. ``window`` must be long enough (:func:`refined_from`)."""
+    and poles) and the pixel fit's intervals. Where the search ends outside the coefficient ranges
+    (:func:`synthesis.within_ranges`: a motion no meniscus makes), nothing refined is reported: the window keeps its
+    records and its ``first`` fit (else the fit of its records), with the reason. ``window`` must be long enough
+    (:func:`refined_from`)."""
     lo = refined_from(window, fps, settings)
     if lo is None:
         raise MeniscopeError(f"window {window.index}", f"{window.end - window.start} frames: too short to refine")
@@ -380,6 +387,11 @@ def refine_window(
     start = synthesis.start_motion(coefficients[k:], t, fps)
     from_fit = None if first is None else synthesis.window_start(first, coefficients[k:], radius)
     coefficients[k:], motion, covariance, clusters = refine_task(scene, frames[k:], t, start, threads, from_fit)
+    if not synthesis.within_ranges(motion, t):
+        job = job_for(window, records, radius, settings.transient_frames(fps))
+        kept = first if first is not None else fit_or_failed(job, fps, settings)
+        reason = "; ".join(r for r in (kept.reason, UNREFINED) if r)
+        return RefinedWindow(window, records.copy(), kept.model_copy(update={"reason": reason}), job.series)
     records = records.copy()
     _set_coefficients(records, coefficients, centre_displacement(*coefficients.T, radius))
     job = job_for(window, records, radius, settings.transient_frames(fps))

@@ -326,20 +326,22 @@ def _variants(start: WindowMotion, amplify: tuple[float, ...] = _AMPLIFY) -> lis
     ]
 
 
-def plausible(motion: WindowMotion, t: np.ndarray) -> bool:
-    """Whether a window's motion is one the analysis can report: mode 1 at two cycles per window or more (a
-    slower swing is not an oscillation the window can show), below mode 2, below the Nyquist frequency of the
-    times ``t`` (consecutive frames), and its per-frame (d, p, a, b) inside the default
-    :class:`CoefficientRanges` (where renders are informative and the models are trained; a search that leaves
-    them has fitted the frames' noise with a motion no meniscus makes)."""
+def within_ranges(motion: WindowMotion, t: np.ndarray) -> bool:
+    """Whether a window's per-frame (d, p, a, b) at times ``t`` lie inside the default :class:`CoefficientRanges`
+    (where renders are informative and the models are trained; a search that leaves them has fitted the frames'
+    noise with a motion no meniscus makes)."""
     ranges = CoefficientRanges()
     low, high = np.array([ranges.d, ranges.p, ranges.a, ranges.b]).T
     coefficients = motion.coefficients(t).to_array()
+    return bool(np.all((coefficients >= low) & (coefficients <= high)))
+
+
+def plausible(motion: WindowMotion, t: np.ndarray) -> bool:
+    """Whether a window's motion is one the analysis can report: mode 1 at two cycles per window or more (a
+    slower swing is not an oscillation the window can show), below mode 2, below the Nyquist frequency of the
+    times ``t`` (consecutive frames), and :func:`within_ranges`."""
     dt = float(np.median(np.diff(t)))
-    return bool(
-        2.0 / (len(t) * dt) <= motion.f1 < motion.f2 < 0.5 / dt
-        and np.all((coefficients >= low) & (coefficients <= high))
-    )
+    return bool(2.0 / (len(t) * dt) <= motion.f1 < motion.f2 < 0.5 / dt and within_ranges(motion, t))
 
 
 def _point(motion: WindowMotion, blur: float) -> np.ndarray:
