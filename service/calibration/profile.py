@@ -34,8 +34,8 @@ PROFILED: dict[str, tuple[float, ...]] = {
 #: reflectance 0.9: the calibration found 5.9 deg, 0.10, 0.50, and the frames could not tell the two scenes apart).
 #: The camera's elevation and the light's trade on where the highlights sit (both move the half-vector): a Gauss-Newton
 #: sigma at the optimum called the camera's elevation pinned to 0.004 deg where it was 1.2 deg off, beside a light
-#: 1.4 deg low (docs/calibration.md, "All at once, 20 windows"). Held, they would make the profile sharp along a
-#: ridge the video cannot resolve.
+#: 1.4 deg low (docs/calibration.md, "All at once, 20 windows, 8-bit"). Held, they would make the profile sharp
+#: along a ridge the video cannot resolve.
 PARTNERS: dict[str, tuple[str, ...]] = {
     "fluid.roughness": ("light.angle_deg", "fluid.reflectance"),
     "light.angle_deg": ("fluid.roughness", "fluid.reflectance"),
