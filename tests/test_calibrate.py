@@ -24,7 +24,7 @@ from service.calibration.fit import (
 )
 from service.calibration.footage import read_footage
 from service.calibration.parameters import PARAMETERS
-from service.calibration.profile import PARTNERS, Profile, indistinct
+from service.calibration.profile import PARTNERS, Profile, descend, indistinct
 from service.calibration.report import document, profile_verdicts
 from service.calibration.roi import refine_shift
 from service.calibration.synthesis import Synthesis, pyramid
@@ -269,3 +269,28 @@ def test_without_a_rate_or_a_file_the_ejections_are_found_from_the_video(tmp_pat
     true = json.loads(out.with_suffix(".truth.json").read_text())["ejections"]
     assert footage.windows.tolist() == np.searchsorted(true, footage.indices, side="right").tolist()
     assert len(np.unique(footage.windows)) == 3
+
+
+def test_the_descent_moves_off_a_stalled_fit_along_its_profiles_and_stays_at_the_truth() -> None:
+    """Where the least squares stopped short (the light 3 deg round from where the frames were made), a profile tells
+    a value nearer the truth from the calibrated one: the descent moves there, fits again, and ends nearer, its cost
+    lower at every kept move; from the truth itself it makes no move."""
+    synth, sigmas = Synthesis(), (1.5, 0.7)
+    true = _scene(light={"azimuth_deg": 183.0})
+    motion = np.array([[0.01, 0.05, 0.01, 0.0], [-0.01, -0.05, -0.01, 0.005], [0.0, 0.1, 0.02, -0.005]])
+    lab = synth.stored(true, motion)
+    windows = np.arange(len(motion))
+    profiled = {"light.azimuth_deg": (-2.0, -0.75, 0.75, 2.0)}
+    scene, _, profiles, moves, refit = descend(synth, true, lab, motion, sigmas, windows, profiled)
+    assert moves == [] and refit is None and scene == true
+    assert (
+        profiles["light.azimuth_deg"].best == pytest.approx(183.0)
+        and not profiles["light.azimuth_deg"].centre_told_apart
+    )
+    stalled = _scene(light={"azimuth_deg": 180.0})
+    scene, _, profiles, moves, refit = descend(synth, stalled, lab, motion, sigmas, windows, profiled)
+    assert moves and moves[0]["parameter"] == "light.azimuth_deg" and moves[0]["to"] > moves[0]["from"]
+    kept = [m for m in moves if m["kept"]]
+    assert all(m["profile_cost"] < m["centre_cost"] for m in kept)
+    assert abs(scene.light.azimuth_deg - 183.0) < 1.0
+    assert refit is not None

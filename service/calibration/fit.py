@@ -7,7 +7,8 @@ trust-region reflective) on the blurred pyramid of :mod:`.synthesis`, its Jacobi
 with the sparsity declared (a frame's residuals depend on its window's d, p and its own a, b), so a step costs one renderer per scene parameter plus four
 renders of all frames. Before the first stage each frame's motion starts at its nearest neighbour in a
 library rendered with the candidate scene; the ROI is found before the first stage and again after it. Before the
-finer stages the light's azimuth is chosen from a grid of directions scored on the finest level (:func:`aim`).
+finer stages the light's azimuth is chosen from a grid of directions scored on the finest level (:func:`aim`); after
+them the scene descends along its profiles (:func:`.profile.descend`).
 """
 
 from __future__ import annotations
@@ -103,6 +104,7 @@ class Calibration:
     starts: list[dict] = field(default_factory=list)
     profiles: dict[str, Profile] = field(default_factory=dict)  # the finest level's cost along weak parameters
     materials: list[dict] = field(default_factory=list)  # the defects' roughness tried and the frames' cost with each
+    moves: list[dict] = field(default_factory=list)  # the descent along the profiles after the finest stage
 
 
 #: Columns of (d, p, a, b) tied across a window's frames by default: d and p (see :class:`Motion`).
@@ -407,8 +409,9 @@ def calibrate(
     each from the azimuth of the light direction among ``light_directions`` (N, 2: azimuth, elevation; default
     :func:`light_grid` of the guess) and the best start's own that scores lowest on the finest level with the best
     start's scene, at its own elevation (:func:`with_azimuth`); the lowest final cost wins.
-    ``profiled``: parameters whose cost is profiled at the end, with their offsets (default :data:`.profile.PROFILED`)."""
-    from service.calibration.profile import PROFILED, profile  # it builds on this module's Problem
+    ``profiled``: parameters whose cost is profiled at the end, with their offsets (default :data:`.profile.PROFILED`),
+    the scene moved along them while a profile finds a lower cost (:func:`.profile.descend`)."""
+    from service.calibration.profile import PROFILED, descend  # it builds on this module's Problem
 
     began = time.perf_counter()
     synth = Synthesis(supersample=schedule[0].supersample)
@@ -494,10 +497,17 @@ def calibrate(
             scene = settled
             motion = motion_only(synth, scene, crop(footage.frames, scene), finest.sigmas)
     lab, last = crop(footage.frames, scene), finest.sigmas
-    profiles = {}
-    for name, offsets in profiled.items():
-        profiles[name] = profile(synth, scene, lab, motion, last, name, offsets)
+
+    def tick() -> None:  # a further round of the descent profiles every parameter again
+        if bar.n >= bar.total:
+            bar.total += len(profiled)
         bar.update()
+
+    scene, motion, profiles, moves, refit = descend(
+        synth, scene, lab, motion, last, footage.windows, profiled, each=tick
+    )
+    if refit is not None:
+        sigma = _uncertainty(*refit)
     bar.close()
     lab_stack = crop(footage.stack, scene)
     moving = _moving(synth, scene)
@@ -523,6 +533,7 @@ def calibrate(
         starts=starts,
         profiles=profiles,
         materials=materials,
+        moves=moves,
     )
 
 

@@ -9,7 +9,8 @@ difference exceeds ``Z`` standard errors of that sum over the frames (a paired t
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections.abc import Callable
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -62,6 +63,12 @@ class Profile:
     bracket: tuple[float, float]
     open_low: bool
     open_high: bool
+    #: the value profiled round (the calibrated one) and whether the frames tell it from the best (a lower cost)
+    centre: float = float("nan")
+    centre_told_apart: bool = False
+    #: the scene (partners refitted) and every frame's motion (K, 4) at the best value
+    best_scene: Scene | None = field(default=None, repr=False)
+    best_motion: np.ndarray | None = field(default=None, repr=False)
 
     def as_dict(self) -> dict:
         """JSON-safe summary for the report."""
@@ -105,27 +112,103 @@ def profile(
     x = P.read(scene)
     lo, hi = P.bounds(scene)
     coords = np.unique(np.clip(x[index] + np.array((0.0, *offsets)), lo[index], hi[index]).round(6))
-    costs = []
+    costs, fits = [], []
     for c in coords:
         shifted = x.copy()
         shifted[index] = c
         candidate = P.write(scene, shifted)
         if partners:
             problem = Problem(synth, candidate, lab, sigmas, fitted=partners)
-            res = problem.solve(motion, PARTNER_EVALUATIONS)[1]
+            solved, res = problem.solve(motion, PARTNER_EVALUATIONS)
             costs.append((res.fun.reshape(problem.target.shape) ** 2).sum(axis=1))
+            fits.append(problem.unpack(solved))
         else:
-            costs.append(refine_motion(Problem(synth, candidate, lab, sigmas), motion, max_evaluations)[1])
+            moved, cost = refine_motion(Problem(synth, candidate, lab, sigmas), motion, max_evaluations)
+            costs.append(cost)
+            fits.append((candidate, moved))
     costs = np.array(costs)
     values = np.array([param.from_fit(c) for c in coords])
-    kept = np.flatnonzero(indistinct(costs))
+    told = ~indistinct(costs)
+    kept = np.flatnonzero(~told)
+    best = int(np.argmin(costs.sum(axis=1)))
+    centre = int(np.flatnonzero(coords == np.clip(x[index], lo[index], hi[index]).round(6))[0])
     return Profile(
         name=name,
         values=values,
         frame_costs=costs,
-        best=float(values[np.argmin(costs.sum(axis=1))]),
+        best=float(values[best]),
         interval=(float(values[kept.min()]), float(values[kept.max()])),
         bracket=(float(values[max(kept.min() - 1, 0)]), float(values[min(kept.max() + 1, len(values) - 1)])),
         open_low=bool(kept.min() == 0 and coords[0] > lo[index]),
         open_high=bool(kept.max() == len(coords) - 1 and coords[-1] < hi[index]),
+        centre=float(values[centre]),
+        centre_told_apart=bool(told[centre]),
+        best_scene=fits[best][0],
+        best_motion=fits[best][1],
     )
+
+
+#: Moves of :func:`descend` at most, after the finest stage.
+DESCENT_ROUNDS = 3
+#: Least-squares evaluations of the whole problem after each move.
+DESCENT_EVALUATIONS = 16
+
+
+def descend(
+    synth: Synthesis,
+    scene: Scene,
+    lab: np.ndarray,
+    motion: np.ndarray,
+    sigmas: tuple[float, ...],
+    windows: np.ndarray,
+    profiled: dict[str, tuple[float, ...]],
+    rounds: int = DESCENT_ROUNDS,
+    evaluations: int = DESCENT_EVALUATIONS,
+    each: Callable[[], None] = lambda: None,
+) -> tuple[Scene, np.ndarray, dict[str, Profile], list[dict], tuple | None]:
+    """The finest stage's ``scene`` and ``motion`` (K, 4) moved along their profiles while the frames tell a profiled
+    value from the calibrated one: the least squares stops on a highlight's ridge short of where a single parameter,
+    its partners and the frames' motion refitted, costs less (Blender's all-at-once recording). Each round profiles
+    ``profiled``, moves to the lowest-cost profile whose centre the frames tell from its best, and fits the whole
+    problem again from there (``evaluations``, motion tied within ``windows``); it stops when no profile does, when a
+    round's centre costs no less than the round's before (that round is undone), or after ``rounds`` moves. ``each``
+    is called after every profile. Returns the scene, the motion, the profiles at them (the report's), the moves, and
+    the last kept fit as ``(problem, x, result)`` (None without a move)."""
+    moves: list[dict] = []
+    kept: tuple | None = None
+    previous = None
+    while profiled:
+        profiles = {}
+        for name, offsets in profiled.items():
+            profiles[name] = profile(synth, scene, lab, motion, sigmas, name, offsets)
+            each()
+        cost = _centre_cost(profiles)
+        if previous is not None and not cost < previous[0]:
+            moves[-1]["kept"] = False
+            _, scene, motion, profiles, kept = previous
+            return scene, motion, profiles, moves, kept
+        lower = [p for p in profiles.values() if p.centre_told_apart]
+        if not lower or len(moves) == rounds:
+            return scene, motion, profiles, moves, kept
+        previous = (cost, scene, motion, profiles, kept)
+        step = min(lower, key=lambda p: p.frame_costs.sum(axis=1).min())
+        problem = Problem(synth, step.best_scene, lab, sigmas, windows)
+        x, res = problem.solve(step.best_motion, evaluations)
+        scene, motion = problem.unpack(x)
+        kept = (problem, x, res)
+        moves.append(
+            {
+                "parameter": step.name,
+                "from": step.centre,
+                "to": step.best,
+                "centre_cost": cost,
+                "profile_cost": float(step.frame_costs.sum(axis=1).min()),
+                "kept": True,
+            }
+        )
+    return scene, motion, {}, moves, kept
+
+
+def _centre_cost(profiles: dict[str, Profile]) -> float:
+    """The lowest cost any profile found at its centre (each refits the motion, some the partners too)."""
+    return min(float(p.frame_costs.sum(axis=1)[list(p.values).index(p.centre)]) for p in profiles.values())
