@@ -35,11 +35,15 @@ PROFILED: dict[str, tuple[float, ...]] = {
 #: reflectance 0.9: the calibration found 5.9 deg, 0.10, 0.50, and the frames could not tell the two scenes apart).
 #: The camera's elevation and the light's trade on where the highlights sit (both move the half-vector): a Gauss-Newton
 #: sigma at the optimum called the camera's elevation pinned to 0.004 deg where it was 1.2 deg off, beside a light
-#: 1.4 deg low (docs/calibration.md, "All at once, 20 windows, 8-bit"). Held, they would make the profile sharp
-#: along a ridge the video cannot resolve.
+#: 1.4 deg low (docs/calibration.md, "All at once, 20 windows, 8-bit"). The light's direction trades with its angle,
+#: alpha and the reflectance, the highlight moving and growing together (Blender's all-at-once recording: with those
+#: refitted the cost stayed within 7 % over +-2 deg of azimuth, where held it rose 5.6x; on the near-mirror it rose 3x
+#: at +-0.75 deg either way). Held, they would make the profile sharp along a ridge the video cannot resolve.
 PARTNERS: dict[str, tuple[str, ...]] = {
     "fluid.roughness": ("light.angle_deg", "fluid.reflectance"),
     "light.angle_deg": ("fluid.roughness", "fluid.reflectance"),
+    "light.azimuth_deg": ("light.elevation_deg", "light.angle_deg", "fluid.roughness", "fluid.reflectance"),
+    "light.elevation_deg": ("light.azimuth_deg", "light.angle_deg", "fluid.roughness", "fluid.reflectance"),
     "camera.elevation_deg": ("light.elevation_deg",),
 }
 #: Least-squares evaluations refitting the partners and every frame's motion at each profiled value.
@@ -66,6 +70,8 @@ class Profile:
     #: the value profiled round (the calibrated one) and whether the frames tell it from the best (a lower cost)
     centre: float = float("nan")
     centre_told_apart: bool = False
+    #: each partner's refitted value (file units) at each profiled value (V,)
+    partners: dict[str, np.ndarray] = field(default_factory=dict)
     #: the scene (partners refitted) and every frame's motion (K, 4) at the best value
     best_scene: Scene | None = field(default=None, repr=False)
     best_motion: np.ndarray | None = field(default=None, repr=False)
@@ -80,6 +86,7 @@ class Profile:
             "bracket": [float(v) for v in self.bracket],
             "open_low": self.open_low,
             "open_high": self.open_high,
+            "partners": {name: [float(v) for v in refitted] for name, refitted in self.partners.items()},
         }
 
 
@@ -143,6 +150,7 @@ def profile(
         open_high=bool(kept.max() == len(coords) - 1 and coords[-1] < hi[index]),
         centre=float(values[centre]),
         centre_told_apart=bool(told[centre]),
+        partners={p.name: np.array([p.from_fit(P.read(f[0], (p,))[0]) for f in fits]) for p in partners},
         best_scene=fits[best][0],
         best_motion=fits[best][1],
     )

@@ -14,7 +14,7 @@ import numpy as np
 from service.calibration import parameters as P
 from service.calibration.fit import Calibration, crop
 from service.calibration.footage import Footage
-from service.calibration.profile import PARTNERS, Profile
+from service.calibration.profile import Profile
 from service.calibration.synthesis import Synthesis
 from service.calibration.truth import load_truth, score
 from service.plotting import pyplot
@@ -49,18 +49,31 @@ def _value(scene_dict: dict, name: str) -> float:
 
 def profile_verdicts(profiles: dict[str, Profile], values: dict[str, float]) -> dict[str, bool]:
     """Whether the profiles let each parameter count as identified at its calibrated ``values``: its own profile, if
-    any, has neither end open and a bracket's half-width within the precision needed, and so has every profile it
-    was refitted along (:data:`.profile.PARTNERS`): parameters that trade on a ridge are pinned no better than it."""
+    any, has neither end open and a bracket's half-width within the precision needed, and along every profile it was
+    refitted in (:data:`.profile.PARTNERS`) its refitted values over the values the frames cannot tell from the best
+    stay within that precision: parameters that move along a ridge are pinned no better than it."""
     own = {}
     for name, prof in profiles.items():
-        tol, kind = PRECISION[name]
-        allowed = tol * abs(values[name]) if kind == "rel" else tol
-        own[name] = not (prof.open_low or prof.open_high) and (prof.bracket[1] - prof.bracket[0]) / 2 <= allowed
+        own[name] = not (prof.open_low or prof.open_high) and (prof.bracket[1] - prof.bracket[0]) / 2 <= _allowed(
+            name, values[name]
+        )
+
+    def follows(prof: Profile, name: str) -> bool:  # ``name`` stays put along the part of ``prof`` not told apart
+        inside = (prof.values >= prof.interval[0]) & (prof.values <= prof.interval[1])
+        moved = np.ptp(prof.partners[name][inside])
+        return moved <= _allowed(name, float(np.median(prof.partners[name][inside])))
+
     return {
         p.name: own.get(p.name, True)
-        and all(own[name] for name, partners in PARTNERS.items() if p.name in partners and name in own)
+        and all(follows(prof, p.name) for prof in profiles.values() if p.name in prof.partners)
         for p in P.PARAMETERS
     }
+
+
+def _allowed(name: str, value: float) -> float:
+    """The precision the report needs of parameter ``name`` at ``value`` (file units)."""
+    tol, kind = PRECISION[name]
+    return tol * abs(value) if kind == "rel" else tol
 
 
 def document(cal: Calibration, footage: Footage) -> dict[str, Any]:
@@ -72,9 +85,8 @@ def document(cal: Calibration, footage: Footage) -> dict[str, Any]:
     for p in P.PARAMETERS:
         value, sigma = _value(after, p.name), cal.sigma.get(p.name, math.inf)
         tol, kind = PRECISION[p.name]
-        allowed = tol * abs(value) if kind == "rel" else tol
         prof = cal.profiles.get(p.name)
-        identified = math.isfinite(sigma) and sigma <= allowed and pinned[p.name]
+        identified = math.isfinite(sigma) and sigma <= _allowed(p.name, value) and pinned[p.name]
         rows.append(
             {
                 "name": p.name,
@@ -132,7 +144,8 @@ def document(cal: Calibration, footage: Footage) -> dict[str, Any]:
         "with, profile.PARTNERS; the rest of the scene held) the frames cannot tell from the best at 2 standard "
         "errors, its 'bracket' the nearest values told apart either side; 'open' ends may reach further; it counts "
         "as identified only when neither end is open and the bracket's half-width is within the precision needed, "
-        "and a partner only when the parameter it was refitted along counts too",
+        "and a parameter refitted along another's profile only when its refitted values stay within that precision "
+        "over the other's interval",
     }
 
 
