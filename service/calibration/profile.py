@@ -76,6 +76,16 @@ class Profile:
     best_scene: Scene | None = field(default=None, repr=False)
     best_motion: np.ndarray | None = field(default=None, repr=False)
 
+    @property
+    def best_cost(self) -> float:
+        """The summed cost at the best value."""
+        return float(self.frame_costs.sum(axis=1).min())
+
+    @property
+    def centre_cost(self) -> float:
+        """The summed cost at the centre."""
+        return float(self.frame_costs.sum(axis=1)[np.flatnonzero(self.values == self.centre)[0]])
+
     def as_dict(self) -> dict:
         """JSON-safe summary for the report."""
         return {
@@ -119,6 +129,7 @@ def profile(
     x = P.read(scene)
     lo, hi = P.bounds(scene)
     coords = np.unique(np.clip(x[index] + np.array((0.0, *offsets)), lo[index], hi[index]).round(6))
+    centre = int(np.flatnonzero(coords == np.clip(x[index], lo[index], hi[index]).round(6))[0])
     costs, fits = [], []
     for c in coords:
         shifted = x.copy()
@@ -138,7 +149,6 @@ def profile(
     told = ~indistinct(costs)
     kept = np.flatnonzero(~told)
     best = int(np.argmin(costs.sum(axis=1)))
-    centre = int(np.flatnonzero(coords == np.clip(x[index], lo[index], hi[index]).round(6))[0])
     return Profile(
         name=name,
         values=values,
@@ -190,7 +200,7 @@ def descend(
         for name, offsets in profiled.items():
             profiles[name] = profile(synth, scene, lab, motion, sigmas, name, offsets)
             each()
-        cost = _centre_cost(profiles)
+        cost = min(p.centre_cost for p in profiles.values())  # each refits the motion, some the partners too
         if previous is not None and not cost < previous[0]:
             moves[-1]["kept"] = False
             _, scene, motion, profiles, kept = previous
@@ -199,7 +209,7 @@ def descend(
         if not lower or len(moves) == rounds:
             return scene, motion, profiles, moves, kept
         previous = (cost, scene, motion, profiles, kept)
-        step = min(lower, key=lambda p: p.frame_costs.sum(axis=1).min())
+        step = min(lower, key=lambda p: p.best_cost)
         problem = Problem(synth, step.best_scene, lab, sigmas, windows)
         x, res = problem.solve(step.best_motion, evaluations)
         scene, motion = problem.unpack(x)
@@ -210,13 +220,8 @@ def descend(
                 "from": step.centre,
                 "to": step.best,
                 "centre_cost": cost,
-                "profile_cost": float(step.frame_costs.sum(axis=1).min()),
+                "profile_cost": step.best_cost,
                 "kept": True,
             }
         )
     return scene, motion, {}, moves, kept
-
-
-def _centre_cost(profiles: dict[str, Profile]) -> float:
-    """The lowest cost any profile found at its centre (each refits the motion, some the partners too)."""
-    return min(float(p.frame_costs.sum(axis=1)[list(p.values).index(p.centre)]) for p in profiles.values())
