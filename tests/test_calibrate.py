@@ -22,12 +22,13 @@ from service.calibration.fit import (
     calibrate,
     light_grid,
 )
-from service.calibration.footage import read_footage
+from service.calibration.footage import STRIDE, read_footage
 from service.calibration.parameters import PARAMETERS
 from service.calibration.profile import PARTNERS, Profile, descend, indistinct
 from service.calibration.report import document, profile_verdicts
 from service.calibration.roi import refine_shift
 from service.calibration.synthesis import Synthesis, pyramid
+from service.calibration.windows import Point, choose
 from service.camera_effects import CameraEffects
 from service.scene import Scene, direction
 from service.simulate import simulate
@@ -313,3 +314,30 @@ def test_the_descent_moves_off_a_stalled_fit_along_its_profiles_and_stays_at_the
     azimuth = profiles["light.azimuth_deg"]
     assert not azimuth.centre_told_apart and azimuth.centre_cost < moves[0]["centre_cost"] / 10
     assert refit is not None
+
+
+def test_whole_windows_held_to_eq1_choose_the_scene_their_frames_were_made_with(tmp_path: Path) -> None:
+    """Of several scenes along the light's azimuth (the calibrated one first), the one the lab's windows were rendered
+    with fits them best when each window's frames share one Eq. 1 motion: the stage reads the windows that begin
+    and end at an ejection, every other frame after the transient, and scores every point."""
+    true = _scene(light={"azimuth_deg": 183.0})
+    out = tmp_path / "windows.cine"
+    camera = CameraEffects(offset=0.01, blur_sigma_px=0.5, full_well_e=40000, read_noise_dn=1.0, bit_depth=12)
+    truth = simulate(true, out, windows=3, seed=4, ejection_hz=200.0, effects=camera)
+    footage = read_footage(out, frames=8, stack=38, ejection_hz=200.0, lab_windows=2)
+    assert len(footage.lab_windows) == 2
+    for window in footage.lab_windows:
+        assert np.all(np.diff(window.indices) == STRIDE)
+        made = next(w for w in truth["windows"] if w["start_frame"] <= window.indices[0] < w["end_frame"])
+        assert made["oscillation_start_frame"] <= window.indices[0] and window.indices[-1] < made["end_frame"]
+        assert window.t == pytest.approx((window.indices - made["start_frame"]) / truth["recording"]["fps"])
+    points = [
+        Point(None if az == 180.0 else "light.azimuth_deg", az, _scene(light={"azimuth_deg": az}), np.zeros((8, 4)))
+        for az in (180.0, 183.0, 186.0)
+    ]
+    chosen, rows = choose(Synthesis(), points, footage.lab_windows, footage.full_scale, (1.5, 0.7))
+    assert chosen.scene.light.azimuth_deg == 183.0
+    assert [row["chosen"] for row in rows] == [False, True, False]
+    assert rows[1]["cost"] < min(rows[0]["cost"], rows[2]["cost"])
+    assert all(len(row["rms"]) == 2 for row in rows)
+    json.dumps(rows, allow_nan=False)

@@ -8,7 +8,8 @@ with the sparsity declared (a frame's residuals depend on its window's d, p and 
 renders of all frames. Before the first stage each frame's motion starts at its nearest neighbour in a
 library rendered with the candidate scene; the ROI is found before the first stage and again after it. Before the
 finer stages the light's azimuth is chosen from a grid of directions scored on the finest level (:func:`aim`); after
-them the scene descends along its profiles (:func:`.profile.descend`).
+them the scene descends along its profiles (:func:`.profile.descend`), and whole windows held to Eq. 1 choose among
+the points of the profiles the single frames cannot tell apart (:mod:`.windows`).
 """
 
 from __future__ import annotations
@@ -105,6 +106,7 @@ class Calibration:
     profiles: dict[str, Profile] = field(default_factory=dict)  # the finest level's cost along weak parameters
     materials: list[dict] = field(default_factory=list)  # the defects' roughness tried and the frames' cost with each
     moves: list[dict] = field(default_factory=list)  # the descent along the profiles after the finest stage
+    ridge: list[dict] = field(default_factory=list)  # the points of the profiles scored by whole windows, and which won
 
 
 #: Columns of (d, p, a, b) tied across a window's frames by default: d and p (see :class:`Motion`).
@@ -410,8 +412,11 @@ def calibrate(
     :func:`light_grid` of the guess) and the best start's own that scores lowest on the finest level with the best
     start's scene, at its own elevation (:func:`with_azimuth`); the lowest final cost wins.
     ``profiled``: parameters whose cost is profiled at the end, with their offsets (default :data:`.profile.PROFILED`),
-    the scene moved along them while a profile finds a lower cost (:func:`.profile.descend`)."""
-    from service.calibration.profile import PROFILED, descend  # it builds on this module's Problem
+    the scene moved along them while a profile finds a lower cost (:func:`.profile.descend`), then to the point of them
+    whose ``footage.lab_windows`` fit best held to Eq. 1 (:func:`.windows.choose`; the uncertainties stay the
+    descent's)."""
+    from service.calibration.profile import PROFILED, descend  # they build on this module's Problem
+    from service.calibration.windows import choose, ridge
 
     began = time.perf_counter()
     synth = Synthesis(supersample=schedule[0].supersample)
@@ -508,6 +513,12 @@ def calibrate(
     )
     if refit is not None:
         sigma = _uncertainty(*refit)
+    scored: list[dict] = []  # the ridge's points scored by whole windows (none without windows or profiled partners)
+    points = ridge(scene, motion, profiles) if footage.lab_windows else []
+    if len(points) > 1:
+        bar.total += len(points)
+        chosen, scored = choose(synth, points, footage.lab_windows, footage.full_scale, last, each=bar.update)
+        scene, motion = chosen.scene, chosen.motion
     bar.close()
     lab_stack = crop(footage.stack, scene)
     moving = _moving(synth, scene)
@@ -534,6 +545,7 @@ def calibrate(
         profiles=profiles,
         materials=materials,
         moves=moves,
+        ridge=scored,
     )
 
 

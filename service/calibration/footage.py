@@ -7,9 +7,62 @@ from pathlib import Path
 
 import numpy as np
 
-from service.analysis.segment import find_ejections, frame_activity, frame_steps
+from service.analysis.results import FitSettings
+from service.analysis.segment import find_ejections, frame_activity, frame_steps, windows_between
 from service.errors import MeniscopeError
+from service.inverse.synthesis import MIN_FRAMES
 from service.recordings import open_recording
+
+#: Windows scored: the ones whose frames move most among :data:`LOOKED` spread over the recording.
+WINDOWS = 3
+#: Windows read to choose them from.
+LOOKED = 12
+#: Every this many frames of a window are fitted: at 19,000 frames/s mode 2 (~3.5 kHz) stays below the Nyquist
+#: frequency, and a search costs half.
+STRIDE = 2
+
+
+@dataclass(frozen=True)
+class LabWindow:
+    """The frames a window shows after its ejection's transient: ``frames`` (m, H, W) whole recorded frames in stored
+    units, their numbers ``indices`` (m,), and ``t`` (m,) s since the window's ejection."""
+
+    index: int
+    indices: np.ndarray
+    frames: np.ndarray
+    t: np.ndarray
+
+    def as_dict(self) -> dict:
+        """Which frames were fitted, for the report."""
+        return {
+            "window": self.index,
+            "first": int(self.indices[0]),
+            "last": int(self.indices[-1]),
+            "stride": int(self.indices[1] - self.indices[0]),
+        }
+
+
+def read_windows(
+    rec, cuts: np.ndarray, count: int = WINDOWS, stride: int = STRIDE, looked: int = LOOKED
+) -> tuple[LabWindow, ...]:
+    """Up to ``count`` windows between the ejections ``cuts`` of an open recording: of up to ``looked`` windows spread
+    over it that begin and end at an ejection and hold enough frames after the transient for the search
+    (:data:`~service.inverse.synthesis.MIN_FRAMES` at ``stride``), those whose frames vary most (a settled window says little)."""
+    fps = rec.fps
+    skip = FitSettings().transient_frames(fps)
+    whole = [
+        w
+        for w in windows_between(cuts, len(rec))
+        if w.starts_at_ejection and w.ends_at_ejection and w.end - w.oscillation_start(skip) >= MIN_FRAMES * stride
+    ]
+    picked = [whole[i] for i in np.unique(np.linspace(0, len(whole) - 1, min(looked, len(whole))).round().astype(int))]
+    read = []
+    for w in picked:
+        indices = np.arange(w.oscillation_start(skip), w.end, stride)
+        frames = np.stack([rec[int(i)] for i in indices]).astype(np.float32)
+        read.append((float(frames.std(axis=0).mean()), LabWindow(w.index, indices, frames, (indices - w.start) / fps)))
+    read.sort(key=lambda pair: -pair[0])
+    return tuple(sorted((window for _, window in read[:count]), key=lambda window: window.index))
 
 
 @dataclass(frozen=True)
@@ -19,7 +72,8 @@ class Footage:
     ``frames`` (K, H, W): the frames whose motion is fitted, ``indices`` (K,) their frame numbers;
     ``stack`` (S, H, W): frames spread over the whole recording, for the temporal median (static scene,
     ROI search) and the temporal variance of static pixels (noise model); ``windows`` (K,) the window between
-    ejections each fitted frame lies in (the printer's ejections, its rate's, or the video's, as ``analyze`` finds them).
+    ejections each fitted frame lies in (the printer's ejections, its rate's, or the video's, as ``analyze`` finds them);
+    ``lab_windows`` whole windows, for the stage that holds their frames to Eq. 1 (:mod:`.windows`).
     """
 
     path: Path
@@ -29,6 +83,7 @@ class Footage:
     bit_depth: int
     fps: float
     windows: np.ndarray
+    lab_windows: tuple[LabWindow, ...] = ()
 
     @property
     def full_scale(self) -> float:
@@ -49,9 +104,11 @@ def read_footage(
     stack: int = 120,
     ejections_file: str | Path | None = None,
     ejection_hz: float | None = None,
+    lab_windows: int = WINDOWS,
 ) -> Footage:
-    """Read ``frames`` frames to fit and a ``stack`` for statistics from a recording (any format we read); the
-    ejections from ``ejections_file``, at ``ejection_hz``, or detected (as ``analyze`` takes them)."""
+    """Read ``frames`` frames to fit and a ``stack`` for statistics from a recording (any format we read), and up to
+    ``lab_windows`` whole windows (:func:`read_windows`); the ejections from ``ejections_file``, at ``ejection_hz``,
+    or detected (as ``analyze`` takes them)."""
     path = Path(path)
     with open_recording(path) as rec:
         total = len(rec)
@@ -63,7 +120,8 @@ def read_footage(
         stack_idx = np.unique(np.linspace(0, total - 1, min(stack, total)).round().astype(np.int64))
         cuts = _ejections(path, rec, total, ejections_file, ejection_hz)
         windows = np.searchsorted(cuts, indices, side="right")
-        return Footage(path, read(indices), indices, read(stack_idx), rec.bit_depth, rec.fps, windows)
+        whole = read_windows(rec, cuts, lab_windows) if lab_windows else ()
+        return Footage(path, read(indices), indices, read(stack_idx), rec.bit_depth, rec.fps, windows, whole)
 
 
 def _ejections(

@@ -72,9 +72,19 @@ class Profile:
     centre_told_apart: bool = False
     #: each partner's refitted value (file units) at each profiled value (V,)
     partners: dict[str, np.ndarray] = field(default_factory=dict)
-    #: the scene (partners refitted) and every frame's motion (K, 4) at the best value
-    best_scene: Scene | None = field(default=None, repr=False)
-    best_motion: np.ndarray | None = field(default=None, repr=False)
+    #: the scene (partners refitted) and every frame's motion (K, 4) at each profiled value
+    fits: tuple[tuple[Scene, np.ndarray], ...] = field(default=(), repr=False)
+
+    @property
+    def best_fit(self) -> tuple[Scene, np.ndarray]:
+        """The scene and every frame's motion (K, 4) at the best value."""
+        return self.fits[int(np.argmin(self.frame_costs.sum(axis=1)))]
+
+    def indistinct_fits(self) -> list[tuple[float, Scene, np.ndarray]]:
+        """Each value the frames cannot tell from the best, other than the centre, with its scene and motion: the
+        points of a ridge the single frames leave open."""
+        inside = (self.values >= self.interval[0]) & (self.values <= self.interval[1]) & (self.values != self.centre)
+        return [(float(self.values[i]), *self.fits[i]) for i in np.flatnonzero(inside)]
 
     @property
     def best_cost(self) -> float:
@@ -161,8 +171,7 @@ def profile(
         centre=float(values[centre]),
         centre_told_apart=bool(told[centre]),
         partners={p.name: np.array([p.from_fit(P.read(f[0], (p,))[0]) for f in fits]) for p in partners},
-        best_scene=fits[best][0],
-        best_motion=fits[best][1],
+        fits=tuple(fits),
     )
 
 
@@ -210,8 +219,8 @@ def descend(
             return scene, motion, profiles, moves, kept
         previous = (cost, scene, motion, profiles, kept)
         step = min(lower, key=lambda p: p.best_cost)
-        problem = Problem(synth, step.best_scene, lab, sigmas, windows)
-        x, res = problem.solve(step.best_motion, evaluations)
+        problem = Problem(synth, step.best_fit[0], lab, sigmas, windows)
+        x, res = problem.solve(step.best_fit[1], evaluations)
         scene, motion = problem.unpack(x)
         kept = (problem, x, res)
         moves.append(

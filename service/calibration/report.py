@@ -135,6 +135,7 @@ def document(cal: Calibration, footage: Footage) -> dict[str, Any]:
         "motion": {"columns": ["d", "p", "a", "b"], "frames": [[float(v) for v in m] for m in cal.motion]},
         "starts": cal.starts,
         "descent": cal.moves,
+        "ridge": {"windows": [w.as_dict() for w in footage.lab_windows], "points": cal.ridge},
         "seconds": cal.seconds,
         "renderer_builds": cal.builds,
         "versus_truth": None if truth is None else score(cal.scene, truth),

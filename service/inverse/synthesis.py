@@ -409,6 +409,16 @@ def refine_window(
 
 
 @_BLAS.wrap(limits=1, user_api="blas")
+def polish(renderer: Renderer, frames: np.ndarray, t: np.ndarray, motion: WindowMotion, blur: float) -> Refined:
+    """LM alone from a ``motion`` and ``blur`` (px) already near the window's (the same window refined through a
+    scene close to ``renderer``'s): no starts tried, no mirror. One render more than the search, for its start's RMS."""
+    problem = _Problem(renderer, frames, np.asarray(t, np.float64))
+    start_cost = problem.cost(motion, blur)
+    end, end_blur, cost = _levenberg_marquardt(problem, motion, blur)
+    return Refined(end, end_blur, float(np.sqrt(start_cost)), float(np.sqrt(cost)), problem.renders)
+
+
+@_BLAS.wrap(limits=1, user_api="blas")
 def covariance(renderer: Renderer, frames: np.ndarray, t: np.ndarray, refined: Refined) -> tuple[np.ndarray, int]:
     """Covariance (11, 11) of a refined window's motion (WindowMotion's order, d ... phi2) and blur (px) from its
     pixel fit at the optimum, and the number of clusters it was estimated from: :func:`cluster_covariance` with

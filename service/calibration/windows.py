@@ -1,0 +1,99 @@
+"""Whole windows of the lab video held to Eq. 1: they tell apart the scenes along a ridge the single frames leave open.
+
+Single frames, each with a motion of its own, trade the light's direction, its size, the fluid's roughness and its
+reflectance along a ridge where every frame's highlights fit about as well (docs/calibration.md, "Whole windows
+along the ridge"). A window's frames share one Eq. 1 motion, ten numbers: only a scene on the right part of the ridge
+makes its highlights move the way a damped membrane moves. This stage refines a few windows (every other frame)
+through the calibrated scene from its library's per-frame starts (:func:`.synthesis.refine_window`, as ``analyze
+--refine`` does), then through each point of the profiles that the single frames cannot tell from it, each search
+started where the calibrated scene's ended (:func:`.synthesis.polish`), and keeps the point whose windows fit best.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from service.calibration import parameters as P
+from service.calibration.fit import Library, crop
+from service.calibration.footage import LabWindow
+from service.calibration.profile import Profile
+from service.calibration.synthesis import Synthesis
+from service.inverse import synthesis
+from service.render.renderer import Renderer
+from service.scene import Scene
+
+
+@dataclass(frozen=True)
+class Point:
+    """A scene the windows score: the calibrated one (``parameter`` None) or a point of a profile, with every lab
+    frame's motion (K, 4) fitted there."""
+
+    parameter: str | None
+    value: float
+    scene: Scene
+    motion: np.ndarray
+
+
+def ridge(scene: Scene, motion: np.ndarray, profiles: dict[str, Profile]) -> list[Point]:
+    """The calibrated scene and every point of a profile with refitted partners that the single frames cannot tell
+    from its best (:meth:`.Profile.indistinct_fits`)."""
+    points = [Point(None, float("nan"), scene, motion)]
+    for name, prof in profiles.items():
+        if prof.partners:
+            points += [
+                Point(name, value, fit_scene, fit_motion) for value, fit_scene, fit_motion in prof.indistinct_fits()
+            ]
+    return points
+
+
+def choose(
+    synth: Synthesis,
+    points: list[Point],
+    windows: tuple[LabWindow, ...],
+    full_scale: float,
+    sigmas: tuple[float, ...],
+    each: Callable[[], None] = lambda: None,
+) -> tuple[Point, list[dict]]:
+    """The point of ``points`` (the first is the calibrated scene) whose ``windows`` fit best held to Eq. 1: each
+    window refined through the first point from its :class:`.fit.Library`'s nearest per-frame motion (on ``sigmas``),
+    then through every other point from there; the lowest summed mean squared pixel residual wins. Returns it and a
+    row per point (its residual RMS per window in stored units). ``each`` is called after every point."""
+    first = points[0].scene
+    library = Library(synth, first, sigmas)
+    renderer = Renderer(first, sun_samples=synthesis.SUN_SAMPLES, threads=None)
+    starts = []
+    for window in windows:
+        frames = crop(window.frames, first)
+        coefficients = library.nearest(frames / full_scale)[0]
+        dt = float(window.t[1] - window.t[0])
+        start = synthesis.start_motion(coefficients, window.t, 1.0 / dt)
+        starts.append(synthesis.refine_window(renderer, frames, window.t, start))
+    each()
+    rows = [_row(points[0], [refined.rms for refined in starts])]
+    for point in points[1:]:
+        renderer = Renderer(point.scene, sun_samples=synthesis.SUN_SAMPLES, threads=None)
+        rms = [
+            synthesis.polish(renderer, crop(window.frames, point.scene), window.t, s.motion, s.blur_sigma_px).rms
+            for window, s in zip(windows, starts)
+        ]
+        rows.append(_row(point, rms))
+        each()
+    best = int(np.argmin([row["cost"] for row in rows]))
+    rows[best]["chosen"] = True
+    return points[best], rows
+
+
+def _row(point: Point, rms: list[float]) -> dict:
+    """A point's line in the report: which profile and value (none for the calibrated scene), its windows' residual
+    RMS and their summed mean square."""
+    return {
+        "parameter": point.parameter,
+        "value": None if point.parameter is None else point.value,
+        "scene": {p.name: p.from_fit(float(v)) for p, v in zip(P.PARAMETERS, P.read(point.scene))},
+        "rms": [float(r) for r in rms],
+        "cost": float(np.sum(np.square(rms))),
+        "chosen": False,
+    }
