@@ -28,7 +28,7 @@ from service.calibration.profile import PARTNERS, Profile, descend, indistinct
 from service.calibration.report import document, profile_verdicts
 from service.calibration.roi import refine_shift
 from service.calibration.synthesis import Synthesis, pyramid
-from service.calibration.windows import Point, choose
+from service.calibration.windows import Point, choose, pick
 from service.camera_effects import CameraEffects
 from service.scene import Scene, direction
 from service.simulate import simulate
@@ -338,6 +338,23 @@ def test_whole_windows_held_to_eq1_choose_the_scene_their_frames_were_made_with(
     chosen, rows = choose(Synthesis(), points, footage.lab_windows, footage.full_scale, (1.5, 0.7))
     assert chosen.scene.light.azimuth_deg == 183.0
     assert [row["chosen"] for row in rows] == [False, True, False]
-    assert rows[1]["cost"] < min(rows[0]["cost"], rows[2]["cost"])
+    assert rows[1]["cost"] < min(rows[0]["cost"], rows[2]["cost"]) and rows[1]["better_in_every_window"]
     assert all(len(row["rms"]) == 2 for row in rows)
     json.dumps(rows, allow_nan=False)
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    st.integers(1, 6).flatmap(
+        lambda p: st.integers(1, 4).flatmap(
+            lambda w: st.lists(st.lists(st.floats(0.1, 1e3), min_size=w, max_size=w), min_size=p, max_size=p)
+        )
+    )
+)
+def test_a_point_replaces_the_calibrated_scene_only_where_every_window_fits_it_better(rms: list[list[float]]) -> None:
+    table = np.array(rms)
+    chosen = pick(table)
+    better = [i for i in range(1, len(table)) if np.all(table[i] < table[0])]
+    assert chosen == 0 if not better else chosen in better
+    costs = np.square(table).sum(axis=1)
+    assert costs[chosen] == min(costs[[0, *better]])
