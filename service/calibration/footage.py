@@ -24,8 +24,9 @@ STRIDE = 2
 
 @dataclass(frozen=True)
 class LabWindow:
-    """The frames a window shows after its ejection's transient: ``frames`` (m, H, W) whole recorded frames in stored
-    units, their numbers ``indices`` (m,), and ``t`` (m,) s since the window's ejection."""
+    """The frames a window shows after its ejection's transient: ``frames`` (m, H, W) whole recorded frames as stored
+    (their dtype too: a large camera's frames stay small), their numbers ``indices`` (m,), and ``t`` (m,) s since the
+    window's ejection."""
 
     index: int
     indices: np.ndarray
@@ -56,13 +57,13 @@ def read_windows(
         if w.starts_at_ejection and w.ends_at_ejection and w.end - w.oscillation_start(skip) >= MIN_FRAMES * stride
     ]
     picked = [whole[i] for i in np.unique(np.linspace(0, len(whole) - 1, min(looked, len(whole))).round().astype(int))]
-    read = []
+    kept: list[tuple[float, LabWindow]] = []  # the most varying so far: at most ``count`` windows held at once
     for w in picked:
         indices = np.arange(w.oscillation_start(skip), w.end, stride)
-        frames = np.stack([rec[int(i)] for i in indices]).astype(np.float32)
-        read.append((float(frames.std(axis=0).mean()), LabWindow(w.index, indices, frames, (indices - w.start) / fps)))
-    read.sort(key=lambda pair: -pair[0])
-    return tuple(sorted((window for _, window in read[:count]), key=lambda window: window.index))
+        frames = np.stack([rec[int(i)] for i in indices])
+        kept.append((float(frames.std(axis=0).mean()), LabWindow(w.index, indices, frames, (indices - w.start) / fps)))
+        kept = sorted(kept, key=lambda pair: -pair[0])[:count]
+    return tuple(sorted((window for _, window in kept), key=lambda window: window.index))
 
 
 @dataclass(frozen=True)
