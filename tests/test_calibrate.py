@@ -28,7 +28,7 @@ from service.calibration.profile import PARTNERS, Profile, descend, indistinct
 from service.calibration.report import document, profile_verdicts
 from service.calibration.roi import refine_shift
 from service.calibration.synthesis import Synthesis, pyramid
-from service.calibration.windows import Point, choose, pick
+from service.calibration.windows import Point, choose, further, pick
 from service.camera_effects import CameraEffects
 from service.scene import Scene, direction
 from service.simulate import simulate
@@ -316,14 +316,26 @@ def test_the_descent_moves_off_a_stalled_fit_along_its_profiles_and_stays_at_the
     assert refit is not None
 
 
-def test_whole_windows_held_to_eq1_choose_the_scene_their_frames_were_made_with(tmp_path: Path) -> None:
+@pytest.fixture(scope="module")
+def windowed(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict]:
+    """A 'lab' recording whose windows are long enough to be held to Eq. 1 (200 ejections/s): the light at 183 deg."""
+    out = tmp_path_factory.mktemp("windows") / "windows.cine"
+    camera = CameraEffects(offset=0.01, blur_sigma_px=0.5, full_well_e=40000, read_noise_dn=1.0, bit_depth=12)
+    truth = simulate(_scene(light={"azimuth_deg": 183.0}), out, windows=3, seed=4, ejection_hz=200.0, effects=camera)
+    return out, truth
+
+
+def _at(azimuth: float, profiled: bool = True, beyond: float | None = None) -> Point:
+    """A point of the light's azimuth profile (or the calibrated scene: ``profiled`` False), motion unused here."""
+    scene = _scene(light={"azimuth_deg": azimuth})
+    return Point("light.azimuth_deg" if profiled else None, azimuth, scene, np.zeros((8, 4)), beyond)
+
+
+def test_whole_windows_held_to_eq1_choose_the_scene_their_frames_were_made_with(windowed: tuple[Path, dict]) -> None:
     """Of several scenes along the light's azimuth (the calibrated one first), the one the lab's windows were rendered
     with fits them best when each window's frames share one Eq. 1 motion: the stage reads the windows that begin
     and end at an ejection, every other frame after the transient, and scores every point."""
-    true = _scene(light={"azimuth_deg": 183.0})
-    out = tmp_path / "windows.cine"
-    camera = CameraEffects(offset=0.01, blur_sigma_px=0.5, full_well_e=40000, read_noise_dn=1.0, bit_depth=12)
-    truth = simulate(true, out, windows=3, seed=4, ejection_hz=200.0, effects=camera)
+    out, truth = windowed
     footage = read_footage(out, frames=8, stack=38, ejection_hz=200.0, lab_windows=2)
     assert len(footage.lab_windows) == 2
     for window in footage.lab_windows:
@@ -331,16 +343,46 @@ def test_whole_windows_held_to_eq1_choose_the_scene_their_frames_were_made_with(
         made = next(w for w in truth["windows"] if w["start_frame"] <= window.indices[0] < w["end_frame"])
         assert made["oscillation_start_frame"] <= window.indices[0] and window.indices[-1] < made["end_frame"]
         assert window.t == pytest.approx((window.indices - made["start_frame"]) / truth["recording"]["fps"])
-    points = [
-        Point(None if az == 180.0 else "light.azimuth_deg", az, _scene(light={"azimuth_deg": az}), np.zeros((8, 4)))
-        for az in (180.0, 183.0, 186.0)
-    ]
+    points = [_at(180.0, profiled=False), _at(183.0), _at(186.0)]
     chosen, rows = choose(Synthesis(), points, footage.lab_windows, footage.full_scale, (1.5, 0.7))
     assert chosen.scene.light.azimuth_deg == 183.0
     assert [row["chosen"] for row in rows] == [False, True, False]
     assert rows[1]["cost"] < min(rows[0]["cost"], rows[2]["cost"]) and rows[1]["better_in_every_window"]
     assert all(len(row["rms"]) == 2 for row in rows)
     json.dumps(rows, allow_nan=False)
+
+
+def test_the_windows_walk_beyond_a_profiles_open_end_while_every_window_fits_better(
+    windowed: tuple[Path, dict],
+) -> None:
+    """The profile's end the windows chose (181.5, its interval open there) is not where the frames were made (183):
+    the next point beyond it is scored and taken while it fits every window better, and the walk stops at the first
+    that does not (each against the point before it)."""
+    out, _ = windowed
+    footage = read_footage(out, frames=8, stack=38, ejection_hz=200.0, lab_windows=2)
+    walk = lambda p: None if p.beyond is None else _at(p.value + p.beyond, beyond=p.beyond)
+    points = [_at(180.0, profiled=False), _at(181.5, beyond=1.5)]
+    chosen, rows = choose(Synthesis(), points, footage.lab_windows, footage.full_scale, (1.5, 0.7), walk)
+    assert [row["value"] for row in rows] == [None, 181.5, 183.0, 184.5]
+    assert chosen.scene.light.azimuth_deg == 183.0 and [row["chosen"] for row in rows] == [False, False, True, False]
+    assert [row["beyond"] for row in rows] == [False, False, True, True]
+    assert [row["better_in_every_window"] for row in rows[1:]] == [True, True, False]
+
+
+def test_the_next_point_beyond_a_profile_has_its_partners_refitted_and_stays_in_bounds() -> None:
+    synth, sigmas = Synthesis(), (1.5, 0.7)
+    motion = np.random.default_rng(0).uniform([-0.02, -0.12, -0.02, -0.008], [0.02, 0.12, 0.02, 0.008], (4, 4))
+    lab = synth.stored(_scene(light={"azimuth_deg": 183.0}), motion)
+    step = _at(180.0, beyond=1.5)
+    beyond = further(synth, lab, sigmas, Point(step.parameter, 180.0, step.scene, motion, 1.5))
+    assert beyond is not None and beyond.value == pytest.approx(181.5) and beyond.beyond == 1.5
+    assert beyond.scene.light.azimuth_deg == pytest.approx(181.5)
+    partners = [[p.name for p in PARAMETERS].index(name) for name in PARTNERS["light.azimuth_deg"]]
+    assert not np.allclose(P.read(beyond.scene)[partners], P.read(step.scene)[partners])  # they moved with it
+    assert beyond.motion.shape == motion.shape and not np.array_equal(beyond.motion, motion)
+    assert further(synth, lab, sigmas, _at(180.0)) is None  # not an open end
+    high = P.bounds(step.scene)[1][[p.name for p in PARAMETERS].index("light.azimuth_deg")]
+    assert further(synth, lab, sigmas, Point(step.parameter, 180.0, step.scene, motion, 2 * high)) is None
 
 
 @settings(max_examples=200, deadline=None)

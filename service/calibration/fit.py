@@ -17,6 +17,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, field
+from functools import partial
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -416,7 +417,7 @@ def calibrate(
     whose ``footage.lab_windows`` fit best held to Eq. 1 (:func:`.windows.choose`; the uncertainties stay the
     descent's)."""
     from service.calibration.profile import PROFILED, descend  # they build on this module's Problem
-    from service.calibration.windows import choose, ridge
+    from service.calibration.windows import choose, further, ridge
 
     began = time.perf_counter()
     synth = Synthesis(supersample=schedule[0].supersample)
@@ -503,9 +504,9 @@ def calibrate(
             motion = motion_only(synth, scene, crop(footage.frames, scene), finest.sigmas)
     lab, last = crop(footage.frames, scene), finest.sigmas
 
-    def tick() -> None:  # a further round of the descent profiles every parameter again
+    def tick() -> None:  # a further round of the descent (or a point walked to) the bar did not count
         if bar.n >= bar.total:
-            bar.total += len(profiled)
+            bar.total += 1
         bar.update()
 
     scene, motion, profiles, moves, refit = descend(
@@ -517,7 +518,8 @@ def calibrate(
     points = ridge(scene, motion, profiles) if footage.lab_windows else []
     if len(points) > 1:
         bar.total += len(points)
-        chosen, scored = choose(synth, points, footage.lab_windows, footage.full_scale, last, each=bar.update)
+        walk = partial(further, synth, lab, last)
+        chosen, scored = choose(synth, points, footage.lab_windows, footage.full_scale, last, walk, tick)
         scene, motion = chosen.scene, chosen.motion
     bar.close()
     lab_stack = crop(footage.stack, scene)

@@ -80,11 +80,16 @@ class Profile:
         """The scene and every frame's motion (K, 4) at the best value."""
         return self.fits[int(np.argmin(self.frame_costs.sum(axis=1)))]
 
-    def indistinct_fits(self) -> list[tuple[float, Scene, np.ndarray]]:
+    def indistinct_fits(self) -> list[tuple[float, Scene, np.ndarray, float | None]]:
         """Each value the frames cannot tell from the best, other than the centre, with its scene and motion: the
-        points of a ridge the single frames leave open."""
+        points of a ridge the single frames leave open; and where the value is an end of the profile the interval is
+        open at, the step beyond it (in the fitted coordinate: the last spacing again), else None."""
         inside = (self.values >= self.interval[0]) & (self.values <= self.interval[1]) & (self.values != self.centre)
-        return [(float(self.values[i]), *self.fits[i]) for i in np.flatnonzero(inside)]
+        coords = np.array([next(p for p in P.PARAMETERS if p.name == self.name).to_fit(v) for v in self.values])
+        last = len(coords) - 1
+        beyond = {0: coords[0] - coords[1] if self.open_low else None}
+        beyond[last] = coords[-1] - coords[-2] if self.open_high else None
+        return [(float(self.values[i]), *self.fits[i], beyond.get(i)) for i in np.flatnonzero(inside)]
 
     @property
     def best_cost(self) -> float:
@@ -140,21 +145,9 @@ def profile(
     lo, hi = P.bounds(scene)
     coords = np.unique(np.clip(x[index] + np.array((0.0, *offsets)), lo[index], hi[index]).round(6))
     centre = int(np.flatnonzero(coords == np.clip(x[index], lo[index], hi[index]).round(6))[0])
-    costs, fits = [], []
-    for c in coords:
-        shifted = x.copy()
-        shifted[index] = c
-        candidate = P.write(scene, shifted)
-        if partners:
-            problem = Problem(synth, candidate, lab, sigmas, fitted=partners)
-            solved, res = problem.solve(motion, PARTNER_EVALUATIONS)
-            costs.append((res.fun.reshape(problem.target.shape) ** 2).sum(axis=1))
-            fits.append(problem.unpack(solved))
-        else:
-            moved, cost = refine_motion(Problem(synth, candidate, lab, sigmas), motion, max_evaluations)
-            costs.append(cost)
-            fits.append((candidate, moved))
-    costs = np.array(costs)
+    refits = [refit_at(synth, scene, lab, motion, sigmas, name, c, max_evaluations) for c in coords]
+    costs = np.array([cost for cost, _ in refits])
+    fits = [fit for _, fit in refits]
     values = np.array([param.from_fit(c) for c in coords])
     told = ~indistinct(costs)
     kept = np.flatnonzero(~told)
@@ -173,6 +166,31 @@ def profile(
         partners={p.name: np.array([p.from_fit(P.read(f[0], (p,))[0]) for f in fits]) for p in partners},
         fits=tuple(fits),
     )
+
+
+def refit_at(
+    synth: Synthesis,
+    scene: Scene,
+    lab: np.ndarray,
+    motion: np.ndarray,
+    sigmas: tuple[float, ...],
+    name: str,
+    coord: float,
+    max_evaluations: int = 10,
+) -> tuple[np.ndarray, tuple[Scene, np.ndarray]]:
+    """``scene`` with parameter ``name`` at ``coord`` (its fitted coordinate) and its :data:`PARTNERS` and every frame's
+    motion refitted from ``motion`` (K, 4) on ``sigmas``, the rest held: each frame's cost there (K,) and the scene and
+    motion found."""
+    x = P.read(scene)
+    x[[p.name for p in P.PARAMETERS].index(name)] = coord
+    candidate = P.write(scene, x)
+    partners = tuple(p for p in P.PARAMETERS if p.name in PARTNERS.get(name, ()))
+    if not partners:
+        moved, cost = refine_motion(Problem(synth, candidate, lab, sigmas), motion, max_evaluations)
+        return cost, (candidate, moved)
+    problem = Problem(synth, candidate, lab, sigmas, fitted=partners)
+    solved, res = problem.solve(motion, PARTNER_EVALUATIONS)
+    return (res.fun.reshape(problem.target.shape) ** 2).sum(axis=1), problem.unpack(solved)
 
 
 #: Moves of :func:`descend` at most, after the finest stage.

@@ -19,7 +19,7 @@ import numpy as np
 from service.calibration import parameters as P
 from service.calibration.fit import Library, crop
 from service.calibration.footage import LabWindow
-from service.calibration.profile import Profile
+from service.calibration.profile import Profile, refit_at
 from service.calibration.synthesis import Synthesis
 from service.inverse import synthesis
 from service.render.renderer import Renderer
@@ -35,6 +35,24 @@ class Point:
     value: float
     scene: Scene
     motion: np.ndarray
+    #: where the point is the end of its profile at which the single frames' interval is open: the step (fitted
+    #: coordinate) to the next point beyond it
+    beyond: float | None = None
+
+
+def further(synth: Synthesis, lab: np.ndarray, sigmas: tuple[float, ...], point: Point) -> Point | None:
+    """The next point of ``point``'s profile beyond it (:attr:`Point.beyond`), its partners and the ``lab`` frames'
+    motion refitted there (:func:`.profile.refit_at`, on ``sigmas``); None where there is none or it leaves the
+    parameter's bounds."""
+    if point.parameter is None or point.beyond is None:
+        return None
+    index = [p.name for p in P.PARAMETERS].index(point.parameter)
+    coord = P.read(point.scene)[index] + point.beyond
+    low, high = P.bounds(point.scene)
+    if not low[index] <= coord <= high[index]:
+        return None
+    _, (scene, motion) = refit_at(synth, point.scene, lab, point.motion, sigmas, point.parameter, coord)
+    return Point(point.parameter, P.PARAMETERS[index].from_fit(coord), scene, motion, point.beyond)
 
 
 def ridge(scene: Scene, motion: np.ndarray, profiles: dict[str, Profile]) -> list[Point]:
@@ -43,10 +61,12 @@ def ridge(scene: Scene, motion: np.ndarray, profiles: dict[str, Profile]) -> lis
     points = [Point(None, float("nan"), scene, motion)]
     for name, prof in profiles.items():
         if prof.partners:
-            points += [
-                Point(name, value, fit_scene, fit_motion) for value, fit_scene, fit_motion in prof.indistinct_fits()
-            ]
+            points += [Point(name, *fit) for fit in prof.indistinct_fits()]
     return points
+
+
+#: Points at most that :func:`choose` walks beyond the end of a profile.
+WALK = 2
 
 
 def choose(
@@ -55,11 +75,14 @@ def choose(
     windows: tuple[LabWindow, ...],
     full_scale: float,
     sigmas: tuple[float, ...],
+    walk: Callable[[Point], Point | None] = lambda point: None,
     each: Callable[[], None] = lambda: None,
 ) -> tuple[Point, list[dict]]:
     """The point of ``points`` (the first is the calibrated scene) whose ``windows`` fit best held to Eq. 1: each
     window refined through the first point from its :class:`.fit.Library`'s nearest per-frame motion (on ``sigmas``),
-    then through every other point from there; :func:`pick` chooses. Returns the point and a row per point (its
+    then through every other point from there; :func:`pick` chooses. Where the point chosen ends its profile on a
+    side the single frames leave open, the next point beyond it (``walk``: :func:`further`) is scored too and taken
+    while it fits every window better, :data:`WALK` points at most. Returns the point and a row per point scored (its
     residual RMS per window in stored units). ``each`` is called after every point."""
     first = points[0].scene
     library = Library(synth, first, sigmas)
@@ -72,21 +95,34 @@ def choose(
         start = synthesis.start_motion(coefficients, window.t, 1.0 / dt)
         starts.append(synthesis.refine_window(renderer, frames, window.t, start))
     each()
-    rows = [_row(points[0], [refined.rms for refined in starts])]
-    for point in points[1:]:
+
+    def score(point: Point) -> dict:  # the windows through ``point``, each from where the first point's ended
         renderer = Renderer(point.scene, sun_samples=synthesis.SUN_SAMPLES, threads=None)
         rms = [
             synthesis.polish(renderer, crop(window.frames, point.scene), window.t, s.motion, s.blur_sigma_px).rms
             for window, s in zip(windows, starts)
         ]
-        rows.append(_row(point, rms))
         each()
+        return _row(point, rms)
+
+    rows = [_row(points[0], [refined.rms for refined in starts])] + [score(point) for point in points[1:]]
     rms = np.array([row["rms"] for row in rows])
     for row, better in zip(rows, np.all(rms < rms[0], axis=1)):
         row["better_in_every_window"] = bool(better)
     best = pick(rms)
-    rows[best]["chosen"] = True
-    return points[best], rows
+    chosen, row = points[best], rows[best]
+    for _ in range(WALK):
+        beyond = walk(chosen)
+        if beyond is None:
+            break
+        rows.append(score(beyond))
+        rows[-1]["beyond"] = True
+        rows[-1]["better_in_every_window"] = bool(np.all(np.array(rows[-1]["rms"]) < row["rms"]))
+        if not rows[-1]["better_in_every_window"]:
+            break
+        chosen, row = beyond, rows[-1]
+    row["chosen"] = True
+    return chosen, rows
 
 
 def pick(rms: np.ndarray) -> int:
@@ -99,7 +135,8 @@ def pick(rms: np.ndarray) -> int:
 
 def _row(point: Point, rms: list[float]) -> dict:
     """A point's line in the report: which profile and value (none for the calibrated scene), its windows' residual
-    RMS and their summed mean square."""
+    RMS and their summed mean square. A point walked to beyond its profile says ``beyond``; there,
+    ``better_in_every_window`` is against the point it was walked from."""
     return {
         "parameter": point.parameter,
         "value": None if point.parameter is None else point.value,
@@ -107,4 +144,5 @@ def _row(point: Point, rms: list[float]) -> dict:
         "rms": [float(r) for r in rms],
         "cost": float(np.sum(np.square(rms))),
         "chosen": False,
+        "beyond": False,
     }
