@@ -5,3 +5,9 @@ where the ROI sits in the recorded frame, the artifact spheres) are fitted joint
 handful of frames from several phases, on losses that see a highlight off by a few pixels (blurred
 pyramids), coarse to fine, from several starts (:mod:`.fit`).
 """
+
+#: Whole windows held to Eq. 1 by default (:mod:`.windows`): the ones whose frames move most among :data:`LOOKED`
+#: spread over the recording (here, where ``meniscope --help`` reads them without loading the fit).
+WINDOWS = 3
+#: Windows read to choose them from.
+LOOKED = 12

@@ -9,14 +9,11 @@ import numpy as np
 
 from service.analysis.results import FitSettings
 from service.analysis.segment import find_ejections, frame_activity, frame_steps, windows_between
+from service.calibration import LOOKED, WINDOWS
 from service.errors import MeniscopeError
 from service.inverse.synthesis import MIN_FRAMES
 from service.recordings import open_recording
 
-#: Windows scored: the ones whose frames move most among :data:`LOOKED` spread over the recording.
-WINDOWS = 3
-#: Windows read to choose them from.
-LOOKED = 12
 #: Every this many frames of a window are fitted: at 19,000 frames/s mode 2 (~3.5 kHz) stays below the Nyquist
 #: frequency, and a search costs half.
 STRIDE = 2

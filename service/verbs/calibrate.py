@@ -6,6 +6,7 @@ import argparse
 import math
 from pathlib import Path
 
+from service.calibration import LOOKED, WINDOWS
 from service.errors import MeniscopeError, require_folder_of
 from service.verbs import add_scene_option
 
@@ -28,6 +29,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         type=int,
         default=120,
         help="frames spread over the recording for the median image and the noise (default 120)",
+    )
+    p.add_argument(
+        "--windows",
+        type=int,
+        default=WINDOWS,
+        help=f"whole windows held to Eq. 1 that choose along the ridge the single frames leave open, 0 to skip that "
+        f"stage (default {WINDOWS}; each costs about a minute)",
     )
     cut = p.add_mutually_exclusive_group()
     cut.add_argument(
@@ -53,17 +61,27 @@ def run(args: argparse.Namespace) -> int:
         raise MeniscopeError("--frames", f"must be between 2 and 200, got {args.frames}")
     if not 8 <= args.stack <= 5000:
         raise MeniscopeError("--stack", f"must be between 8 and 5000, got {args.stack}")
+    if not 0 <= args.windows <= LOOKED:
+        raise MeniscopeError("--windows", f"must be between 0 and {LOOKED}, got {args.windows}")
     if args.ejection_hz is not None and not (math.isfinite(args.ejection_hz) and args.ejection_hz > 0):
         raise MeniscopeError("--ejection-hz", f"must be a positive number, got {args.ejection_hz}")
     require_folder_of(args.out)
     from service.scene import Scene
 
     guess = Scene.load(args.scene)
-    footage = read_footage(args.recording, args.frames, args.stack, args.ejections, args.ejection_hz)
+    footage = read_footage(args.recording, args.frames, args.stack, args.ejections, args.ejection_hz, args.windows)
     cal = calibrate(footage, guess)
     doc, png = write_report(cal, footage, args.out)
+    chosen = next((row for row in cal.ridge if row["chosen"]), None)
+    ridge = (
+        ""
+        if chosen is None
+        else f"; {len(footage.lab_windows)} windows kept the fitted scene"
+        if chosen["parameter"] is None
+        else f"; {len(footage.lab_windows)} windows moved it to {chosen['parameter']} {chosen['value']:.4g}"
+    )
     print(
         f"{args.out}: calibrated in {cal.seconds:.0f} s, residual {cal.residual_before * footage.full_scale:.1f} "
-        f"-> {cal.residual_after * footage.full_scale:.1f} DN RMS; report {doc}, figure {png}"
+        f"-> {cal.residual_after * footage.full_scale:.1f} DN RMS{ridge}; report {doc}, figure {png}"
     )
     return 0
