@@ -560,7 +560,7 @@ def _with_roi(scene: Scene, corner: np.ndarray) -> Scene:
 
 def _set(x: np.ndarray, name: str, value: float) -> np.ndarray:
     out = x.copy()
-    out[[p.name for p in P.PARAMETERS].index(name)] = value
+    out[P.index(name)] = value
     return out
 
 

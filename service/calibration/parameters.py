@@ -75,6 +75,11 @@ UNIDENTIFIABLE: dict[str, str] = {
 }
 
 
+def index(name: str) -> int:
+    """Where parameter ``name`` sits in :data:`PARAMETERS` (and in a scene's fitted coordinates, :func:`read`)."""
+    return [p.name for p in PARAMETERS].index(name)
+
+
 def read(scene: Scene, params: tuple[Parameter, ...] = PARAMETERS) -> np.ndarray:
     """The fitted coordinates of ``params`` in ``scene`` (a scene without a sensor block reads an ideal one)."""
     data = _with_sensor(scene.as_dict())

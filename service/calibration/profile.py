@@ -85,7 +85,7 @@ class Profile:
         points of a ridge the single frames leave open; and where the value is an end of the profile the interval is
         open at, the step beyond it (in the fitted coordinate: the last spacing again), else None."""
         inside = (self.values >= self.interval[0]) & (self.values <= self.interval[1]) & (self.values != self.centre)
-        coords = np.array([next(p for p in P.PARAMETERS if p.name == self.name).to_fit(v) for v in self.values])
+        coords = np.array([P.PARAMETERS[P.index(self.name)].to_fit(v) for v in self.values])
         last = len(coords) - 1
         beyond = {0: coords[0] - coords[1] if self.open_low else None}
         beyond[last] = coords[-1] - coords[-2] if self.open_high else None
@@ -138,7 +138,7 @@ def profile(
     """The cost of ``lab`` (K, h, w) on ``sigmas`` along parameter ``name`` at the calibrated value and ``offsets``
     from it (fitted coordinate, clipped to the bounds), each frame's motion refitted from ``motion`` (K, 4), and
     its :data:`PARTNERS` too (by :data:`PARTNER_EVALUATIONS` joint evaluations), the rest of the scene held."""
-    index = [p.name for p in P.PARAMETERS].index(name)
+    index = P.index(name)
     param = P.PARAMETERS[index]
     partners = tuple(p for p in P.PARAMETERS if p.name in PARTNERS.get(name, ()))
     x = P.read(scene)
@@ -182,7 +182,7 @@ def refit_at(
     motion refitted from ``motion`` (K, 4) on ``sigmas``, the rest held: each frame's cost there (K,) and the scene and
     motion found."""
     x = P.read(scene)
-    x[[p.name for p in P.PARAMETERS].index(name)] = coord
+    x[P.index(name)] = coord
     candidate = P.write(scene, x)
     partners = tuple(p for p in P.PARAMETERS if p.name in PARTNERS.get(name, ()))
     if not partners:

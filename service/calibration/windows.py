@@ -46,7 +46,7 @@ def further(synth: Synthesis, lab: np.ndarray, sigmas: tuple[float, ...], point:
     parameter's bounds."""
     if point.parameter is None or point.beyond is None:
         return None
-    index = [p.name for p in P.PARAMETERS].index(point.parameter)
+    index = P.index(point.parameter)
     coord = P.read(point.scene)[index] + point.beyond
     low, high = P.bounds(point.scene)
     if not low[index] <= coord <= high[index]:
