@@ -25,7 +25,7 @@ from service.calibration.fit import (
 from service.calibration.footage import STRIDE, read_footage
 from service.calibration.parameters import PARAMETERS
 from service.calibration.profile import PARTNERS, Profile, descend, indistinct
-from service.calibration.report import document, profile_verdicts
+from service.calibration.report import document, profile_verdicts, ridge_ranges
 from service.calibration.roi import refine_shift
 from service.calibration.synthesis import Synthesis, pyramid
 from service.calibration.windows import Point, choose, further, pick
@@ -92,6 +92,10 @@ def test_a_known_mismatch_is_recovered(lab: Path) -> None:
     assert doc["versus_truth"]["roi"]["error_px"] == 0
     row = next(r for r in doc["parameters"] if r["name"] == "light.azimuth_deg")
     assert row["profile"]["interval"] == list(azimuth.interval)
+    assert row["range"][0] <= 185.0 <= row["range"][1]  # the azimuth's bracket, the light's other profiled ridge
+    ranged = [r for r in doc["parameters"] if r["range"] is not None]
+    assert all(r["range"][0] <= r["after"] <= r["range"][1] for r in ranged)
+    assert {r["name"] for r in ranged} >= {"fluid.roughness", "fluid.reflectance", "light.angle_deg"}
     json.dumps(doc, allow_nan=False)
 
 
@@ -256,6 +260,27 @@ def test_what_moves_along_an_unpinned_parameter_is_not_identified_either(
     assert verdict["light.angle_deg"] == held
     assert verdict["fluid.reflectance"]  # refitted, but it stayed put
     assert verdict["light.azimuth_deg"] and verdict["camera.exposure"]  # no profile, no ridge: left to their sigma
+
+
+@given(st.floats(0.001, 0.3), st.floats(0.01, 0.6), st.floats(1.0, 10.0), st.floats(-0.5, 0.5), st.floats(0.5, 2.0))
+def test_a_parameters_range_spans_every_ridge_it_moves_along_and_its_calibrated_value(
+    alpha: float, half: float, angle: float, moved: float, chosen: float
+) -> None:
+    """The report's range of the light's angle: its own profile's bracket, its refitted values along alpha's (where
+    the frames cannot tell a rougher fluid under a wider sun apart), and the value the windows chose, wherever it
+    lies; alpha's its own bracket; a parameter nobody profiled or refitted has none (its sigma stands)."""
+    profiles = {
+        "fluid.roughness": _profile(
+            "fluid.roughness", alpha, half * alpha, False, {"light.angle_deg": [angle, angle * (1 + moved)]}
+        ),
+        "light.angle_deg": _profile("light.angle_deg", angle, 0.1 * angle, False),
+    }
+    values = {p.name: 0.0 for p in PARAMETERS} | {"fluid.roughness": alpha, "light.angle_deg": angle * chosen}
+    ranges = ridge_ranges(profiles, values)
+    along = [angle * 0.9, angle * 1.1, angle * (1 + moved), angle * chosen]
+    assert ranges["light.angle_deg"] == pytest.approx((min(along), max(along)))
+    assert ranges["fluid.roughness"] == pytest.approx((alpha * (1 - half), alpha * (1 + half)))
+    assert set(ranges) == {"fluid.roughness", "light.angle_deg"}
 
 
 @given(st.floats(-60.0, -10.0), st.sampled_from([0.2, 0.4, 0.75, 2.0]), st.booleans())

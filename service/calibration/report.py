@@ -70,6 +70,21 @@ def profile_verdicts(profiles: dict[str, Profile], values: dict[str, float]) -> 
     }
 
 
+def ridge_ranges(profiles: dict[str, Profile], values: dict[str, float]) -> dict[str, tuple[float, float]]:
+    """Each parameter's range over the scenes the single frames leave open: its own profile's bracket (the nearest
+    values told apart from the best), its refitted values over the bracket of every profile it was refitted along
+    (:data:`.profile.PARTNERS`), and its calibrated ``values`` (which whole windows may have chosen along such a
+    ridge). A sigma sees the curvature at one point; this is how far a ridge lets the parameter move, to the
+    profiles' spacing. Parameters neither profiled nor refitted along a profile are left out."""
+    seen: dict[str, list[float]] = {}
+    for name, prof in profiles.items():
+        inside = (prof.values >= prof.bracket[0]) & (prof.values <= prof.bracket[1])
+        seen.setdefault(name, []).extend(prof.values[inside])
+        for partner, refitted in prof.partners.items():
+            seen.setdefault(partner, []).extend(refitted[inside])
+    return {name: (min(*found, values[name]), max(*found, values[name])) for name, found in seen.items()}
+
+
 def _allowed(name: str, value: float) -> float:
     """The precision the report needs of parameter ``name`` at ``value`` (file units)."""
     tol, kind = PRECISION[name]
@@ -81,6 +96,7 @@ def document(cal: Calibration, footage: Footage) -> dict[str, Any]:
     before, after = cal.guess.as_dict(), cal.scene.as_dict()
     truth = load_truth(footage.path)
     pinned = profile_verdicts(cal.profiles, {name: _value(after, name) for name in cal.profiles})
+    ranges = ridge_ranges(cal.profiles, {p.name: _value(after, p.name) for p in P.PARAMETERS})
     rows = []
     for p in P.PARAMETERS:
         value, sigma = _value(after, p.name), cal.sigma.get(p.name, math.inf)
@@ -94,6 +110,7 @@ def document(cal: Calibration, footage: Footage) -> dict[str, Any]:
                 "after": value,
                 "sigma": sigma if math.isfinite(sigma) else None,
                 "identified": bool(identified),
+                "range": None if p.name not in ranges else [float(v) for v in ranges[p.name]],
                 "precision_needed": tol,
                 "precision_kind": kind,
                 "profile": None if prof is None else prof.as_dict(),
@@ -146,7 +163,9 @@ def document(cal: Calibration, footage: Footage) -> dict[str, Any]:
         "errors, its 'bracket' the nearest values told apart either side; 'open' ends may reach further; it counts "
         "as identified only when neither end is open and the bracket's half-width is within the precision needed, "
         "and a parameter refitted along another's profile only when its refitted values stay within that precision "
-        "over the other's interval",
+        "over the other's interval. A parameter's 'range' spans its values over every profile's bracket (its own, and "
+        "its refitted values where it trades with the profiled one) and its calibrated value, which whole windows may "
+        "have chosen along such a ridge: how far the scenes the single frames leave open let it move",
     }
 
 
