@@ -11,6 +11,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+#: Most refits of the noise line without the pixels far above it (it settles in four or five).
+ROUNDS = 20
+
 
 @dataclass(frozen=True)
 class NoiseFit:
@@ -37,13 +40,16 @@ def fit_noise(stack: np.ndarray, static: np.ndarray, black: float, full_scale: f
     var = var - 1.0 / (12.0 * full_scale**2)
     signal = np.maximum(mean - black, 0.0)
     # a line, refitted without the pixels far above it (where the fluid's shadow or a reflection reaches now and
-    # then, a static pixel is not static)
+    # then, a static pixel is not static) until the pixels kept stay the same: a few dozen such pixels of a dim
+    # camera's thousands pull the first lines' slope far up (docs/calibration.md, "One kind at a time")
     keep = np.ones(len(var), bool)
-    for _ in range(3):
+    for _ in range(ROUNDS):
         A = np.stack([np.ones(keep.sum()), signal[keep]], axis=1)
         (intercept, slope), *_ = np.linalg.lstsq(A, var[keep], rcond=None)
         resid = var - (intercept + slope * signal)
-        keep = resid < 4 * 1.4826 * np.median(np.abs(resid[keep])) + 1e-12
+        kept, keep = keep, resid < 4 * 1.4826 * np.median(np.abs(resid[keep])) + 1e-12
+        if np.array_equal(kept, keep):
+            break
     read = float(np.sqrt(max(intercept, 0.0)))
     if slope <= 0:
         return NoiseFit(0.0, 0.0, read, int(keep.sum()), float(np.ptp(signal)))
