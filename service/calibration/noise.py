@@ -13,6 +13,9 @@ import numpy as np
 
 #: Most refits of the noise line without the pixels far above it (it settles in four or five).
 ROUNDS = 20
+#: Read noise (quantisation steps) below which the rounding's variance is not the uniform step^2 / 12 the fit takes
+#: off (Sheppard's correction holds from about half a step of Gaussian noise), so the video does not tell the noise.
+MEASURABLE_STEPS = 0.5
 
 
 @dataclass(frozen=True)
@@ -25,6 +28,11 @@ class NoiseFit:
     read_noise_fraction: float
     pixels: int
     signal_span: float
+
+    def measured(self, full_scale: float) -> bool:
+        """Whether the still pixels' noise could be told: their read noise at least :data:`MEASURABLE_STEPS` of a
+        quantisation step (an 8-bit camera's can lie under it)."""
+        return self.read_noise_fraction * full_scale >= MEASURABLE_STEPS
 
     def sigma(self, signal: np.ndarray, full_scale: float) -> np.ndarray:
         """The temporal noise (fraction of full scale) this model expects of a static pixel ``signal`` above
