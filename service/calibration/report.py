@@ -95,11 +95,11 @@ def document(cal: Calibration, footage: Footage) -> dict[str, Any]:
     """The report's content: JSON-safe, finite numbers; scored against the truth when the recording is synthetic."""
     before, after = cal.guess.as_dict(), cal.scene.as_dict()
     truth = load_truth(footage.path)
-    pinned = profile_verdicts(cal.profiles, {name: _value(after, name) for name in cal.profiles})
-    ranges = ridge_ranges(cal.profiles, {p.name: _value(after, p.name) for p in P.PARAMETERS})
+    values = {p.name: _value(after, p.name) for p in P.PARAMETERS}
+    pinned, ranges = profile_verdicts(cal.profiles, values), ridge_ranges(cal.profiles, values)
     rows = []
     for p in P.PARAMETERS:
-        value, sigma = _value(after, p.name), cal.sigma.get(p.name, math.inf)
+        value, sigma = values[p.name], cal.sigma.get(p.name, math.inf)
         tol, kind = PRECISION[p.name]
         prof = cal.profiles.get(p.name)
         identified = math.isfinite(sigma) and sigma <= _allowed(p.name, value) and pinned[p.name]
