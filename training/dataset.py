@@ -30,6 +30,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 from tqdm import tqdm
 
+from service.calibration.open_ranges import drawn_over
 from service.camera_effects import BitDepth, EffectRanges, apply_effects, pixel_dtype
 from service.errors import MeniscopeError
 from service.inverse.manifest import sha256_file
@@ -48,21 +49,24 @@ _Positive = Annotated[float, Field(ge=0, allow_inf_nan=False)]
 
 
 class Jitter(BaseModel):
-    """Per-chunk calibration error: uniform in +/- each half-width (angles in degrees)."""
+    """Per-chunk calibration error: uniform in +/- each half-width (angles in degrees), after drawing the parameters
+    the scene's calibration left open over their ranges (``open_ranges``: :mod:`service.calibration.open_ranges`)."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
     camera_angle_deg: _Positive = 0.5  # camera azimuth and elevation, each
     distance_fraction: Annotated[float, Field(ge=0, lt=1, allow_inf_nan=False)] = 0.02  # camera distance
     light_angle_deg: _Positive = 2.0  # light azimuth and elevation, each
+    open_ranges: dict[str, tuple[float, float]] = {}  # parameter name -> (low, high), file units
 
     def perturb(self, scene: Scene, rng: np.random.Generator) -> Scene:
-        """A copy of ``scene`` with camera and light moved by one draw (elevations kept inside their bounds).
+        """A copy of ``scene`` with its open parameters drawn and camera and light moved by one draw (elevations
+        kept inside their bounds).
 
         Built with :meth:`Scene.from_dict`, not ``model_copy``, which would keep the original's
         cached ``sha256`` and ``spheres``.
         """
-        data = scene.model_dump()
+        data = drawn_over(scene, self.open_ranges, rng).model_dump()
         cam, light = data["camera"], data["light"]
         da, de = rng.uniform(-self.camera_angle_deg, self.camera_angle_deg, size=2)
         la, le = rng.uniform(-self.light_angle_deg, self.light_angle_deg, size=2)

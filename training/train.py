@@ -39,7 +39,7 @@ from service.plotting import pyplot
 from service.recordings.roi import read_roi_frames
 from service.scene import Scene
 from service.validation.truth import oscillation_truth, read_truth, score
-from training.dataset import Dataset, DatasetConfig, generate, open_dataset
+from training.dataset import Dataset, DatasetConfig, Jitter, generate, open_dataset
 from training.direct import DirectCNN
 from training.export import export_onnx, expose_latent, parity
 from training.normalise import Normalise, downsample_factor
@@ -78,6 +78,8 @@ class TrainConfig:
     direct_epochs: int = 12
     direct_lr: float = 2e-3
     init: str | None = None  # model folder the weights start from (``--init``); None: random
+    #: the scene's calibration's open parameters, drawn over their ranges in every chunk of renders (``Jitter``)
+    open_ranges: dict[str, tuple[float, float]] = field(default_factory=dict)
 
     @classmethod
     def quick(cls) -> TrainConfig:
@@ -322,7 +324,13 @@ def _open_or_render(scene: Scene, folder: Path | None, scratch: Path, config: Tr
         return open_dataset(folder, scene)
     target = folder if folder is not None else scratch / "renders"
     generate(
-        DatasetConfig(scene=scene, samples=config.samples, seed=config.seed, bit_depth=bit_depth),
+        DatasetConfig(
+            scene=scene,
+            samples=config.samples,
+            seed=config.seed,
+            bit_depth=bit_depth,
+            jitter=Jitter(open_ranges=config.open_ranges),
+        ),
         target,
         workers=config.threads,
     )

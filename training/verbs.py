@@ -139,6 +139,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--quick", action="store_true", help="a run of seconds for tests; its models are not useful")
     p.add_argument(
+        "--open-ranges",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="where SCENE.calibration.json lies beside the scene (made for it by `meniscope calibrate`), render "
+        "the training frames and windows with each parameter it leaves open drawn over its range, not at the one "
+        "value the calibration wrote (default: on; docs/calibration.md)",
+    )
+    p.add_argument(
         "--window-windows",
         type=int,
         help=f"windows per noise preset the window model is trained on (default {WINDOW_WINDOWS}; --quick 2; 0: no "
@@ -175,11 +183,16 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def run_train(args: argparse.Namespace) -> int:
     from dataclasses import replace
 
+    from service.calibration.open_ranges import beside
     from service.scene import Scene
     from training.normalise import downsample_factor  # torch loads only when the verb runs
     from training.train import TrainConfig, train_models
 
     scene = Scene.load(args.scene)
+    ranges = beside(args.scene, scene) if args.open_ranges else {}
+    if ranges:
+        spans = ", ".join(f"{name} {lo:.4g}-{hi:.4g}" for name, (lo, hi) in ranges.items())
+        print(f"training over what the calibration left open: {spans}")
     if args.quick:
         config = replace(TrainConfig.quick(), init=None if args.init is None else str(args.init))
     else:
@@ -190,7 +203,7 @@ def run_train(args: argparse.Namespace) -> int:
         config = replace(config, samples=args.samples)
     if args.seed < 0:
         raise MeniscopeError("--seed", f"must be zero or positive, got {args.seed}")
-    config = replace(config, seed=args.seed)
+    config = replace(config, seed=args.seed, open_ranges=ranges)
     if args.input_px is not None:
         try:
             downsample_factor(scene, args.input_px)
@@ -199,7 +212,7 @@ def run_train(args: argparse.Namespace) -> int:
         config = replace(config, net=replace(config.net, input_px=args.input_px))
     manifest = train_models(scene, args.lab_video, args.out, config, dataset=args.dataset, holdout_video=args.holdout)
     print(f"{args.out}: {', '.join(sorted(manifest.methods))} exported in {manifest.training.seconds:.0f} s")
-    _train_window_model(args, scene)
+    _train_window_model(args, scene, ranges)
     for name, by_data in manifest.validation.items():
         for data, s in by_data.items():
             rmse = ", ".join(f"{k} {v:.3g}" for k, v in s.rmse.items())
@@ -208,9 +221,9 @@ def run_train(args: argparse.Namespace) -> int:
     return 0
 
 
-def _train_window_model(args: argparse.Namespace, scene: Scene) -> None:
+def _train_window_model(args: argparse.Namespace, scene: Scene, ranges: dict[str, tuple[float, float]]) -> None:
     """The window model of the network just trained (:func:`training.window.build`), its windows rendered in a
-    temporary folder: what the default method needs beside the network."""
+    temporary folder (over the calibration's open ``ranges``): what the default method needs beside the network."""
     import tempfile
     import time
 
@@ -224,7 +237,7 @@ def _train_window_model(args: argparse.Namespace, scene: Scene) -> None:
     started = time.perf_counter()
     epochs, calibration = (2, 0) if args.quick else (WINDOW_EPOCHS, WINDOW_CALIBRATION)
     with tempfile.TemporaryDirectory(prefix="meniscope-window-") as scratch:
-        build(args.out, scene, Path(scratch), windows, epochs, args.seed, calibration)
+        build(args.out, scene, Path(scratch), windows, epochs, args.seed, calibration, ranges=ranges)
     print(f"{args.out}: window model trained in {time.perf_counter() - started:.0f} s")
 
 

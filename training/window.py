@@ -14,7 +14,7 @@ import argparse
 import io
 import json
 import warnings
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -290,6 +290,12 @@ CALIBRATION_BIT_DEPTHS = (12, 8)
 #: many as the scene's own by default) come from this many worlds (recordings) of their own, at seeds from
 #: :data:`RANDOMISED_CALIBRATION_SEEDS` above the training windows' (below the nominal ones').
 CALIBRATION_WORLDS, RANDOMISED_CALIBRATION_SEEDS = 8, 110
+#: Seeds of the scene's own calibration windows where a calibration's open ranges are drawn over (from
+#: :data:`CALIBRATION_WORLDS` worlds, so past the randomised ones' and the nominal training windows').
+RANGE_CALIBRATION_SEEDS = 300
+#: Training windows per preset in each chunk of worlds drawn over a calibration's open ranges (:func:`build`): a
+#: world per recording, 12 recordings a chunk, each with a renderer set up for it (seconds of CPU).
+RANGE_CHUNK = 150
 
 
 def render_mix(data: Path, scene: Scene, windows: int, seed: int, vary: Vary | None = None) -> list[Path]:
@@ -313,23 +319,36 @@ def render_mix(data: Path, scene: Scene, windows: int, seed: int, vary: Vary | N
     return paths
 
 
-def render_calibration(data: Path, scene: Scene, windows: int, seed: int, randomised: int = 0) -> list[Path]:
+def render_calibration(
+    data: Path,
+    scene: Scene,
+    windows: int,
+    seed: int,
+    randomised: int = 0,
+    ranges: Mapping[str, tuple[float, float]] | None = None,
+) -> list[Path]:
     """``windows`` calibration windows per noise preset and :data:`CALIBRATION_BIT_DEPTHS` camera, at the
     simulator's nominal motion, at seeds from ``seed + CALIBRATION_SEEDS`` on that no training window uses; and
     ``randomised`` more per preset and camera from :data:`CALIBRATION_WORLDS` scenes randomised around ``scene``
-    (:func:`training.window_scenes.vary`), at seeds from ``seed + RANDOMISED_CALIBRATION_SEEDS``."""
-    from training.window_scenes import vary
+    (:func:`training.window_scenes.vary`), at seeds from ``seed + RANDOMISED_CALIBRATION_SEEDS``. ``ranges``: the
+    parameters a calibration left open, drawn over their ranges (:func:`training.window_scenes.drawn_over`) in
+    every window's world, the scene's own windows then from :data:`CALIBRATION_WORLDS` worlds too."""
+    from training.window_scenes import around, over_ranges
 
-    per_world = [len(part) for part in np.array_split(np.arange(randomised), CALIBRATION_WORLDS) if len(part)]
+    own = (over_ranges(ranges), RANGE_CALIBRATION_SEEDS) if ranges else (None, CALIBRATION_SEEDS)
+    kinds = (
+        (windows, *own, "calibrate"),
+        (randomised, around(ranges or {}), RANDOMISED_CALIBRATION_SEEDS, "calibrate-randomised"),
+    )
     paths = []
     for k, bits in enumerate(CALIBRATION_BIT_DEPTHS):
-        if windows:
-            first = seed + CALIBRATION_SEEDS + k * len(TRAINING_NOISE)
-            paths += render_training(data, scene, windows, first, WindowRanges(), f"calibrate-{bits}bit", bits)
-        for j, count in enumerate(per_world):
-            first = seed + RANDOMISED_CALIBRATION_SEEDS + (k * CALIBRATION_WORLDS + j) * len(TRAINING_NOISE)
-            name = f"calibrate-randomised-{bits}bit"
-            paths += render_training(data, scene, count, first, WindowRanges(), name, bits, vary)
+        for count, world, seeds, name in kinds:
+            worlds = 1 if world is None else CALIBRATION_WORLDS
+            for j, part in enumerate(p for p in np.array_split(np.arange(count), worlds) if len(p)):
+                first = seed + seeds + (k * worlds + j) * len(TRAINING_NOISE)
+                paths += render_training(
+                    data, scene, len(part), first, WindowRanges(), f"{name}-{bits}bit", bits, world
+                )
     return paths
 
 
@@ -345,6 +364,7 @@ def build(
     latent: bool = LATENT_INPUT,
     randomised: int = 0,
     calibration_randomised: int | None = None,
+    ranges: Mapping[str, tuple[float, float]] | None = None,
 ) -> dict:
     """The window model of ``models``' network: ``windows`` training windows per noise preset rendered into ``data``
     (:func:`render_mix`; with ``recordings``), ``randomised`` of them from scenes randomised around ``scene``
@@ -354,7 +374,9 @@ def build(
     randomised around ``scene`` (:func:`render_calibration`; none at all: the fit's own intervals stay); the folder's
     manifest rewritten. The randomised windows make the intervals hold on a camera whose world is not the scene's
     (docs/window_model.md, "Intervals calibrated on randomised worlds"). ``latent``: the model takes the network's
-    latent per frame too (where the network outputs one). Returns the record."""
+    latent per frame too (where the network outputs one). ``ranges``: what the scene's calibration left open
+    (:mod:`service.calibration.open_ranges`), drawn over in every window's world (the scene's own windows then in
+    chunks of :data:`RANGE_CHUNK` per preset, a world per recording). Returns the record."""
     from training.window_intervals import calibrate_folder
 
     if not 0 <= randomised <= windows:
@@ -364,11 +386,20 @@ def build(
         raise ValueError(
             f"calibration windows ({calibration}, {calibration_randomised} randomised) must not be negative"
         )
-    recordings = tuple(recordings) + (tuple(render_mix(data, scene, windows - randomised, seed)) if windows else ())
-    if randomised:
-        from training.window_scenes import render_randomised
+    from training.window_scenes import around, over_ranges, render_randomised
 
-        recordings += tuple(render_randomised(data / "randomised", scene, randomised, seed + RANDOMISED_SEEDS))
+    own = windows - randomised
+    if ranges and own:
+        recordings = tuple(recordings) + tuple(
+            render_randomised(data / "over-ranges", scene, own, seed, RANGE_CHUNK, over_ranges(ranges))
+        )
+    elif own:
+        recordings = tuple(recordings) + tuple(render_mix(data, scene, own, seed))
+    if randomised:
+        world = around(ranges or {})
+        recordings += tuple(
+            render_randomised(data / "randomised", scene, randomised, seed + RANDOMISED_SEEDS, 40, world)
+        )
     if not recordings:
         raise ValueError("no training recordings: render some windows or name recordings")
     examples = concat([cached_examples(r, scene, models) for r in tqdm(recordings, desc="replay")])
@@ -390,6 +421,7 @@ def build(
         "epochs": epochs,
         "seed": seed,
         "randomised_windows": randomised,
+        "open_ranges": {name: list(span) for name, span in (ranges or {}).items()},
         "check_mse": float(min(history)),
         "check_mse_steady": baseline,
     }
@@ -397,7 +429,7 @@ def build(
     # the folder's manifest lists every file with its sha256: the window model's two files too
     write_manifest(models, Manifest.model_validate_json((models / MANIFEST).read_text()))
     if calibration or calibration_randomised:
-        held_out = render_calibration(data, scene, calibration, seed, calibration_randomised)
+        held_out = render_calibration(data, scene, calibration, seed, calibration_randomised, ranges)
         intervals = calibrate_folder(models, held_out, scene)
         record["intervals"] = intervals.as_record()
         print(f"intervals calibrated on {intervals.windows} windows: factors {intervals.factor}")

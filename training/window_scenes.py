@@ -10,14 +10,16 @@ nozzle's defects. Windows rendered from such perturbed scenes and replayed throu
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from service.calibration.open_ranges import drawn_over
 from service.camera_effects import CameraEffects
 from service.scene import Scene
-from training.window import render_mix
+from training.window import Vary, render_mix
 
 
 @dataclass(frozen=True)
@@ -92,16 +94,36 @@ def vary(scene: Scene, effects: CameraEffects, rng: np.random.Generator) -> tupl
     return randomised(scene, rng), randomised_effects(effects, rng)
 
 
+def over_ranges(ranges: Mapping[str, tuple[float, float]]) -> Vary:
+    """A recording's world: the scene with ``ranges`` drawn (:func:`drawn_over`), the camera its preset's."""
+
+    def vary_over(scene: Scene, effects: CameraEffects, rng: np.random.Generator) -> tuple[Scene, CameraEffects]:
+        return drawn_over(scene, ranges, rng), effects
+
+    return vary_over
+
+
+def around(ranges: Mapping[str, tuple[float, float]]) -> Vary:
+    """A recording's world randomised (:func:`vary`) around the scene with ``ranges`` drawn first."""
+
+    def vary_around(scene: Scene, effects: CameraEffects, rng: np.random.Generator) -> tuple[Scene, CameraEffects]:
+        return vary(drawn_over(scene, ranges, rng), effects, rng)
+
+    return vary_around
+
+
 #: Seeds of successive chunks of :func:`render_randomised` lie this far apart (room for :func:`render_mix`'s offsets).
 CHUNK_SEEDS = 1000
 
 
-def render_randomised(data: Path, scene: Scene, windows: int, seed: int, chunk: int = 40) -> list[Path]:
+def render_randomised(
+    data: Path, scene: Scene, windows: int, seed: int, chunk: int = 40, world: Vary = vary
+) -> list[Path]:
     """``windows`` training windows per noise preset as :func:`training.window.render_mix` draws them, in chunks of
-    ``chunk`` per preset whose every recording has a randomised scene and camera of its own (:func:`vary`; it is
-    written beside the recording). Each recording sets up its own renderer (~3 s of CPU), so chunks of a few
-    dozen windows keep that below the rendering's own cost."""
+    ``chunk`` per preset whose every recording has a scene and camera of its own (``world``: by default
+    :func:`vary`; it is written beside the recording). Each recording sets up its own renderer (~3 s of CPU), so
+    chunks of a few dozen windows keep that below the rendering's own cost."""
     paths: list[Path] = []
     for c, first in enumerate(range(0, windows, chunk)):
-        paths += render_mix(data, scene, min(chunk, windows - first), seed + c * CHUNK_SEEDS, vary)
+        paths += render_mix(data, scene, min(chunk, windows - first), seed + c * CHUNK_SEEDS, world)
     return paths

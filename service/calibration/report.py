@@ -14,12 +14,12 @@ import numpy as np
 from service.calibration import parameters as P
 from service.calibration.fit import Calibration, crop
 from service.calibration.footage import Footage
+from service.calibration.open_ranges import SCHEMA, report_paths
 from service.calibration.profile import Profile
 from service.calibration.synthesis import Synthesis
 from service.calibration.truth import load_truth, score
 from service.plotting import pyplot
 
-SCHEMA = "meniscope.calibration/1"
 #: One sigma at or below which a parameter counts as identified by the video (file units; "rel": relative).
 PRECISION: dict[str, tuple[float, str]] = {
     "fluid.roughness": (0.25, "rel"),
@@ -34,12 +34,6 @@ PRECISION: dict[str, tuple[float, str]] = {
 }
 #: Frames shown in the PNG.
 SHOWN = 6
-
-
-def report_paths(scene_out: Path) -> tuple[Path, Path]:
-    """The report JSON and PNG beside the calibrated scene: SCENE.calibration.json, SCENE.calibration.png."""
-    stem = scene_out.with_suffix("")
-    return stem.with_name(stem.name + ".calibration.json"), stem.with_name(stem.name + ".calibration.png")
 
 
 def _value(scene_dict: dict, name: str) -> float:
