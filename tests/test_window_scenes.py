@@ -177,7 +177,8 @@ def test_build_draws_its_randomised_share_at_seeds_no_default_scene_window_uses(
         asked["scene"] = (data, n, s)
         return [data / "a.cine"]
 
-    def rand(data: Path, scene: Scene, n: int, s: int) -> list[Path]:
+    def rand(data: Path, scene: Scene, n: int, s: int, chunk: int, world: object) -> list[Path]:
+        assert world is ws.vary  # no calibration's ranges: randomised around the scene itself
         asked["randomised"] = (data, n, s)
         return [data / "b.cine"]
 
@@ -191,7 +192,7 @@ def test_build_draws_its_randomised_share_at_seeds_no_default_scene_window_uses(
         patch.setattr(tw, "cached_examples", replayed)
         with pytest.raises(_Asked):
             tw.build(Path("models"), SCENE, Path("data"), windows, 1, seed, 0, randomised=randomised)
-    assert asked["scene"] == (Path("data"), windows - randomised, seed)
+    assert asked.get("scene") == ((Path("data"), windows - randomised, seed) if windows > randomised else None)
     if not randomised:
         assert "randomised" not in asked
         return
@@ -320,8 +321,8 @@ def test_randomised_windows_go_on_top_of_named_recordings_when_render_equals_ran
     named = tuple(Path(f"default-{k}.cine") for k in range(given_recordings))
     replayed: list[Path] = []
 
-    def rand(data: Path, scene: Scene, n: int, s: int) -> list[Path]:
-        assert n == randomised and s == seed + tw.RANDOMISED_SEEDS
+    def rand(data: Path, scene: Scene, n: int, s: int, chunk: int, world: object) -> list[Path]:
+        assert n == randomised and s == seed + tw.RANDOMISED_SEEDS and world is ws.vary
         return [data / "r.cine"]
 
     def replay(path: Path, scene: Scene, models: Path) -> Path:
@@ -339,3 +340,73 @@ def test_randomised_windows_go_on_top_of_named_recordings_when_render_equals_ran
         with pytest.raises(_Asked):
             tw.build(Path("models"), SCENE, Path("data"), randomised, 1, seed, 0, named, randomised=randomised)
     assert replayed == [*named, Path("data") / "randomised" / "r.cine"]
+
+
+#: A calibration's open ranges (the rough fluid B's report: docs/calibration.md).
+OPEN = {"fluid.roughness": (0.097, 0.254), "light.angle_deg": (4.0, 10.15), "camera.elevation_deg": (-36.6, -33.6)}
+
+
+@settings(max_examples=20, deadline=None)
+@given(windows=st.integers(1, 3000), share=st.floats(0, 1), seed=st.integers(0, 10**6))
+def test_build_over_open_ranges_renders_every_training_window_from_a_world_drawn_over_them(
+    windows: int, share: float, seed: int
+) -> None:
+    """With a calibration's ``ranges``, the scene's own training windows come in chunks of
+    :data:`training.window.RANGE_CHUNK`, a world drawn over the ranges per recording, at the scene's own seeds (in a
+    folder of their own); the randomised ones are randomised around such draws; none is of the scene itself."""
+    randomised = int(share * windows)
+    asked: dict[str, tuple] = {}
+
+    def rand(data: Path, scene: Scene, n: int, s: int, chunk: int, world: object) -> list[Path]:
+        asked[data.name] = (n, s, chunk, world)
+        return [data / "r.cine"]
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(tw, "render_mix", lambda *a, **k: pytest.fail("rendered a window of the scene itself"))
+        patch.setattr(ws, "render_randomised", rand)
+        patch.setattr(tw, "cached_examples", lambda *a: (_ for _ in ()).throw(_Asked()))
+        with pytest.raises(_Asked):
+            tw.build(Path("models"), SCENE, Path("data"), windows, 1, seed, 0, randomised=randomised, ranges=OPEN)
+    if windows > randomised:
+        n, s, chunk, world = asked.pop("over-ranges")
+        assert (n, s, chunk) == (windows - randomised, seed, tw.RANGE_CHUNK) and world is not ws.vary
+        scene, effects = world(SCENE, noise_preset("lab", 12), np.random.default_rng(seed))
+        assert effects == noise_preset("lab", 12) and 4.0 <= scene.light.angle_deg <= 10.15
+        assert scene.light.azimuth_deg == SCENE.light.azimuth_deg  # identified: the calibrated value
+    if randomised:
+        n, s, _, world = asked.pop("randomised")
+        assert (n, s) == (randomised, seed + tw.RANDOMISED_SEEDS) and world is not ws.vary
+    assert not asked
+
+
+@settings(max_examples=30, deadline=None)
+@given(windows=st.integers(0, 400), randomised=st.integers(0, 400), seed=st.integers(0, 10**6))
+def test_calibration_windows_over_open_ranges_come_from_worlds_at_seeds_no_other_window_uses(
+    windows: int, randomised: int, seed: int
+) -> None:
+    """With a calibration's ``ranges``, the scene's own calibration windows of each camera come from
+    :data:`training.window.CALIBRATION_WORLDS` worlds drawn over them, as the randomised ones do, and no two
+    recordings, of calibration or training (:func:`training.window.render_mix` at the scene's seeds, as each
+    chunk of :func:`training.window_scenes.render_randomised` is), share a seed."""
+    asked: list[tuple[int, int, str, object]] = []
+
+    def render(
+        folder: Path, scene: Scene, n: int, s: int, motion: object, name: str, bits: int, vary: object = None
+    ) -> list[Path]:
+        asked.append((n, s, name, vary))
+        return [folder / f"{name}-{noise}-{s + k}.cine" for k, noise in enumerate(tw.TRAINING_NOISE)]
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(tw, "render_training", render)
+        tw.render_calibration(Path("data"), SCENE, windows, seed, randomised, OPEN)
+    own = [(n, v) for n, _, name, v in asked if not name.startswith("calibrate-randomised")]
+    assert sum(n for n, _ in own) == 2 * windows and len(own) <= 2 * tw.CALIBRATION_WORLDS
+    assert all(v is not None and v is not ws.vary for _, v in own)
+    used = [s + k for _, s, *_ in asked for k in range(len(tw.TRAINING_NOISE))]
+    mix = {
+        o + k
+        for o in (0, tw.EIGHT_BIT_SEEDS, tw.NOMINAL_SEEDS, tw.NOMINAL_SEEDS + tw.EIGHT_BIT_SEEDS)
+        for k in (0, 1, 2)
+    }
+    assert len(used) == len(set(used)) and not {seed + m for m in mix} & set(used)
+    assert all(s < seed + ws.CHUNK_SEEDS for s in used)  # below the second chunk of training windows

@@ -104,7 +104,9 @@ def over_ranges(ranges: Mapping[str, tuple[float, float]]) -> Vary:
 
 
 def around(ranges: Mapping[str, tuple[float, float]]) -> Vary:
-    """A recording's world randomised (:func:`vary`) around the scene with ``ranges`` drawn first."""
+    """A recording's world randomised (:func:`vary`) around the scene with ``ranges`` drawn first (none: :func:`vary`)."""
+    if not ranges:
+        return vary
 
     def vary_around(scene: Scene, effects: CameraEffects, rng: np.random.Generator) -> tuple[Scene, CameraEffects]:
         return vary(drawn_over(scene, ranges, rng), effects, rng)
