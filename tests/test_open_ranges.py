@@ -126,10 +126,26 @@ def test_train_renders_over_the_open_ranges_of_the_report_beside_its_scene(tmp_p
     args = ("train", "--scene", str(scene_path), "--lab-video", str(lab), "--quick", "--out")
     done = meniscope(*args, str(tmp_path / "m"))
     assert done.returncode == 0, done.stderr
-    assert "training over what the calibration left open: light.angle_deg 2-8\n" in done.stdout
+    assert "rendering over what the calibration left open: light.angle_deg 2-8\n" in done.stdout
     manifest = json.loads((tmp_path / "m" / "manifest.json").read_text())
     assert manifest["training"]["config"]["open_ranges"] == {"light.angle_deg": [2.0, 8.0]}
     assert json.loads((tmp_path / "m" / "window.json").read_text())["open_ranges"] == {"light.angle_deg": [2.0, 8.0]}
     report.write_text("{")
     done = meniscope(*args, str(tmp_path / "m2"))
     assert done.returncode == 2 and done.stderr.count("\n") == 1 and "S.calibration.json" in done.stderr
+
+
+def test_a_dataset_for_a_calibrated_scene_is_rendered_over_its_open_ranges(tmp_path: Path) -> None:
+    """`meniscope dataset` reads the report beside its scene as `train` does and keeps the ranges in its manifest;
+    `--no-open-ranges` renders at the calibrated values."""
+    scene_path = tmp_path / "S.json"
+    shutil.copy(DEFAULT_SCENE, scene_path)
+    row = {"name": "fluid.roughness", "identified": False, "range": [0.03, 0.12]}
+    report_paths(scene_path)[0].write_text(json.dumps(_report(SCENE, [row])))
+    for flag, expected in (("--open-ranges", {"fluid.roughness": [0.03, 0.12]}), ("--no-open-ranges", {})):
+        out = tmp_path / flag
+        done = meniscope("dataset", "--scene", str(scene_path), "--samples", "64", "--out", str(out), flag)
+        assert done.returncode == 0, done.stderr
+        assert ("left open: fluid.roughness 0.03-0.12" in done.stdout) == bool(expected)
+        manifest = json.loads((out / "manifest.json").read_text())
+        assert manifest["config"]["jitter"]["open_ranges"] == expected

@@ -85,6 +85,29 @@ def _render_options(p: argparse.ArgumentParser, seed: int) -> None:
     p.add_argument("--bit-depth", type=int, default=8, help="stored bits: 8 (uint8) or 10, 12, 16 (uint16); default 8")
 
 
+def _open_ranges_option(p: argparse.ArgumentParser, what: str) -> None:
+    """``--open-ranges``: render over what the scene's calibration left open (its report beside it)."""
+    p.add_argument(
+        "--open-ranges",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help=f"where SCENE.calibration.json lies beside the scene (made for it by `meniscope calibrate`), render "
+        f"{what} with each parameter it leaves open drawn over its range, not at the one value the calibration "
+        "wrote (default: on; docs/calibration.md)",
+    )
+
+
+def _open_ranges(args: argparse.Namespace, scene: Scene) -> dict[str, tuple[float, float]]:
+    """The open ranges ``--open-ranges`` asks for (none without a report made for ``scene``), said in a line."""
+    from service.calibration.open_ranges import beside
+
+    ranges = beside(args.scene, scene) if args.open_ranges else {}
+    if ranges:
+        spans = ", ".join(f"{name} {lo:.4g}-{hi:.4g}" for name, (lo, hi) in ranges.items())
+        print(f"rendering over what the calibration left open: {spans}")
+    return ranges
+
+
 def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
         "dataset",
@@ -93,6 +116,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "memory-mappable folder: frames.npy, coeffs.npy, centre.npy, manifest.json.",
     )
     _render_options(p, seed=0)
+    _open_ranges_option(p, "the frames")
     p.set_defaults(func=run, index=False)
 
     p = subparsers.add_parser(
@@ -103,6 +127,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "20,000 and 100,000 renders.",
     )
     _render_options(p, seed=1)
+    _open_ranges_option(p, "the frames")
     p.set_defaults(func=run, index=True)
 
     p = subparsers.add_parser(
@@ -138,14 +163,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "network sizes, e.g. models/default) with a fifth of the renders and a quarter of the epochs",
     )
     p.add_argument("--quick", action="store_true", help="a run of seconds for tests; its models are not useful")
-    p.add_argument(
-        "--open-ranges",
-        action=argparse.BooleanOptionalAction,
-        default=True,
-        help="where SCENE.calibration.json lies beside the scene (made for it by `meniscope calibrate`), render "
-        "the training frames and windows with each parameter it leaves open drawn over its range, not at the one "
-        "value the calibration wrote (default: on; docs/calibration.md)",
-    )
+    _open_ranges_option(p, "the training frames and windows")
     p.add_argument(
         "--window-windows",
         type=int,
@@ -183,16 +201,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def run_train(args: argparse.Namespace) -> int:
     from dataclasses import replace
 
-    from service.calibration.open_ranges import beside
     from service.scene import Scene
     from training.normalise import downsample_factor  # torch loads only when the verb runs
     from training.train import TrainConfig, train_models
 
     scene = Scene.load(args.scene)
-    ranges = beside(args.scene, scene) if args.open_ranges else {}
-    if ranges:
-        spans = ", ".join(f"{name} {lo:.4g}-{hi:.4g}" for name, (lo, hi) in ranges.items())
-        print(f"training over what the calibration left open: {spans}")
+    ranges = _open_ranges(args, scene)
     if args.quick:
         config = replace(TrainConfig.quick(), init=None if args.init is None else str(args.init))
     else:
@@ -264,12 +278,18 @@ def run(args: argparse.Namespace) -> int:
     from pydantic import ValidationError
 
     from service.scene import Scene
-    from training.dataset import DatasetConfig, generate  # the renderer loads only when the verb runs
+    from training.dataset import DatasetConfig, Jitter, generate  # the renderer loads only when the verb runs
 
     scene = Scene.load(args.scene)
+    jitter = Jitter(open_ranges=_open_ranges(args, scene))
     try:
         config = DatasetConfig(
-            scene=scene, samples=args.samples, seed=args.seed, chunk_size=args.chunk_size, bit_depth=args.bit_depth
+            scene=scene,
+            samples=args.samples,
+            seed=args.seed,
+            chunk_size=args.chunk_size,
+            bit_depth=args.bit_depth,
+            jitter=jitter,
         )
     except ValidationError as exc:
         err = exc.errors()[0]
