@@ -110,8 +110,8 @@ def test_no_open_range_draws_nothing() -> None:
 
 @pytest.mark.slow
 def test_train_renders_over_the_open_ranges_of_the_report_beside_its_scene(tmp_path: Path) -> None:
-    """`meniscope train --scene S` with S.calibration.json beside it (made for S) says what it trains over, keeps
-    it in the dataset's jitter and the window model's record; a broken report stops it in one line."""
+    """`meniscope train --scene S --open-ranges` with S.calibration.json beside it (made for S) says what it trains
+    over, keeps it in the dataset's jitter and the window model's record; a broken report stops it in one line."""
     pytest.importorskip("torch", reason="training needs the train extra (torch)")
     scene_path, lab = tmp_path / "S.json", tmp_path / "lab.cine"
     shutil.copy(DEFAULT_SCENE, scene_path)
@@ -123,7 +123,7 @@ def test_train_renders_over_the_open_ranges_of_the_report_beside_its_scene(tmp_p
     report.write_text(json.dumps(_report(SCENE, rows)))
     done = meniscope("simulate", "--out", str(lab), "--windows", "3", "--seed", "1")
     assert done.returncode == 0, done.stderr
-    args = ("train", "--scene", str(scene_path), "--lab-video", str(lab), "--quick", "--out")
+    args = ("train", "--scene", str(scene_path), "--lab-video", str(lab), "--quick", "--open-ranges", "--out")
     done = meniscope(*args, str(tmp_path / "m"))
     assert done.returncode == 0, done.stderr
     assert "rendering over what the calibration left open: light.angle_deg 2-8\n" in done.stdout
@@ -136,15 +136,15 @@ def test_train_renders_over_the_open_ranges_of_the_report_beside_its_scene(tmp_p
 
 
 def test_a_dataset_for_a_calibrated_scene_is_rendered_over_its_open_ranges(tmp_path: Path) -> None:
-    """`meniscope dataset` reads the report beside its scene as `train` does and keeps the ranges in its manifest;
-    `--no-open-ranges` renders at the calibrated values."""
+    """`meniscope dataset --open-ranges` reads the report beside its scene as `train` does and keeps the ranges in
+    its manifest; by default it renders at the calibrated values."""
     scene_path = tmp_path / "S.json"
     shutil.copy(DEFAULT_SCENE, scene_path)
     row = {"name": "fluid.roughness", "identified": False, "range": [0.03, 0.12]}
     report_paths(scene_path)[0].write_text(json.dumps(_report(SCENE, [row])))
-    for flag, expected in (("--open-ranges", {"fluid.roughness": [0.03, 0.12]}), ("--no-open-ranges", {})):
-        out = tmp_path / flag
-        done = meniscope("dataset", "--scene", str(scene_path), "--samples", "64", "--out", str(out), flag)
+    for flags, expected in ((["--open-ranges"], {"fluid.roughness": [0.03, 0.12]}), ([], {})):
+        out = tmp_path / f"d{len(flags)}"
+        done = meniscope("dataset", "--scene", str(scene_path), "--samples", "64", "--out", str(out), *flags)
         assert done.returncode == 0, done.stderr
         assert ("left open: fluid.roughness 0.03-0.12" in done.stdout) == bool(expected)
         manifest = json.loads((out / "manifest.json").read_text())

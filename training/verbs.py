@@ -90,10 +90,11 @@ def _open_ranges_option(p: argparse.ArgumentParser, what: str) -> None:
     p.add_argument(
         "--open-ranges",
         action=argparse.BooleanOptionalAction,
-        default=True,
+        default=False,
         help=f"where SCENE.calibration.json lies beside the scene (made for it by `meniscope calibrate`), render "
         f"{what} with each parameter it leaves open drawn over its range, not at the one value the calibration "
-        "wrote (default: on; docs/calibration.md)",
+        "wrote (default: off: on the rough fluid B it cost the offset more than it won on the amplitude; "
+        "docs/calibration.md)",
     )
 
 
