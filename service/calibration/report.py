@@ -133,7 +133,7 @@ def document(cal: Calibration, footage: Footage) -> dict[str, Any]:
             "read_noise_dn": cal.noise.read_noise_fraction * top,
             "static_pixels": cal.noise.pixels,
             "shot_noise_seen": cal.noise.full_well_e > 0,
-            "identified": cal.noise.measured(top),
+            "identified": cal.noise.identified,
         },
         "artifacts": {
             "found": cal.spheres_found,
