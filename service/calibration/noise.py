@@ -4,8 +4,9 @@ Outside the bore nothing moves, so a static pixel's spread over time is the came
 ``var = read^2 + (mean - black) / full_well`` in fractions of full scale (shot noise grows with the
 signal, read noise does not; a quantisation step adds 1/12 of a step squared). Under a couple of steps of noise
 (an 8-bit camera's) that last term is not exact: still pixels whose levels sit near a rounding boundary split their
-samples between two levels whatever the noise, and the variance line went 6x wrong on such a camera. There the
-noise is fitted to the pixels' own levels instead: the likelihood of the rounded Gaussian (:func:`fit_rounded`).
+samples between two levels whatever the noise, and the variance line goes far wrong on such a camera
+(docs/calibration.md). There the noise is fitted to the pixels' own levels instead: the likelihood of the rounded
+Gaussian (:func:`fit_rounded`).
 """
 
 from __future__ import annotations
