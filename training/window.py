@@ -331,7 +331,7 @@ def render_calibration(
     simulator's nominal motion, at seeds from ``seed + CALIBRATION_SEEDS`` on that no training window uses; and
     ``randomised`` more per preset and camera from :data:`CALIBRATION_WORLDS` scenes randomised around ``scene``
     (:func:`training.window_scenes.vary`), at seeds from ``seed + RANDOMISED_CALIBRATION_SEEDS``. ``ranges``: the
-    parameters a calibration left open, drawn over their ranges (:func:`training.window_scenes.drawn_over`) in
+    parameters a calibration left open, drawn over their ranges (:func:`service.calibration.open_ranges.drawn_over`) in
     every window's world, the scene's own windows then from :data:`CALIBRATION_WORLDS` worlds too."""
     from training.window_scenes import around, over_ranges
 
@@ -388,13 +388,13 @@ def build(
         )
     from training.window_scenes import around, over_ranges, render_randomised
 
-    own = windows - randomised
-    if ranges and own:
-        recordings = tuple(recordings) + tuple(
+    own, recordings = windows - randomised, tuple(recordings)
+    if own:
+        recordings += tuple(
             render_randomised(data / "over-ranges", scene, own, seed, RANGE_CHUNK, over_ranges(ranges))
+            if ranges
+            else render_mix(data, scene, own, seed)
         )
-    elif own:
-        recordings = tuple(recordings) + tuple(render_mix(data, scene, own, seed))
     if randomised:
         world = around(ranges or {})
         recordings += tuple(
