@@ -123,3 +123,25 @@ def test_the_linear_fit_is_least_squares_for_any_design(columns, log_scale, coll
     ours = np.linalg.norm(y - design @ coefficients)
     best = np.linalg.norm(y - design @ np.linalg.lstsq(design, y, rcond=None)[0])
     assert ours <= best * (1 + 1e-8) + 1e-12 * np.linalg.norm(y)
+
+
+@settings(max_examples=80, deadline=None)
+@given(
+    w=st.tuples(st.floats(1e-3, 3.1), st.floats(1e-3, 3.1)),
+    g=st.tuples(st.floats(0.0, 0.2), st.floats(0.0, 0.2)),
+    phi=st.tuples(st.floats(-np.pi, np.pi), st.floats(-np.pi, np.pi)),
+    gaps=st.lists(st.integers(1, 189), max_size=12),
+)
+def test_the_stepped_modes_are_the_direct_exponentials_and_cosines(w, g, phi, gaps):
+    """The polynomial's modes and their derivatives, stepped one complex product a sample (restarting after each
+    gap), are exp(-g n) cos(w n + phi) and its derivatives computed directly, to round-off, at any frequency up to
+    Nyquist, decay up to e-fold in five samples and phase."""
+    n = np.delete(np.arange(N, dtype=np.float64), gaps)
+    theta = np.array([w[0], g[0], phi[0], w[1], g[1], phi[1]])
+    y = np.random.default_rng(0).standard_normal(n.size)
+    *_, power, dx = products._linear(n, y, theta, products._I, products._J)
+    for k in range(2):
+        envelope, angle = np.exp(-g[k] * n), w[k] * n + phi[k]
+        x, sine = envelope * np.cos(angle), -envelope * np.sin(angle)
+        np.testing.assert_allclose(power[k, 1], x, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(dx[k], [n * sine, -n * x, sine], rtol=0, atol=1e-9)

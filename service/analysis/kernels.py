@@ -63,7 +63,7 @@ def _advance(
 
 
 @njit(**_JIT)
-def _oscillations(n: np.ndarray, params: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def oscillations(n: np.ndarray, params: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """exp(-g t) cos(w t) and exp(-g t) sin(w t) of each mode at each sample, (N, M) each.
 
     Consecutive samples step by one complex product, z(t + 1) = z(t) exp(-g + i w), instead of an exp, a cos and a sin
@@ -109,7 +109,7 @@ def _soft_l1(r: float, scale: float) -> tuple[float, float]:
 @njit(**_JIT)
 def columns(n: np.ndarray, params: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Model (N,) and Jacobian (N, 2 + 4 M) at ``params`` (columns as :func:`_sample` writes them)."""
-    cosines, sines = _oscillations(n, params)
+    cosines, sines = oscillations(n, params)
     model = np.empty(n.size)
     jac = np.empty((n.size, params.size))
     for i in range(n.size):
@@ -137,7 +137,7 @@ def _weighted(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Residuals as minimised (N,) and their Jacobian (N, k), each column times ``chain`` (k,), in one pass over
     the samples: the search's inner loop (one evaluation of LM), so nothing is allocated per sample; the modes'
-    damped cosines and sines stepped as :func:`_oscillations` steps them (the same bits), sample by sample."""
+    damped cosines and sines stepped as :func:`oscillations` steps them (the same bits), sample by sample."""
     step_c, step_s = _steps(params)
     cosine, sine = np.empty(step_c.size), np.empty(step_c.size)
     r = np.empty(n.size)

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
-from service.analysis.kernels import damped_solve
+from service.analysis.kernels import BASE, PER_MODE, damped_solve, oscillations
 from service.analysis.student import t_quantile
 
 #: Degree of F's Taylor polynomial in (x1, x2): the highest of 2, 3 and 4 was the closest on Blender Cycles (docs).
@@ -117,15 +117,17 @@ def _linear(
     factor, scales and whether the factor serves, the coefficients (M + 1,), the powers x_k^e (2, E, N) and dx_k / d(w_k, g_k, phi_k)
     (2, 3, N)."""
     size, monomials = n.size, first.size
-    x = np.empty((2, size))
-    dx = np.empty((2, 3, size))  # dx_k / d(w_k, g_k, phi_k) = (-n e sin, -n x, -e sin)
+    poles = np.zeros(BASE + 2 * PER_MODE)  # the modes' w and g in the window fit's layout, for its stepped cosines
     for k in range(2):
-        w, g, phi = theta[3 * k], theta[3 * k + 1], theta[3 * k + 2]
+        poles[BASE + PER_MODE * k + 2], poles[BASE + PER_MODE * k + 3] = theta[3 * k], theta[3 * k + 1]
+    cosines, sines = oscillations(n, poles)  # e cos(w n), e sin(w n): a complex product a sample, not exp, cos, sin
+    x = np.empty((2, size))
+    dx = np.empty((2, 3, size))  # dx_k / d(w_k, g_k, phi_k) = (-n e sin, -n x, -e sin), angle w n + phi
+    for k in range(2):
+        cos_phi, sin_phi = np.cos(theta[3 * k + 2]), np.sin(theta[3 * k + 2])
         for i in range(size):
-            envelope = np.exp(-g * n[i])
-            angle = w * n[i] + phi
-            x[k, i] = envelope * np.cos(angle)
-            dx[k, 2, i] = -envelope * np.sin(angle)
+            x[k, i] = cosines[i, k] * cos_phi - sines[i, k] * sin_phi
+            dx[k, 2, i] = -(sines[i, k] * cos_phi + cosines[i, k] * sin_phi)
             dx[k, 0, i] = n[i] * dx[k, 2, i]
             dx[k, 1, i] = -n[i] * x[k, i]
     top = max(first.max(), second.max())
