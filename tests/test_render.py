@@ -223,3 +223,19 @@ def test_bad_coefficients_are_a_clear_error(renderer: Renderer, bad: np.ndarray)
 def test_bad_settings_are_a_clear_error(scene: Scene) -> None:
     with pytest.raises(MeniscopeError, match="supersample"):
         Renderer(scene, supersample=0)
+
+
+def test_edge_rays_retrace_only_the_steep_pixels_and_bring_them_to_the_finer_grid(scene: Scene):
+    """With ``edge_supersample`` each frame's pixels that step sharply to a neighbour are traced again with more rays:
+    every other pixel is the 2 x 2 frame's, bit for bit, and the frame as a whole comes closer to 8 x 8 rays
+    everywhere (what a camera's pixel integrates), at most by the steep pixels' own differences."""
+    from service.render.renderer import EDGE_STEP, steep_pixels
+
+    coeffs = CoefficientRanges().sample(12, np.random.default_rng(5))
+    coarse = Renderer(scene, supersample=2).render(coeffs)
+    edges = Renderer(scene, supersample=2, edge_supersample=8).render(coeffs)
+    fine = Renderer(scene, supersample=8).render(coeffs)
+    steep = steep_pixels(coarse, EDGE_STEP)
+    assert steep.any()
+    np.testing.assert_array_equal(edges[~steep], coarse[~steep])
+    assert np.abs(edges - fine).sum() < 0.5 * np.abs(coarse - fine).sum()

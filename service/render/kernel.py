@@ -270,6 +270,7 @@ def trace(
     reach_start,
     reach_scale,
     min_cos_view,
+    only,
     out,
 ):  # pragma: no cover - compiled
     """Write the pixels the fluid can touch into the frames ``out`` (F, H W) (float32, holding the static
@@ -280,7 +281,8 @@ def trace(
     candidate ray m (origin ``ray_o`` (M, 3), direction ``ray_d`` (M, 3), ``terms`` (M, 6):
     A, B, C, oz, dz, dh; bore interval ``enter``/``leave`` (M,); ``static`` radiance (M,);
     ``slot`` (M,): its pixel's index in ``touched``), a hit adds ``(L - static) * inv_samples`` to that pixel. ``suns`` (J, 3);
-    ``spheres`` (K, 4) with ``intensity`` (K,); ``reach`` (M, I, K) int16 in REACH_UNIT.
+    ``spheres`` (K, 4) with ``intensity`` (K,); ``reach`` (M, I, K) int16 in REACH_UNIT. ``only`` (F, P) bool: per
+    frame, the touched pixels to trace and write, the others left as ``out`` holds them; (0, 0): every one.
     """
     n_frames, n_rays = out.shape[0], terms.shape[0]
     a2 = alpha * alpha
@@ -296,7 +298,10 @@ def trace(
         frame[:] = static_touched
         zl, zh, slope_f = z_low[f], z_high[f], max_slope[f]
         centre, k_chord = _chord(coeffs, f, radius)
+        chosen = only.shape[0] > 0
         for m in range(n_rays):
+            if chosen and not only[f, slot[m]]:
+                continue
             s = _first_hit(
                 f,
                 terms[m, 0],
@@ -409,4 +414,5 @@ def trace(
                         )
             frame[slot[m]] += (radiance - static[m]) * inv_samples
         for q in range(frame.shape[0]):
-            out[f, touched[q]] = min(max(exposure * frame[q], 0.0), 1.0)
+            if not chosen or only[f, q]:
+                out[f, touched[q]] = min(max(exposure * frame[q], 0.0), 1.0)

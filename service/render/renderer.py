@@ -48,6 +48,22 @@ FAINTEST = 5e-4
 CULL_MIN_COS_VIEW = 0.25
 #: Points along each ray (intervals + 1) at which it is decided which spheres can light it.
 CULL_SAMPLES = 33
+#: A pixel stepping by over this (of full scale) to a neighbour holds detail finer than its rays: with
+#: ``edge_supersample`` it is traced again. On H's Cycles frames at 2 x 2 rays, the ~4 % of pixels over 0.1 held 95 %
+#: of what 8 x 8 rays changed.
+EDGE_STEP = 0.1
+
+
+def steep_pixels(frames: np.ndarray, step: float) -> np.ndarray:
+    """Pixels of ``frames`` (F, H, W) that differ by over ``step`` from a 4-neighbour, (F, H, W) bool."""
+    steep = np.zeros(frames.shape, np.bool_)
+    rows = np.abs(np.diff(frames, axis=1)) > step
+    cols = np.abs(np.diff(frames, axis=2)) > step
+    steep[:, 1:] |= rows
+    steep[:, :-1] |= rows
+    steep[:, :, 1:] |= cols
+    steep[:, :, :-1] |= cols
+    return steep
 
 
 @dataclass(frozen=True)
@@ -69,7 +85,11 @@ class Renderer:
     ``supersample``: rays per pixel along each axis; ``sun_samples``: directions over the sun's
     disc for the fluid; ``threads``: frames traced at once (default: one per CPU);
     ``batch_frames``: frames per call of the kernel (bounds the per-frame tables' memory);
-    ``static_sun_samples``: sun directions for the static scene (fewer build faster, as calibration needs).
+    ``static_sun_samples``: sun directions for the static scene (fewer build faster, as calibration needs);
+    ``edge_supersample``: where > 0, each frame's fluid pixels that step by over :data:`EDGE_STEP` to a neighbour
+    (a highlight's edge, the bore's shadow, a glint: what ``supersample`` rays point-sample) traced again with that
+    many rays per axis, as a camera's pixel integrates them (docs/calibration.md, "The sun's angle and the
+    renderer's rays per pixel").
     """
 
     def __init__(
@@ -80,6 +100,7 @@ class Renderer:
         threads: int | None = None,
         batch_frames: int = 256,
         static_sun_samples: int = STATIC_SUN_SAMPLES,
+        edge_supersample: int = 0,
     ) -> None:
         for name, value in (
             ("supersample", supersample),
@@ -121,6 +142,11 @@ class Renderer:
             self._spheres[:, 3], scene.sphere_material.reflectance, scene.light.strength
         )
         self._reach, self._reach_start, self._reach_scale = self._sphere_reach()
+        self._edges = (
+            Renderer(scene, edge_supersample, sun_samples, threads, batch_frames, static_sun_samples)
+            if edge_supersample
+            else None
+        )
 
     # ---- public -------------------------------------------------------------------------------
     def render(self, coeffs: ArrayLike) -> np.ndarray:
@@ -171,10 +197,19 @@ class Renderer:
             yield
 
     def _render_batch(self, coeffs: np.ndarray, out: np.ndarray) -> None:
-        """Trace the fluid for frames (F, 4) and write the frames (F, H, W) into ``out``."""
-        n_frames = coeffs.shape[0]
-        out.reshape(n_frames, -1)[:] = self._static_frame
+        """Trace the fluid for frames (F, 4) and write the frames (F, H, W) into ``out``; with edge rays, its steep
+        pixels traced again with them."""
+        out.reshape(coeffs.shape[0], -1)[:] = self._static_frame
         prof = Profiles.build(coeffs, self.scene.nozzle.radius_mm)
+        self._trace(coeffs, prof, np.zeros((0, 0), np.bool_), out)
+        if self._edges is not None:
+            steep = steep_pixels(out, EDGE_STEP).reshape(coeffs.shape[0], -1)[:, self._edges._touched]
+            self._edges._trace(coeffs, prof, steep, out)
+
+    def _trace(self, coeffs: np.ndarray, prof: Profiles, only: np.ndarray, out: np.ndarray) -> None:
+        """The fluid's pixels of frames (F, 4) traced into ``out`` (F, H, W), holding the static frame there (or,
+        where ``only`` (F, P) picks among the touched pixels, the frame as it stands)."""
+        n_frames = coeffs.shape[0]
         nz, fluid = self.scene.nozzle, self.scene.fluid
         with self._launch():
             kernel.trace(
@@ -211,6 +246,7 @@ class Renderer:
                 self._reach_start,
                 self._reach_scale,
                 CULL_MIN_COS_VIEW,
+                only,
                 out.reshape(n_frames, -1),
             )
 
