@@ -227,8 +227,8 @@ def test_bad_settings_are_a_clear_error(scene: Scene) -> None:
 
 def test_edge_rays_retrace_only_the_steep_pixels_and_bring_them_to_the_finer_grid(scene: Scene):
     """With ``edge_supersample`` each frame's pixels that step sharply to a neighbour are traced again with more rays:
-    every other pixel is the 2 x 2 frame's, bit for bit, and the frame as a whole comes closer to 8 x 8 rays
-    everywhere (what a camera's pixel integrates), at most by the steep pixels' own differences."""
+    every other pixel is the 2 x 2 frame's, bit for bit, and the frame is less than half as far from 8 x 8 rays (what
+    a camera's pixel integrates) as the 2 x 2 frame is."""
     from service.render.renderer import EDGE_STEP, steep_pixels
 
     coeffs = CoefficientRanges().sample(12, np.random.default_rng(5))
