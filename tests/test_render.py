@@ -227,15 +227,39 @@ def test_bad_settings_are_a_clear_error(scene: Scene) -> None:
 
 def test_edge_rays_retrace_only_the_steep_pixels_and_bring_them_to_the_finer_grid(scene: Scene):
     """With ``edge_supersample`` each frame's pixels that step sharply to a neighbour are traced again with more rays:
-    every other pixel is the 2 x 2 frame's, bit for bit, and the frame is less than half as far from 8 x 8 rays (what
-    a camera's pixel integrates) as the 2 x 2 frame is."""
-    from service.render.renderer import EDGE_STEP, steep_pixels
+    every pixel of weight 0 is the 2 x 2 frame's, bit for bit, the fluid's pixels of weight 1 are the 8 x 8 frame's
+    (the static scene's are not traced again), and the frame is less than half as far from 8 x 8 rays (what a
+    camera's pixel integrates) as the 2 x 2 frame is."""
+    from service.render.renderer import EDGE_STEP, edge_weight
 
     coeffs = CoefficientRanges().sample(12, np.random.default_rng(5))
     coarse = Renderer(scene, supersample=2).render(coeffs)
     edges = Renderer(scene, supersample=2, edge_supersample=8).render(coeffs)
-    fine = Renderer(scene, supersample=8).render(coeffs)
-    steep = steep_pixels(coarse, EDGE_STEP)
-    assert steep.any()
-    np.testing.assert_array_equal(edges[~steep], coarse[~steep])
+    finer = Renderer(scene, supersample=8)
+    fine = finer.render(coeffs)
+    weight = edge_weight(coarse, EDGE_STEP)
+    fluid = np.zeros(coarse.shape[1:], np.bool_)
+    fluid.flat[finer.fluid_rays.pixel] = True
+    whole = (weight == 1) & fluid
+    assert whole.any() and ((weight > 0) & (weight < 1)).any()
+    np.testing.assert_array_equal(edges[weight == 0], coarse[weight == 0])
+    np.testing.assert_allclose(edges[whole], fine[whole], atol=1e-6)
     assert np.abs(edges - fine).sum() < 0.5 * np.abs(coarse - fine).sum()
+
+
+@settings(max_examples=30, deadline=None)
+@given(
+    st.floats(0.01, 0.5),
+    st.integers(0, 2**32 - 1),
+)
+def test_edge_weight_rises_from_half_the_step_to_the_step(step: float, seed: int):
+    """A pixel's weight is 0 where its largest step to a 4-neighbour is at most half of ``step``, 1 from ``step`` on,
+    linear between: two pixels whose steps differ little get weights that differ little."""
+    from service.render.renderer import edge_weight
+
+    frames = np.random.default_rng(seed).random((2, 6, 7)).astype(np.float32)
+    largest = np.zeros_like(frames)
+    padded = np.pad(frames, ((0, 0), (1, 1), (1, 1)), mode="edge")
+    for dr, dc in ((-1, 0), (1, 0), (0, -1), (0, 1)):
+        largest = np.maximum(largest, np.abs(padded[:, 1 + dr : 7 + dr, 1 + dc : 8 + dc] - frames))
+    np.testing.assert_allclose(edge_weight(frames, step), np.clip(2 * largest / step - 1, 0, 1), atol=1e-5)

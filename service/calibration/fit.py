@@ -51,17 +51,27 @@ DIFF_STEP = 0.05
 
 @dataclass(frozen=True)
 class Stage:
-    """One coarse-to-fine stage: the pyramid's blur levels (px), rays per pixel per axis, evaluations allowed."""
+    """One coarse-to-fine stage: the pyramid's blur levels (px), rays per pixel per axis, evaluations allowed, and
+    the rays per axis of the pixels where the frame steps sharply (0: none; ``Renderer``'s ``edge_supersample``)."""
 
     sigmas: tuple[float, ...]
     supersample: int
     max_evaluations: int
+    edge_supersample: int = 0
 
 
 #: Evaluations of the finest stage: 48 landed closer to the truth than 8 on a near-mirror's Blender video, in one
 #: run (docs/new_camera.md, "The finest stage run longer").
 FINEST_EVALUATIONS = 48
-SCHEDULE = (Stage((6.0, 3.0), 1, 10), Stage((3.0, 1.5), 1, 10), Stage((1.5, 0.7), 2, FINEST_EVALUATIONS))
+#: Edge rays on the finest level: point-sampled at 2 x 2, a highlight's edge, the bore's shadow and the glints made
+#: a sun twice too wide fit Blender Cycles' frames best (docs/calibration.md, "The sun's angle and the renderer's
+#: rays per pixel").
+EDGE_SUPERSAMPLE = 8
+SCHEDULE = (
+    Stage((6.0, 3.0), 1, 10),
+    Stage((3.0, 1.5), 1, 10),
+    Stage((1.5, 0.7), 2, FINEST_EVALUATIONS, EDGE_SUPERSAMPLE),
+)
 #: Fluid roughness (GGX alpha) of the extra starts: a near-mirror and a rough metal.
 START_ALPHAS = (0.004, 0.1)
 #: Starts carried through the finer stages, best first by their finest-level cost after the coarse stage; the lowest
@@ -420,13 +430,14 @@ def calibrate(
     from service.calibration.windows import choose, further, ridge
 
     began = time.perf_counter()
-    synth = Synthesis(supersample=schedule[0].supersample)
+    synth = Synthesis()
     # an explicit (ideal) sensor block to fit, and no artifact spheres: the guess's are not where the lab's are
     # (their glints would pull the fit), and a scene without them builds several times faster; they are found
     # at the end from the static image
     base = with_spheres(P.write(guess, P.read(guess)), np.zeros((0, 4)))
     scene, corner, score = locate(synth, base, footage)
     first, finest = schedule[0], schedule[-1]
+    synth.use(first)
     profiled = PROFILED if profiled is None else profiled
     light_directions = light_grid(guess) if light_directions is None else light_directions
     bar = tqdm(  # each start twice (coarse fit, finest score), the second ROI look, the light, the finer stages,
@@ -448,7 +459,7 @@ def calibrate(
         bar.update()
     # the coarse blur cannot tell a near-mirror from a rough metal (on Blender's near-mirror the three starts end
     # within 2.4 % of each other): each start's scene is scored on the finest level, its motion refitted there
-    synth.quality["supersample"] = finest.supersample
+    synth.use(finest)
     for cand in candidates:
         cand_scene, lab = cand[0], crop(footage.frames, cand[0])
         fine = Problem(synth, cand_scene, lab, finest.sigmas)
@@ -458,7 +469,7 @@ def calibrate(
         bar.update()
     starts = [c[2] for c in candidates]
     ranked = sorted(candidates, key=lambda c: c[2]["fine_cost"])[:carry]
-    synth.quality["supersample"] = first.supersample
+    synth.use(first)
     residual_before = rms_finest(
         synth,
         base,
@@ -471,7 +482,7 @@ def calibrate(
     bar.update()
     # the light's azimuth from the grid, scored with the best start's scene; the best `carry` starts each from there
     # through the finer stages (alpha and the light's angle trade there), the lowest final cost wins
-    synth.quality["supersample"] = finest.supersample
+    synth.use(finest)
     first_start = _with_roi(ranked[0][0], corner)
     aimed, ranked[0][2]["lights"] = aim(
         synth, first_start, crop(footage.frames, first_start), finest.sigmas, LIGHT, light_directions
@@ -482,7 +493,7 @@ def calibrate(
         scene = with_azimuth(_with_roi(cand_scene, corner), aimed)
         info["light"] = [scene.light.azimuth_deg, scene.light.elevation_deg]
         for stage in schedule[1:]:
-            synth.quality["supersample"] = stage.supersample
+            synth.use(stage)
             lab = crop(footage.frames, scene)
             problem = Problem(synth, scene, lab, stage.sigmas, footage.windows)
             fresh = motion_only(synth, scene, lab, stage.sigmas)

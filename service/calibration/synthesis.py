@@ -10,12 +10,16 @@ from __future__ import annotations
 
 import math
 from collections import OrderedDict
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
 
 from service.render import Renderer
 from service.scene import Scene
+
+if TYPE_CHECKING:
+    from service.calibration.fit import Stage
 
 #: Directions over the sun's disc for the fluid: a near-mirror's highlight is the disc's image, and a few
 #: directions would draw it as a few dots, which the fit would then explain with a smaller sun.
@@ -55,16 +59,31 @@ class Synthesis:
     expensive part; the sensor's blur and black level are applied afterwards and never need a new one)."""
 
     def __init__(
-        self, supersample: int = 1, sun_samples: int = SUN_SAMPLES, static_sun_samples: int = 8, keep: int = 3
+        self,
+        supersample: int = 1,
+        sun_samples: int = SUN_SAMPLES,
+        static_sun_samples: int = 8,
+        keep: int = 3,
+        edge_supersample: int = 0,
     ) -> None:
         self.quality = {
             "supersample": supersample,
             "sun_samples": sun_samples,
             "static_sun_samples": static_sun_samples,
+            "edge_supersample": edge_supersample,
         }
         self._cache: OrderedDict[str, Renderer] = OrderedDict()
         self.keep = keep
         self.builds = 0
+
+    @property
+    def rays(self) -> dict[str, int]:
+        """The rays per pixel renders are made with (``Renderer``'s ``supersample`` and ``edge_supersample``)."""
+        return {name: self.quality[name] for name in ("supersample", "edge_supersample")}
+
+    def use(self, stage: Stage) -> None:
+        """Render from now on with the rays of a coarse-to-fine ``stage``."""
+        self.quality.update(supersample=stage.supersample, edge_supersample=stage.edge_supersample)
 
     def renderer(self, scene: Scene) -> Renderer:
         """A renderer of ``scene`` (its sensor block aside), built or reused."""

@@ -86,7 +86,7 @@ def choose(
     residual RMS per window in stored units). ``each`` is called after every point."""
     first = points[0].scene
     library = Library(synth, first, sigmas)
-    renderer = Renderer(first, sun_samples=synthesis.SUN_SAMPLES, threads=None)
+    renderer = Renderer(first, sun_samples=synthesis.SUN_SAMPLES, threads=None, **synth.rays)
     starts = []
     for window in windows:
         frames = crop(window.frames, first)
@@ -97,7 +97,7 @@ def choose(
     each()
 
     def score(point: Point) -> dict:  # the windows through ``point``, each from where the first point's ended
-        renderer = Renderer(point.scene, sun_samples=synthesis.SUN_SAMPLES, threads=None)
+        renderer = Renderer(point.scene, sun_samples=synthesis.SUN_SAMPLES, threads=None, **synth.rays)
         rms = [
             synthesis.polish(renderer, crop(window.frames, point.scene), window.t, s.motion, s.blur_sigma_px).rms
             for window, s in zip(windows, starts)

@@ -49,21 +49,27 @@ CULL_MIN_COS_VIEW = 0.25
 #: Points along each ray (intervals + 1) at which it is decided which spheres can light it.
 CULL_SAMPLES = 33
 #: A pixel stepping by over this (of full scale) to a neighbour holds detail finer than its rays: with
-#: ``edge_supersample`` it is traced again (the few such pixels hold nearly all that finer rays change:
-#: docs/calibration.md).
+#: ``edge_supersample`` it takes the finer rays' value (the few such pixels hold nearly all that finer rays change:
+#: docs/calibration.md). Below it the two values are blended, linearly from ``EDGE_STEP / 2`` (none of the finer):
+#: a pixel's value then moves smoothly as a scene's change takes its step across the threshold, which the
+#: calibration's finite differences need.
 EDGE_STEP = 0.1
 
 
-def steep_pixels(frames: np.ndarray, step: float) -> np.ndarray:
-    """Pixels of ``frames`` (F, H, W) that differ by over ``step`` from a 4-neighbour, (F, H, W) bool."""
-    steep = np.zeros(frames.shape, np.bool_)
-    rows = np.abs(np.diff(frames, axis=1)) > step
-    cols = np.abs(np.diff(frames, axis=2)) > step
-    steep[:, 1:] |= rows
-    steep[:, :-1] |= rows
-    steep[:, :, 1:] |= cols
-    steep[:, :, :-1] |= cols
-    return steep
+def edge_weight(frames: np.ndarray, step: float) -> np.ndarray:
+    """How much of a finer-rayed value each pixel of ``frames`` (F, H, W) takes, (F, H, W) float32 in [0, 1]: its
+    largest step to a 4-neighbour, 0 at ``step / 2`` or below rising to 1 at ``step``."""
+    largest = np.zeros(frames.shape, np.float32)
+    rows = np.abs(np.diff(frames, axis=1))
+    cols = np.abs(np.diff(frames, axis=2))
+    for target, diff in (
+        (largest[:, 1:], rows),
+        (largest[:, :-1], rows),
+        (largest[:, :, 1:], cols),
+        (largest[:, :, :-1], cols),
+    ):
+        np.maximum(target, diff, out=target)
+    return np.clip(largest * np.float32(2.0 / step) - np.float32(1.0), 0.0, 1.0)
 
 
 @dataclass(frozen=True)
@@ -86,9 +92,9 @@ class Renderer:
     disc for the fluid; ``threads``: frames traced at once (default: one per CPU);
     ``batch_frames``: frames per call of the kernel (bounds the per-frame tables' memory);
     ``static_sun_samples``: sun directions for the static scene (fewer build faster, as calibration needs);
-    ``edge_supersample``: where > 0, each frame's fluid pixels that step by over :data:`EDGE_STEP` to a neighbour
-    (a highlight's edge, the bore's shadow, a glint: what ``supersample`` rays point-sample) traced again with that
-    many rays per axis, as a camera's pixel integrates them (docs/calibration.md, "The sun's angle and the
+    ``edge_supersample``: where > 0, each frame's fluid pixels that step sharply to a neighbour (a highlight's edge,
+    the bore's shadow, a glint: what ``supersample`` rays point-sample) traced again with that many rays per axis, as
+    a camera's pixel integrates them, and blended in by :func:`edge_weight` (docs/calibration.md, "The sun's angle and the
     renderer's rays per pixel").
     """
 
@@ -198,13 +204,15 @@ class Renderer:
 
     def _render_batch(self, coeffs: np.ndarray, out: np.ndarray) -> None:
         """Trace the fluid for frames (F, 4) and write the frames (F, H, W) into ``out``; with edge rays, its steep
-        pixels traced again with them."""
+        pixels traced again with them and blended in by :func:`edge_weight`."""
         out.reshape(coeffs.shape[0], -1)[:] = self._static_frame
         prof = Profiles.build(coeffs, self.scene.nozzle.radius_mm)
         self._trace(coeffs, prof, np.zeros((0, 0), np.bool_), out)
         if self._edges is not None:
-            steep = steep_pixels(out, EDGE_STEP).reshape(coeffs.shape[0], -1)[:, self._edges._touched]
-            self._edges._trace(coeffs, prof, steep, out)
+            weight = edge_weight(out, EDGE_STEP)
+            flat, finer = weight.reshape(coeffs.shape[0], -1), out.copy()
+            self._edges._trace(coeffs, prof, flat[:, self._edges._touched] > 0, finer)
+            out += weight * (finer - out)
 
     def _trace(self, coeffs: np.ndarray, prof: Profiles, only: np.ndarray, out: np.ndarray) -> None:
         """The fluid's pixels of frames (F, 4) traced into ``out`` (F, H, W), holding the static frame there (or,
