@@ -258,6 +258,7 @@ def trace(
     static_touched,
     exposure,
     suns,
+    sun_stride,
     alpha,
     reflectance,
     strength,
@@ -280,7 +281,9 @@ def trace(
     Per frame f (tables of :class:`service.render.meniscus.Profiles` as (F, T) arrays) and
     candidate ray m (origin ``ray_o`` (M, 3), direction ``ray_d`` (M, 3), ``terms`` (M, 6):
     A, B, C, oz, dz, dh; bore interval ``enter``/``leave`` (M,); ``static`` radiance (M,);
-    ``slot`` (M,): its pixel's index in ``touched``), a hit adds ``(L - static) * inv_samples`` to that pixel. ``suns`` (J, 3);
+    ``slot`` (M,): its pixel's index in ``touched``), a hit adds ``(L - static) * inv_samples`` to that pixel. ``suns`` (J, 3),
+    of which ray m shades with every ``sun_stride``-th from the (m mod ``sun_stride``)-th (the rays of a pixel share
+    the disc between them);
     ``spheres`` (K, 4) with ``intensity`` (K,); ``reach`` (M, I, K) int16 in REACH_UNIT. ``only`` (F, P) bool: per
     frame, the touched pixels to trace and write, the others left as ``out`` holds them; (0, 0): every one.
     """
@@ -322,6 +325,7 @@ def trace(
             )
             if math.isnan(s):
                 continue
+            own = suns[m % sun_stride :: sun_stride]
             # ---- the hit: normal from the smooth dD/du (Eq. 1), view towards the camera ----
             px, py, pz = ray_o[m, 0] + s * ray_d[m, 0], ray_o[m, 1] + s * ray_d[m, 1], ray_o[m, 2] + s * ray_d[m, 2]
             nx, ny, nz = _normal(f, px, py, slope, slope_step, r2)
@@ -340,7 +344,7 @@ def trace(
                 )
                 if math.isnan(q):
                     radiance = _sun(
-                        px, py, pz, nx, ny, nz, vx, vy, vz, n_v, g_v, suns, a2, r2, ro2, strength, reflectance
+                        px, py, pz, nx, ny, nz, vx, vy, vz, n_v, g_v, own, a2, r2, ro2, strength, reflectance
                     )
                 else:
                     qx, qy, qz = px + q * rx, py + q * ry, pz + q * rz
@@ -359,7 +363,7 @@ def trace(
                             -rz,
                             m_v,
                             _smith(m_v, a2),
-                            suns,
+                            own,
                             a2,
                             r2,
                             ro2,

@@ -94,8 +94,9 @@ class Renderer:
     ``static_sun_samples``: sun directions for the static scene (fewer build faster, as calibration needs);
     ``edge_supersample``: where > 0, each frame's fluid pixels that step sharply to a neighbour (a highlight's edge,
     the bore's shadow, a glint: what ``supersample`` rays point-sample) traced again with that many rays per axis, as
-    a camera's pixel integrates them, and blended in by :func:`edge_weight` (docs/calibration.md, "The sun's angle and the
-    renderer's rays per pixel").
+    a camera's pixel integrates them, and blended in by :func:`edge_weight` (docs/calibration.md, "The sun's angle and
+    the renderer's rays per pixel"); ``sun_stride``: each ray shades with every ``sun_stride``-th of the sun's
+    directions (a divisor of ``sun_samples``), the rays of a pixel taking turns (the edge rays take one each).
     """
 
     def __init__(
@@ -107,6 +108,7 @@ class Renderer:
         batch_frames: int = 256,
         static_sun_samples: int = STATIC_SUN_SAMPLES,
         edge_supersample: int = 0,
+        sun_stride: int = 1,
     ) -> None:
         for name, value in (
             ("supersample", supersample),
@@ -118,6 +120,9 @@ class Renderer:
                 raise MeniscopeError("renderer", f"{name} must be between 1 and 4096, got {value}")
         self.scene, self.supersample, self.batch_frames = scene, supersample, batch_frames
         self.sun_samples = sun_samples
+        if sun_stride < 1 or sun_samples % sun_stride:
+            raise MeniscopeError("renderer", f"sun_stride must divide sun_samples ({sun_samples}), got {sun_stride}")
+        self.sun_stride = sun_stride
         self.threads = max(1, threads if threads is not None else (os.cpu_count() or 1))
         cam, R = scene.camera, scene.nozzle.radius_mm
         self.shape = (cam.height_px, cam.width_px)
@@ -149,7 +154,15 @@ class Renderer:
         )
         self._reach, self._reach_start, self._reach_scale = self._sphere_reach()
         self._edges = (
-            Renderer(scene, edge_supersample, sun_samples, threads, batch_frames, static_sun_samples)
+            Renderer(
+                scene,
+                edge_supersample,
+                sun_samples,
+                threads,
+                batch_frames,
+                static_sun_samples,
+                sun_stride=sun_samples,  # one direction each, as Cycles draws one a sample: the shading was most of the cost
+            )
             if edge_supersample
             else None
         )
@@ -242,6 +255,7 @@ class Renderer:
                 self._static_touched,
                 self.scene.camera.exposure,
                 self._suns,
+                self.sun_stride,
                 fluid.roughness,
                 fluid.reflectance,
                 self.scene.light.strength,
