@@ -21,6 +21,7 @@ from service.calibration.fit import (
     Stage,
     calibrate,
     light_grid,
+    with_edge_rays,
 )
 from service.calibration.footage import STRIDE, read_footage
 from service.calibration.parameters import PARAMETERS
@@ -115,6 +116,25 @@ def test_a_light_8_deg_round_on_the_far_side_of_the_camera_plane_is_found(tmp_pa
     found = cal.scene.light
     between = direction(found.azimuth_deg, found.elevation_deg) @ direction(188.0, -34.0)
     assert np.degrees(np.arccos(min(between, 1.0))) < 1.0
+
+
+def test_edge_rays_go_to_the_finest_stage_alone_and_its_renders() -> None:
+    """``--edge-rays`` traces the finest level's steep pixels again: the coarser stages keep their rays, and the
+    synthesis renders with the stage's rays once told to use it (the windows' renderers take the same)."""
+    edged = with_edge_rays(SCHEDULE, 8)
+    assert [stage.edge_supersample for stage in edged] == [0] * (len(SCHEDULE) - 1) + [8]
+    assert [(s.sigmas, s.supersample, s.max_evaluations) for s in edged] == [
+        (s.sigmas, s.supersample, s.max_evaluations) for s in SCHEDULE
+    ]
+    synth = Synthesis()
+    synth.use(edged[-1])
+    assert synth.rays == {"supersample": SCHEDULE[-1].supersample, "edge_supersample": 8}
+    coeffs = np.array([[0.0, 0.1, 0.03, 0.005]])
+    plain = Synthesis()
+    plain.use(SCHEDULE[-1])
+    assert not np.array_equal(
+        synth.linear(_scene(camera=SMALLER), coeffs), plain.linear(_scene(camera=SMALLER), coeffs)
+    )
 
 
 @given(st.floats(0.5, 10.0), st.integers(0, 4), st.floats(-720.0, 720.0), st.floats(-89.0, 89.0))

@@ -9,12 +9,21 @@ import pytest
 from tests.servicekit import meniscope
 
 
-@pytest.mark.parametrize("windows", ["-1", "13"])
-def test_a_window_count_outside_what_the_stage_reads_is_a_one_line_error(tmp_path: Path, windows: str) -> None:
+@pytest.mark.parametrize(
+    ("option", "value", "allowed"),
+    [
+        ("--windows", "-1", "between 0 and 12"),
+        ("--windows", "13", "between 0 and 12"),
+        ("--edge-rays", "-1", "between 0 and 16"),
+        ("--edge-rays", "17", "between 0 and 16"),
+    ],
+)
+def test_an_option_outside_its_range_is_a_one_line_error(tmp_path: Path, option: str, value: str, allowed: str) -> None:
+    """A window count beyond what the window stage reads, or edge rays beyond what the renderer is meant for."""
     out = tmp_path / "scene.json"
-    done = meniscope("calibrate", str(tmp_path / "lab.cine"), "--out", str(out), "--windows", windows)
+    done = meniscope("calibrate", str(tmp_path / "lab.cine"), "--out", str(out), option, value)
     assert done.returncode == 2
-    assert done.stderr.count("\n") == 1 and "--windows" in done.stderr and "between 0 and 12" in done.stderr
+    assert done.stderr.count("\n") == 1 and option in done.stderr and allowed in done.stderr
     assert not out.exists()
 
 

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import partial
 from typing import TYPE_CHECKING
 
@@ -63,15 +63,17 @@ class Stage:
 #: Evaluations of the finest stage: 48 landed closer to the truth than 8 on a near-mirror's Blender video, in one
 #: run (docs/new_camera.md, "The finest stage run longer").
 FINEST_EVALUATIONS = 48
-#: Edge rays on the finest level: point-sampled at 2 x 2, a highlight's edge, the bore's shadow and the glints made
-#: a sun twice too wide fit Blender Cycles' frames best (docs/calibration.md, "The sun's angle and the renderer's
-#: rays per pixel").
-EDGE_SUPERSAMPLE = 8
-SCHEDULE = (
-    Stage((6.0, 3.0), 1, 10),
-    Stage((3.0, 1.5), 1, 10),
-    Stage((1.5, 0.7), 2, FINEST_EVALUATIONS, EDGE_SUPERSAMPLE),
-)
+SCHEDULE = (Stage((6.0, 3.0), 1, 10), Stage((3.0, 1.5), 1, 10), Stage((1.5, 0.7), 2, FINEST_EVALUATIONS))
+
+
+def with_edge_rays(schedule: tuple[Stage, ...], rays: int) -> tuple[Stage, ...]:
+    """``schedule`` with its finest stage's steep pixels traced again at ``rays`` per axis (0: none). Point-sampled at
+    2 x 2, a highlight's edge, the bore's shadow and the glints make a sun twice too wide fit Blender Cycles' frames
+    best; the edge rays take some of that bias out at several times the calibration's time (docs/calibration.md, "The
+    sun's angle and the renderer's rays per pixel", "Edge rays in the calibration")."""
+    return (*schedule[:-1], replace(schedule[-1], edge_supersample=rays))
+
+
 #: Fluid roughness (GGX alpha) of the extra starts: a near-mirror and a rough metal.
 START_ALPHAS = (0.004, 0.1)
 #: Starts carried through the finer stages, best first by their finest-level cost after the coarse stage; the lowest
@@ -118,6 +120,7 @@ class Calibration:
     materials: list[dict] = field(default_factory=list)  # the defects' roughness tried and the frames' cost with each
     moves: list[dict] = field(default_factory=list)  # the descent along the profiles after the finest stage
     ridge: list[dict] = field(default_factory=list)  # the points of the profiles scored by whole windows, and which won
+    finest: Stage = SCHEDULE[-1]  # the finest stage's blur levels and rays, which the report's figure renders with
 
 
 #: Columns of (d, p, a, b) tied across a window's frames by default: d and p (see :class:`Motion`).
@@ -559,6 +562,7 @@ def calibrate(
         materials=materials,
         moves=moves,
         ridge=scored,
+        finest=finest,
     )
 
 

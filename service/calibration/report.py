@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 
 from service.calibration import parameters as P
-from service.calibration.fit import SCHEDULE, Calibration, crop
+from service.calibration.fit import Calibration, crop
 from service.calibration.footage import Footage
 from service.calibration.open_ranges import SCHEMA, report_paths
 from service.calibration.profile import Profile
@@ -172,7 +172,7 @@ def figure(cal: Calibration, footage: Footage, path: Path) -> None:
     pick = order[np.unique(np.linspace(0, len(order) - 1, min(SHOWN, len(order))).round().astype(int))]
     lab = crop(footage.frames, cal.scene)[pick]
     synthesis = Synthesis()
-    synthesis.use(SCHEDULE[-1])  # the rays the finest level fitted with
+    synthesis.use(cal.finest)  # the rays the finest level fitted with
     synth = synthesis.stored(cal.scene, cal.motion[pick])
     top = max(float(lab.max()), float(synth.max()), 1e-6)
     fig, axes = plt.subplots(3, len(pick), figsize=(2.2 * len(pick), 6.8), squeeze=False)

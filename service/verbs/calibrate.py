@@ -37,6 +37,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help=f"whole windows held to Eq. 1 that choose along the ridge the single frames leave open, 0 to skip that "
         f"stage (default {WINDOWS}; each costs about a minute)",
     )
+    p.add_argument(
+        "--edge-rays",
+        type=int,
+        default=0,
+        help="rays per pixel axis for the finest level's pixels where the frame steps sharply, 0 for none (default 0; "
+        "8 narrows the light's angle towards a real camera's at several times the time: docs/calibration.md)",
+    )
     cut = p.add_mutually_exclusive_group()
     cut.add_argument(
         "--ejection-hz",
@@ -53,7 +60,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from service.calibration.fit import calibrate
+    from service.calibration.fit import SCHEDULE, calibrate, with_edge_rays
     from service.calibration.footage import read_footage
     from service.calibration.report import write_report
 
@@ -63,6 +70,8 @@ def run(args: argparse.Namespace) -> int:
         raise MeniscopeError("--stack", f"must be between 8 and 5000, got {args.stack}")
     if not 0 <= args.windows <= LOOKED:
         raise MeniscopeError("--windows", f"must be between 0 and {LOOKED}, got {args.windows}")
+    if not 0 <= args.edge_rays <= 16:
+        raise MeniscopeError("--edge-rays", f"must be between 0 and 16, got {args.edge_rays}")
     if args.ejection_hz is not None and not (math.isfinite(args.ejection_hz) and args.ejection_hz > 0):
         raise MeniscopeError("--ejection-hz", f"must be a positive number, got {args.ejection_hz}")
     require_folder_of(args.out)
@@ -70,7 +79,7 @@ def run(args: argparse.Namespace) -> int:
 
     guess = Scene.load(args.scene)
     footage = read_footage(args.recording, args.frames, args.stack, args.ejections, args.ejection_hz, args.windows)
-    cal = calibrate(footage, guess)
+    cal = calibrate(footage, guess, schedule=with_edge_rays(SCHEDULE, args.edge_rays))
     doc, png = write_report(cal, footage, args.out)
     chosen = next((row for row in cal.ridge if row["chosen"]), None)
     ridge = (
