@@ -178,3 +178,16 @@ def test_bench_analysis_scores_every_method_against_the_truth(recording: Path, t
     assert figures["recall"] == figures["precision"] == 1.0 and figures["frames_per_s"] > 0
     assert 0 <= figures["offset_mm_coverage"] <= 1  # the share of windows whose interval holds the truth
     assert "| direct | lab |" in out.with_suffix(".md").read_text()
+
+
+def test_bench_analysis_asked_for_no_rows_says_so_and_writes_nothing(recording: Path, tmp_path: Path):
+    """Window rows are the network method's without ``--refine``: ``--series window`` with ``--refine`` (or with the
+    direct method alone) measures nothing, a one-line error rather than an empty table."""
+    out = tmp_path / "analysis.json"
+    for extra in (("--methods", "network", "--refine"), ("--methods", "direct")):
+        done = meniscope(
+            "bench", "analysis", "--recordings", recording.parent, "--series", "window", *extra, "--out", out
+        )
+        assert done.returncode == 2
+        assert done.stderr.count("\n") == 1 and "--series" in done.stderr and "gives no rows" in done.stderr
+        assert not out.exists()

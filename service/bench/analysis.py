@@ -76,7 +76,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "--series",
         default="steady,window",
         help="comma-separated, of steady, window: the series each window is fitted to (analyze --series); "
-        "window rows are the network method's only",
+        "window rows are the network method's only, without --refine",
     )
     p.add_argument("--out", type=Path, default=Path("bench-analysis.json"), help="JSON of the results (+ .md)")
     p.set_defaults(func=run)
@@ -180,6 +180,10 @@ def run(args: argparse.Namespace) -> int:
     if not series or any(s not in ("steady", "window") for s in series):
         raise MeniscopeError("--series", f"{args.series!r}: choose from steady, window")
     runs = [(m, s) for m in methods for s in series if s == "steady" or (m == "network" and not args.refine)]
+    if not runs:  # nothing to measure is a mistake in the options, not an empty table
+        raise MeniscopeError(
+            "--series", f"{args.series!r} gives no rows: window rows are the network method's, without --refine"
+        )
     for method, fitted in runs:
         measured = run_method_apart(method, recordings, scene, args.models, args.database, args.refine, fitted)
         method = method_label(method, args.refine) + ("+window" if fitted == "window" else "")
