@@ -277,3 +277,20 @@ def test_rays_sharing_the_suns_directions_in_turn_render_as_rays_shading_with_al
         assert ((shared - every) ** 2).sum() < 0.1 * ((coarse - every) ** 2).sum()
     with pytest.raises(MeniscopeError, match="sun_stride must divide"):
         Renderer(scene, sun_samples=24, sun_stride=5)
+
+
+def test_a_renderer_of_the_fluids_pixels_alone_renders_them_as_the_whole_frames_does(scene: Scene):
+    """``pixels``: the static scene traced only where a coarser renderer's fluid rays reach and around them (what the
+    edge rays' renderer builds): the same fluid rays and, in those pixels, the same frames, bit for bit."""
+    from scipy.ndimage import binary_dilation
+
+    coarse = Renderer(scene, supersample=2, sun_samples=4)
+    reached = np.zeros(coarse.shape, np.bool_)
+    reached.flat[coarse.fluid_rays.pixel] = True
+    around = np.flatnonzero(binary_dilation(reached, np.ones((3, 3), np.bool_)))
+    whole, part = Renderer(scene, supersample=4), Renderer(scene, supersample=4, pixels=around)
+    np.testing.assert_array_equal(part.fluid_rays.pixel, whole.fluid_rays.pixel)
+    coeffs = CoefficientRanges().sample(6, np.random.default_rng(2))
+    np.testing.assert_array_equal(
+        part.render(coeffs).reshape(6, -1)[:, around], whole.render(coeffs).reshape(6, -1)[:, around]
+    )

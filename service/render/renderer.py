@@ -72,6 +72,19 @@ def edge_weight(frames: np.ndarray, step: float) -> np.ndarray:
     return np.clip(largest * np.float32(2.0 / step) - np.float32(1.0), 0.0, 1.0)
 
 
+def _neighbourhood(pixels: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """Row-major ``pixels`` of an image of ``shape`` and their 8-neighbours, sorted: a pixel that finer rays find the
+    fluid in touches one that coarser rays do."""
+    h, w = shape
+    padded = np.zeros((h + 2, w + 2), np.bool_)
+    padded[1:-1, 1:-1].flat[pixels] = True
+    grown = np.zeros(shape, np.bool_)
+    for dr in range(3):
+        for dc in range(3):
+            grown |= padded[dr : dr + h, dc : dc + w]
+    return np.flatnonzero(grown)
+
+
 @dataclass(frozen=True)
 class FluidRays:
     """The camera rays that can meet the fluid: ``origin``, ``direction`` (M, 3), the ``pixel``
@@ -96,7 +109,10 @@ class Renderer:
     the bore's shadow, a glint: what ``supersample`` rays point-sample) traced again with that many rays per axis, as
     a camera's pixel integrates them, and blended in by :func:`edge_weight` (docs/calibration.md, "The sun's angle and
     the renderer's rays per pixel"); ``sun_stride``: each ray shades with every ``sun_stride``-th of the sun's
-    directions (a divisor of ``sun_samples``), the rays of a pixel taking turns (the edge rays take one each).
+    directions (a divisor of ``sun_samples``), the rays of a pixel taking turns (the edge rays take one each);
+    ``pixels``: where given (row-major indices), the static scene traced in these pixels alone, black elsewhere, and
+    the fluid's rays taken from them (the edge rays' renderer: the pixels its parent's fluid rays reach and their
+    neighbours; a fraction of the build).
     """
 
     def __init__(
@@ -109,6 +125,7 @@ class Renderer:
         static_sun_samples: int = STATIC_SUN_SAMPLES,
         edge_supersample: int = 0,
         sun_stride: int = 1,
+        pixels: np.ndarray | None = None,
     ) -> None:
         for name, value in (
             ("supersample", supersample),
@@ -127,22 +144,28 @@ class Renderer:
         cam, R = scene.camera, scene.nozzle.radius_mm
         self.shape = (cam.height_px, cam.width_px)
         rays = pixel_rays(scene, supersample)
-        static = nozzle.trace(scene, rays.origin, rays.direction, rays.camera_s)
-        radiance = nozzle.shade(scene, rays.origin, rays.direction, static, sun_directions(scene, static_sun_samples))
         h, w, ss = cam.height_px, cam.width_px, supersample
-        static_pixels = radiance.reshape(h, ss, w, ss).mean(axis=(1, 3)).ravel()  # (H W,)
-
+        n = rays.camera_s.shape[0]
+        # rays are ordered (row, sub-row, column, sub-column): the pixel each belongs to
+        pixel_of = (np.arange(n) // (w * ss * ss)) * w + (np.arange(n) % (w * ss)) // ss
         # rays that can meet the fluid: they enter the bore's cylinder before anything static
         enter, leave = nozzle.cylinder_interval(rays.origin, rays.direction, R)
         enter = np.maximum(enter, rays.camera_s)
-        leave = np.minimum(leave, static.t)
+        traced = np.arange(n) if pixels is None else np.flatnonzero(np.isin(pixel_of, pixels))
+        static = nozzle.trace(scene, rays.origin[traced], rays.direction[traced], rays.camera_s[traced])
+        shaded = nozzle.shade(
+            scene, rays.origin[traced], rays.direction[traced], static, sun_directions(scene, static_sun_samples)
+        )
+        radiance, static_t = np.zeros(n), np.full(n, -np.inf)  # an untraced ray meets no fluid
+        radiance[traced], static_t[traced] = shaded, static.t
+        static_pixels = radiance.reshape(h, ss, w, ss).mean(axis=(1, 3)).ravel()  # (H W,)
+        leave = np.minimum(leave, static_t)
         idx = np.flatnonzero(np.isfinite(enter) & (enter < leave))
         self._origin, self._direction = rays.origin[idx], rays.direction[idx]
         self._terms = ray_terms(self._origin, self._direction, R)
         self._enter, self._leave = enter[idx], leave[idx]
         self._static_radiance = radiance[idx]
-        # rays are ordered (row, sub-row, column, sub-column): the pixel each candidate belongs to
-        self._pixel = (idx // (w * ss * ss)) * w + (idx % (w * ss)) // ss  # (M,)
+        self._pixel = pixel_of[idx]  # (M,)
         # per frame only the pixels these rays belong to change; the rest is the static frame
         self._touched, self._slot = np.unique(self._pixel, return_inverse=True)
         self._static_touched = static_pixels[self._touched]
@@ -162,6 +185,7 @@ class Renderer:
                 batch_frames,
                 static_sun_samples,
                 sun_stride=sun_samples,  # one direction each, as Cycles draws one a sample: the shading was most of the cost
+                pixels=_neighbourhood(self._touched, self.shape),
             )
             if edge_supersample
             else None
