@@ -64,13 +64,12 @@ class Synthesis:
         sun_samples: int = SUN_SAMPLES,
         static_sun_samples: int = 8,
         keep: int = 3,
-        edge_supersample: int = 0,
     ) -> None:
         self.quality = {
             "supersample": supersample,
             "sun_samples": sun_samples,
             "static_sun_samples": static_sun_samples,
-            "edge_supersample": edge_supersample,
+            "edge_supersample": 0,  # a stage's (:meth:`use`)
         }
         self._cache: OrderedDict[str, Renderer] = OrderedDict()
         self.keep = keep

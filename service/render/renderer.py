@@ -151,7 +151,7 @@ class Renderer:
         # rays that can meet the fluid: they enter the bore's cylinder before anything static
         enter, leave = nozzle.cylinder_interval(rays.origin, rays.direction, R)
         enter = np.maximum(enter, rays.camera_s)
-        traced = np.arange(n) if pixels is None else np.flatnonzero(np.isin(pixel_of, pixels))
+        traced = slice(None) if pixels is None else np.flatnonzero(np.isin(pixel_of, pixels))
         static = nozzle.trace(scene, rays.origin[traced], rays.direction[traced], rays.camera_s[traced])
         shaded = nozzle.shade(
             scene, rays.origin[traced], rays.direction[traced], static, sun_directions(scene, static_sun_samples)
