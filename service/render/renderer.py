@@ -29,6 +29,7 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 from numpy.typing import ArrayLike
+from scipy.ndimage import binary_dilation
 
 from service.errors import MeniscopeError
 from service.physics import coefficient_array
@@ -75,14 +76,9 @@ def edge_weight(frames: np.ndarray, step: float) -> np.ndarray:
 def _neighbourhood(pixels: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     """Row-major ``pixels`` of an image of ``shape`` and their 8-neighbours, sorted: a pixel that finer rays find the
     fluid in touches one that coarser rays do."""
-    h, w = shape
-    padded = np.zeros((h + 2, w + 2), np.bool_)
-    padded[1:-1, 1:-1].flat[pixels] = True
-    grown = np.zeros(shape, np.bool_)
-    for dr in range(3):
-        for dc in range(3):
-            grown |= padded[dr : dr + h, dc : dc + w]
-    return np.flatnonzero(grown)
+    mask = np.zeros(shape, np.bool_)
+    mask.flat[pixels] = True
+    return np.flatnonzero(binary_dilation(mask, np.ones((3, 3), np.bool_)))
 
 
 @dataclass(frozen=True)
@@ -184,7 +180,7 @@ class Renderer:
                 threads,
                 batch_frames,
                 static_sun_samples,
-                sun_stride=sun_samples,  # one direction each, as Cycles draws one a sample: the shading was most of the cost
+                sun_stride=sun_samples,  # a direction each, as Cycles draws one a sample: shading was most of a ray's cost
                 pixels=_neighbourhood(self._touched, self.shape),
             )
             if edge_supersample
