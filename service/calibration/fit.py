@@ -121,6 +121,7 @@ class Calibration:
     moves: list[dict] = field(default_factory=list)  # the descent along the profiles after the finest stage
     ridge: list[dict] = field(default_factory=list)  # the points of the profiles scored by whole windows, and which won
     finest: Stage = SCHEDULE[-1]  # the finest stage's blur levels and rays, which the report's figure renders with
+    held: tuple[str, ...] = ()  # parameters kept at the guess's value (the user's measurements), not fitted
 
 
 #: Columns of (d, p, a, b) tied across a window's frames by default: d and p (see :class:`Motion`).
@@ -334,6 +335,17 @@ def aim(
     return best, [t[0] for t in tried]
 
 
+def held_light(directions: np.ndarray, guess: Scene, held: tuple[str, ...]) -> np.ndarray:
+    """The light grid's ``directions`` (N, 2: azimuth, elevation) with the ``held`` ones of the two at the guess's
+    value, each direction once, in their order."""
+    out = np.array(directions, dtype=np.float64)
+    for column, (name, value) in enumerate(zip(LIGHT, (guess.light.azimuth_deg, guess.light.elevation_deg))):
+        if name in held:
+            out[:, column] = value
+    _, first = np.unique(out, axis=0, return_index=True)
+    return out[np.sort(first)]
+
+
 def with_azimuth(start: Scene, aimed: Scene) -> Scene:
     """``start`` with the light's azimuth of ``aimed`` (the light grid's best direction), its elevation left to the
     finer stages: with each frame's curvature free, as :func:`aim` scores, a broad highlight trades the elevation
@@ -419,6 +431,7 @@ def calibrate(
     carry: int = CARRY,
     profiled: dict[str, tuple[float, ...]] | None = None,
     light_directions: np.ndarray | None = None,
+    held: tuple[str, ...] = (),
 ) -> Calibration:
     """Fit ``guess`` to ``footage``: ROI, scene parameters, per-frame motion, noise, artifact spheres. Every start
     is fitted on the coarse stage and scored on the finest level; the best ``carry`` go through the finer stages,
@@ -428,7 +441,8 @@ def calibrate(
     ``profiled``: parameters whose cost is profiled at the end, with their offsets (default :data:`.profile.PROFILED`),
     the scene moved along them while a profile finds a lower cost (:func:`.profile.descend`), then to the point of them
     whose ``footage.lab_windows`` fit best held to Eq. 1 (:func:`.windows.choose`; the uncertainties stay the
-    descent's)."""
+    descent's). ``held``: parameters kept at the guess's value throughout (:func:`.parameters.free`): neither fitted,
+    profiled, refitted along a profile nor searched by the starts or the light grid."""
     from service.calibration.profile import PROFILED, descend  # they build on this module's Problem
     from service.calibration.windows import choose, further, ridge
 
@@ -441,8 +455,13 @@ def calibrate(
     scene, corner, score = locate(synth, base, footage)
     first, finest = schedule[0], schedule[-1]
     synth.use(first)
-    profiled = PROFILED if profiled is None else profiled
-    light_directions = light_grid(guess) if light_directions is None else light_directions
+    fitted = P.free(held)
+    profiled = {
+        name: offsets for name, offsets in (PROFILED if profiled is None else profiled).items() if name not in held
+    }
+    if "fluid.roughness" in held:
+        start_alphas = ()
+    light_directions = held_light(light_grid(guess) if light_directions is None else light_directions, guess, held)
     bar = tqdm(  # each start twice (coarse fit, finest score), the second ROI look, the light, the finer stages,
         # the profiles
         total=2 * (len(start_alphas) + 1) + 2 + carry * (len(schedule) - 1) + len(profiled),
@@ -456,7 +475,7 @@ def calibrate(
         start = scene if alpha is None else P.write(scene, _set(P.read(scene), "fluid.roughness", math.log10(alpha)))
         lab = crop(footage.frames, start)
         motion = motion_only(synth, start, lab, first.sigmas)
-        problem = Problem(synth, start, lab, first.sigmas, footage.windows)
+        problem = Problem(synth, start, lab, first.sigmas, footage.windows, fitted=fitted)
         x, res = problem.solve(motion, first.max_evaluations)
         candidates.append((*problem.unpack(x), {"fluid.roughness": start.fluid.roughness, "cost": float(res.cost)}))
         bar.update()
@@ -498,7 +517,7 @@ def calibrate(
         for stage in schedule[1:]:
             synth.use(stage)
             lab = crop(footage.frames, scene)
-            problem = Problem(synth, scene, lab, stage.sigmas, footage.windows)
+            problem = Problem(synth, scene, lab, stage.sigmas, footage.windows, fitted=fitted)
             fresh = motion_only(synth, scene, lab, stage.sigmas)
             keep = problem.frame_costs(scene, motion) <= problem.frame_costs(scene, fresh)
             motion = np.where(keep[:, None], motion, fresh)
@@ -524,7 +543,7 @@ def calibrate(
         bar.update()
 
     scene, motion, profiles, moves, refit = descend(
-        synth, scene, lab, motion, last, footage.windows, profiled, each=tick
+        synth, scene, lab, motion, last, footage.windows, profiled, each=tick, fitted=fitted
     )
     if refit is not None:
         sigma = _uncertainty(*refit)
@@ -532,7 +551,7 @@ def calibrate(
     points = ridge(scene, motion, profiles) if footage.lab_windows else []
     if len(points) > 1:
         bar.total += len(points)
-        walk = partial(further, synth, lab, last)
+        walk = partial(further, synth, lab, last, fitted=fitted)
         chosen, scored = choose(synth, points, footage.lab_windows, footage.full_scale, last, walk, tick)
         scene, motion = chosen.scene, chosen.motion
     bar.close()
@@ -563,6 +582,7 @@ def calibrate(
         moves=moves,
         ridge=scored,
         finest=finest,
+        held=held,
     )
 
 

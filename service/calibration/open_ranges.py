@@ -33,7 +33,7 @@ def open_ranges(doc: dict) -> dict[str, tuple[float, float]]:
     ranges = {}
     for row in doc.get("parameters", []):
         span = row.get("range")
-        if not row.get("identified", True) and span is not None and span[1] > span[0]:
+        if row.get("identified") is False and span is not None and span[1] > span[0]:
             ranges[row["name"]] = (float(span[0]), float(span[1]))
     return ranges
 

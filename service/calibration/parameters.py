@@ -75,6 +75,17 @@ UNIDENTIFIABLE: dict[str, str] = {
 }
 
 
+def free(held: tuple[str, ...] = ()) -> tuple[Parameter, ...]:
+    """The parameters a calibration fits: :data:`PARAMETERS` without those ``held`` at the guess's value (ones the user
+    measured, such as a sun's angle the video cannot tell from the fluid's curvature). ValueError naming the choices for
+    a name that is not a parameter."""
+    names = [p.name for p in PARAMETERS]
+    unknown = [name for name in held if name not in names]
+    if unknown:
+        raise ValueError(f"{', '.join(unknown)} is not a calibrated parameter (choose from {', '.join(names)})")
+    return tuple(p for p in PARAMETERS if p.name not in held)
+
+
 def index(name: str) -> int:
     """Where parameter ``name`` sits in :data:`PARAMETERS` (and in a scene's fitted coordinates, :func:`read`)."""
     return [p.name for p in PARAMETERS].index(name)

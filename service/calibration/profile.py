@@ -134,18 +134,20 @@ def profile(
     name: str,
     offsets: tuple[float, ...],
     max_evaluations: int = 10,
+    fitted: tuple[P.Parameter, ...] = P.PARAMETERS,
 ) -> Profile:
     """The cost of ``lab`` (K, h, w) on ``sigmas`` along parameter ``name`` at the calibrated value and ``offsets``
     from it (fitted coordinate, clipped to the bounds), each frame's motion refitted from ``motion`` (K, 4), and
-    its :data:`PARTNERS` too (by :data:`PARTNER_EVALUATIONS` joint evaluations), the rest of the scene held."""
+    its :data:`PARTNERS` among the ``fitted`` parameters too (by :data:`PARTNER_EVALUATIONS` joint evaluations), the
+    rest of the scene held."""
     index = P.index(name)
     param = P.PARAMETERS[index]
-    partners = tuple(p for p in P.PARAMETERS if p.name in PARTNERS.get(name, ()))
+    partners = _partners(name, fitted)
     x = P.read(scene)
     lo, hi = P.bounds(scene)
     coords = np.unique(np.clip(x[index] + np.array((0.0, *offsets)), lo[index], hi[index]).round(6))
     centre = int(np.flatnonzero(coords == np.clip(x[index], lo[index], hi[index]).round(6))[0])
-    refits = [refit_at(synth, scene, lab, motion, sigmas, name, c, max_evaluations) for c in coords]
+    refits = [refit_at(synth, scene, lab, motion, sigmas, name, c, max_evaluations, fitted) for c in coords]
     costs = np.array([cost for cost, _ in refits])
     fits = [fit for _, fit in refits]
     values = np.array([param.from_fit(c) for c in coords])
@@ -177,20 +179,26 @@ def refit_at(
     name: str,
     coord: float,
     max_evaluations: int = 10,
+    fitted: tuple[P.Parameter, ...] = P.PARAMETERS,
 ) -> tuple[np.ndarray, tuple[Scene, np.ndarray]]:
-    """``scene`` with parameter ``name`` at ``coord`` (its fitted coordinate) and its :data:`PARTNERS` and every frame's
-    motion refitted from ``motion`` (K, 4) on ``sigmas``, the rest held: each frame's cost there (K,) and the scene and
-    motion found."""
+    """``scene`` with parameter ``name`` at ``coord`` (its fitted coordinate) and its :data:`PARTNERS` among the
+    ``fitted`` parameters and every frame's motion refitted from ``motion`` (K, 4) on ``sigmas``, the rest held: each
+    frame's cost there (K,) and the scene and motion found."""
     x = P.read(scene)
     x[P.index(name)] = coord
     candidate = P.write(scene, x)
-    partners = tuple(p for p in P.PARAMETERS if p.name in PARTNERS.get(name, ()))
+    partners = _partners(name, fitted)
     if not partners:
         moved, cost = refine_motion(Problem(synth, candidate, lab, sigmas), motion, max_evaluations)
         return cost, (candidate, moved)
     problem = Problem(synth, candidate, lab, sigmas, fitted=partners)
     solved, res = problem.solve(motion, PARTNER_EVALUATIONS)
     return (res.fun.reshape(problem.target.shape) ** 2).sum(axis=1), problem.unpack(solved)
+
+
+def _partners(name: str, fitted: tuple[P.Parameter, ...]) -> tuple[P.Parameter, ...]:
+    """The :data:`PARTNERS` of ``name`` that the calibration fits (a held one trades with nothing)."""
+    return tuple(p for p in fitted if p.name in PARTNERS.get(name, ()))
 
 
 #: Moves of :func:`descend` at most, after the finest stage.
@@ -210,12 +218,13 @@ def descend(
     rounds: int = DESCENT_ROUNDS,
     evaluations: int = DESCENT_EVALUATIONS,
     each: Callable[[], None] = lambda: None,
+    fitted: tuple[P.Parameter, ...] = P.PARAMETERS,
 ) -> tuple[Scene, np.ndarray, dict[str, Profile], list[dict], tuple | None]:
     """The finest stage's ``scene`` and ``motion`` (K, 4) moved along their profiles while the frames tell a profiled
     value from the calibrated one: the least squares stops on a highlight's ridge short of where a single parameter,
     its partners and the frames' motion refitted, costs less (Blender's all-at-once recording). Each round profiles
     ``profiled``, moves to the lowest-cost profile whose centre the frames tell from its best, and fits the whole
-    problem again from there (``evaluations``, motion tied within ``windows``); it stops when no profile does, when a
+    problem again from there (``evaluations``, the ``fitted`` parameters, motion tied within ``windows``); it stops when no profile does, when a
     round's centre costs no less than the round's before (that round is undone), or after ``rounds`` moves. ``each``
     is called after every profile. Returns the scene, the motion, the profiles at them (the report's), the moves, and
     the last kept fit as ``(problem, x, result)`` (None without a move)."""
@@ -225,7 +234,7 @@ def descend(
     while profiled:
         profiles = {}
         for name, offsets in profiled.items():
-            profiles[name] = profile(synth, scene, lab, motion, sigmas, name, offsets)
+            profiles[name] = profile(synth, scene, lab, motion, sigmas, name, offsets, fitted=fitted)
             each()
         cost = min(p.centre_cost for p in profiles.values())  # each refits the motion, some the partners too
         if previous is not None and not cost < previous[0]:
@@ -237,7 +246,7 @@ def descend(
             return scene, motion, profiles, moves, kept
         previous = (cost, scene, motion, profiles, kept)
         step = min(lower, key=lambda p: p.best_cost)
-        problem = Problem(synth, step.best_fit[0], lab, sigmas, windows)
+        problem = Problem(synth, step.best_fit[0], lab, sigmas, windows, fitted=fitted)
         x, res = problem.solve(step.best_fit[1], evaluations)
         scene, motion = problem.unpack(x)
         kept = (problem, x, res)

@@ -96,6 +96,7 @@ def document(cal: Calibration, footage: Footage) -> dict[str, Any]:
         value, sigma = values[p.name], cal.sigma.get(p.name, math.inf)
         tol, kind = PRECISION[p.name]
         prof = cal.profiles.get(p.name)
+        held = p.name in cal.held
         identified = math.isfinite(sigma) and sigma <= _allowed(p.name, value) and pinned[p.name]
         rows.append(
             {
@@ -103,7 +104,8 @@ def document(cal: Calibration, footage: Footage) -> dict[str, Any]:
                 "before": _value(before, p.name),
                 "after": value,
                 "sigma": sigma if math.isfinite(sigma) else None,
-                "identified": bool(identified),
+                "identified": None if held else bool(identified),
+                "held": held,
                 "range": None if p.name not in ranges else [float(v) for v in ranges[p.name]],
                 "precision_needed": tol,
                 "precision_kind": kind,
@@ -160,7 +162,9 @@ def document(cal: Calibration, footage: Footage) -> dict[str, Any]:
         "and a parameter refitted along another's profile only when its refitted values stay within that precision "
         "over the other's interval. A parameter's 'range' spans its values over every profile's bracket (its own, and "
         "its refitted values where it trades with the profiled one) and its calibrated value, which whole windows may "
-        "have chosen along such a ridge: how far the scenes the single frames leave open let it move",
+        "have chosen along such a ridge: how far the scenes the single frames leave open let it move. A 'held' "
+        "parameter kept the guess's value (calibrate --hold: the user's measurement): not fitted, so neither "
+        "identified nor not",
     }
 
 

@@ -40,10 +40,16 @@ class Point:
     beyond: float | None = None
 
 
-def further(synth: Synthesis, lab: np.ndarray, sigmas: tuple[float, ...], point: Point) -> Point | None:
-    """The next point of ``point``'s profile beyond it (:attr:`Point.beyond`), its partners and the ``lab`` frames'
-    motion refitted there (:func:`.profile.refit_at`, on ``sigmas``); None where there is none or it leaves the
-    parameter's bounds."""
+def further(
+    synth: Synthesis,
+    lab: np.ndarray,
+    sigmas: tuple[float, ...],
+    point: Point,
+    fitted: tuple[P.Parameter, ...] = P.PARAMETERS,
+) -> Point | None:
+    """The next point of ``point``'s profile beyond it (:attr:`Point.beyond`), its partners among the ``fitted``
+    parameters and the ``lab`` frames' motion refitted there (:func:`.profile.refit_at`, on ``sigmas``); None where
+    there is none or it leaves the parameter's bounds."""
     if point.parameter is None or point.beyond is None:
         return None
     index = P.index(point.parameter)
@@ -51,7 +57,7 @@ def further(synth: Synthesis, lab: np.ndarray, sigmas: tuple[float, ...], point:
     low, high = P.bounds(point.scene)
     if not low[index] <= coord <= high[index]:
         return None
-    _, (scene, motion) = refit_at(synth, point.scene, lab, point.motion, sigmas, point.parameter, coord)
+    _, (scene, motion) = refit_at(synth, point.scene, lab, point.motion, sigmas, point.parameter, coord, fitted=fitted)
     return Point(point.parameter, P.PARAMETERS[index].from_fit(coord), scene, motion, point.beyond)
 
 

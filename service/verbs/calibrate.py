@@ -44,6 +44,15 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="rays per pixel axis for the finest level's pixels where the frame steps sharply, 0 for none (default 0; "
         "8 narrows the light's angle towards a real camera's at several times the time: docs/calibration.md)",
     )
+    p.add_argument(
+        "--hold",
+        action="append",
+        default=[],
+        metavar="PARAMETER",
+        help="keep a parameter you measured at the --scene file's value instead of fitting it, by its name in the "
+        "report (e.g. light.angle_deg, from the lamp's size and distance: the video cannot tell the sun's angle from "
+        "the meniscus' curvature, docs/calibration.md); repeat for more",
+    )
     cut = p.add_mutually_exclusive_group()
     cut.add_argument(
         "--ejection-hz",
@@ -75,11 +84,17 @@ def run(args: argparse.Namespace) -> int:
     if args.ejection_hz is not None and not (math.isfinite(args.ejection_hz) and args.ejection_hz > 0):
         raise MeniscopeError("--ejection-hz", f"must be a positive number, got {args.ejection_hz}")
     require_folder_of(args.out)
+    from service.calibration.parameters import free
     from service.scene import Scene
+
+    try:
+        free(tuple(args.hold))
+    except ValueError as exc:
+        raise MeniscopeError("--hold", str(exc)) from None
 
     guess = Scene.load(args.scene)
     footage = read_footage(args.recording, args.frames, args.stack, args.ejections, args.ejection_hz, args.windows)
-    cal = calibrate(footage, guess, schedule=with_edge_rays(SCHEDULE, args.edge_rays))
+    cal = calibrate(footage, guess, schedule=with_edge_rays(SCHEDULE, args.edge_rays), held=tuple(args.hold))
     doc, png = write_report(cal, footage, args.out)
     chosen = next((row for row in cal.ridge if row["chosen"]), None)
     ridge = (
