@@ -20,6 +20,7 @@ from service.calibration.fit import (
     Problem,
     Stage,
     calibrate,
+    held_light,
     light_grid,
     with_edge_rays,
 )
@@ -116,6 +117,66 @@ def test_a_light_8_deg_round_on_the_far_side_of_the_camera_plane_is_found(tmp_pa
     found = cal.scene.light
     between = direction(found.azimuth_deg, found.elevation_deg) @ direction(188.0, -34.0)
     assert np.degrees(np.arccos(min(between, 1.0))) < 1.0
+
+
+def test_a_held_parameter_keeps_the_guesss_value_and_the_report_says_it_was_held(lab: Path) -> None:
+    """``calibrate --hold``: a parameter the user measured (here the sun's angle, which the video cannot tell from the
+    meniscus' curvature, and alpha) stays at the guess's value through every stage, is neither profiled nor refitted
+    along another's profile, and its report row says held instead of identified or not; the rest is still fitted."""
+    footage = read_footage(lab, frames=8, stack=38, ejection_hz=1000.0)
+    quick = tuple(Stage(stage.sigmas, 1, 10) for stage in SCHEDULE)
+    guess = _scene(light={"angle_deg": 3.1}, fluid={"roughness": 0.045})
+    held = ("light.angle_deg", "fluid.roughness")
+    profiled = {"light.azimuth_deg": (-3.0, 3.0), "fluid.roughness": (-0.3, 0.3)}
+    cal = calibrate(footage, guess, schedule=quick, start_alphas=(0.3,), progress=False, profiled=profiled, held=held)
+    assert cal.scene.light.angle_deg == 3.1 and cal.scene.fluid.roughness == 0.045
+    assert [s["fluid.roughness"] for s in cal.starts] == [0.045]  # no other roughness started from
+    assert set(cal.profiles) == {"light.azimuth_deg"}
+    assert set(cal.profiles["light.azimuth_deg"].partners).isdisjoint(held)
+    assert set(cal.sigma).isdisjoint(held)
+    assert cal.scene.light.azimuth_deg == pytest.approx(185.0, abs=1.5)  # what is not held is still fitted
+    rows = {row["name"]: row for row in document(cal, footage)["parameters"]}
+    for name in held:
+        assert rows[name]["held"] and rows[name]["identified"] is None and rows[name]["range"] is None
+    assert not rows["light.azimuth_deg"]["held"] and rows["light.azimuth_deg"]["identified"] is not None
+
+
+@given(
+    st.lists(st.tuples(st.floats(-720.0, 720.0), st.floats(-89.0, 89.0)), min_size=1, max_size=12),
+    st.sets(st.sampled_from(("light.azimuth_deg", "light.elevation_deg"))),
+)
+def test_a_held_light_direction_is_searched_along_the_other_alone(rows: list, held: set[str]) -> None:
+    """The light grid with the azimuth, the elevation or both held: the held column at the guess's value, every
+    direction once, in the grid's order (nearest the guess first)."""
+    guess = _scene(light={"azimuth_deg": 181.0, "elevation_deg": -41.0})
+    grid = np.array(rows)
+    out = held_light(grid, guess, tuple(held))
+    expected = grid.copy()
+    if "light.azimuth_deg" in held:
+        expected[:, 0] = 181.0
+    if "light.elevation_deg" in held:
+        expected[:, 1] = -41.0
+    unique = [tuple(r) for r in dict.fromkeys(map(tuple, expected))]
+    assert [tuple(r) for r in out] == unique
+
+
+@given(st.floats(0.0007, 0.5), st.floats(0.2, 40.0), st.floats(0.0, 3.0), st.floats(1e-3, 1e3))
+def test_a_scene_written_back_at_its_own_coordinates_is_the_same_to_the_last_bit(
+    alpha: float, angle: float, blur: float, exposure: float
+) -> None:
+    """Log and squared coordinates do not round-trip exactly; a parameter whose coordinate did not change keeps the
+    file's value, so a held one stays as the user wrote it whatever is written around it."""
+    data = _scene(fluid={"roughness": alpha}, light={"angle_deg": angle}, camera={"exposure": exposure}).as_dict()
+    data["sensor"] = {"offset": 0.01, "blur_sigma_px": blur}
+    scene = Scene.from_dict(data)
+    assert P.write(scene, P.read(scene)) == scene
+
+
+def test_a_name_that_is_not_a_parameter_cannot_be_held() -> None:
+    with pytest.raises(ValueError, match="light.angle is not a calibrated parameter.*light.angle_deg"):
+        P.free(("light.angle",))
+    assert P.free(()) == PARAMETERS
+    assert [p.name for p in P.free(("light.angle_deg",))] == [p.name for p in PARAMETERS if p.name != "light.angle_deg"]
 
 
 def test_edge_rays_go_to_the_finest_stage_alone_and_its_renders() -> None:

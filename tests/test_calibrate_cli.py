@@ -16,10 +16,12 @@ from tests.servicekit import meniscope
         ("--windows", "13", "between 0 and 12"),
         ("--edge-rays", "-1", "between 0 and 16"),
         ("--edge-rays", "17", "between 0 and 16"),
+        ("--hold", "light.angle", "not a calibrated parameter"),
     ],
 )
 def test_an_option_outside_its_range_is_a_one_line_error(tmp_path: Path, option: str, value: str, allowed: str) -> None:
-    """A window count beyond what the window stage reads, or edge rays beyond what the renderer is meant for."""
+    """A window count beyond what the window stage reads, edge rays beyond what the renderer is meant for, or a
+    parameter to hold that the calibration does not have."""
     out = tmp_path / "scene.json"
     done = meniscope("calibrate", str(tmp_path / "lab.cine"), "--out", str(out), option, value)
     assert done.returncode == 2

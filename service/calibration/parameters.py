@@ -98,11 +98,14 @@ def read(scene: Scene, params: tuple[Parameter, ...] = PARAMETERS) -> np.ndarray
 
 
 def write(scene: Scene, x: np.ndarray, params: tuple[Parameter, ...] = PARAMETERS) -> Scene:
-    """``scene`` with ``params`` set from fitted coordinates ``x``."""
+    """``scene`` with ``params`` set from fitted coordinates ``x``; one whose coordinate is the scene's own keeps its
+    value to the last bit (a log or squared coordinate's round trip would not: a held parameter stays as the user
+    wrote it)."""
     data = _with_sensor(scene.as_dict())
     for p, value in zip(params, x):
-        v = p.from_fit(float(value))
-        data[p.path[0]][p.path[1]] = v
+        section, key = p.path
+        if float(value) != p.to_fit(float(data[section][key])):
+            data[section][key] = p.from_fit(float(value))
     data["sensor"]["offset"] = float(np.clip(data["sensor"]["offset"], -1.0, 1.0))
     data["light"]["azimuth_deg"] = float(data["light"]["azimuth_deg"])
     return Scene.from_dict(data)
