@@ -24,7 +24,7 @@ from service.calibration.artifacts import (
     still_pixels,
     with_spheres,
 )
-from service.calibration.fit import SCHEDULE, _moving, _spheres, crop, motion_only, parabola_vertex, sphere_material
+from service.calibration.fit import SCHEDULE, _moving, _spheres, crop, motion_only
 from service.calibration.footage import read_footage
 from service.calibration.noise import NoiseFit, fit_noise
 from service.calibration.synthesis import Synthesis
@@ -183,46 +183,13 @@ def test_glints_by_the_bore_are_found_within_1_px_where_the_fluid_can_reach(defe
     assert len(found) == len(truth)  # and nothing else is
 
 
-def test_the_defects_look_is_chosen_by_the_frames_and_not_a_near_mirrors(defects: Defects) -> None:
-    """The defects' roughness is chosen by the fitted frames' cost with the spheres each candidate sizes (the grid,
-    then the vertex between the best and its neighbours where it scores lower). On our renderer's recording of rough
-    defects (0.2) a near-mirror's spheres are not chosen, and those chosen fit the frames at least as well as those
-    sized with the true roughness (the radii trade with it: the choice is a look, not a measurement); the true
-    reflectance is kept, and the spheres kept are the ones found with the roughness chosen."""
+def test_the_defects_radii_come_back_from_their_glints_flux(defects: Defects) -> None:
+    """A glint is a point source of flux F E r^2 / 4 (service.render.glints), so the radius sized from a glint's
+    flux against a render is the sphere's own, whatever its roughness (0.2 here, the guess's 0.06 used): their
+    median within 5 %, each within 30 % (noise, blur and the face's own structure in the flux square share it)."""
     d = defects
-    grid = (0.02, 0.06, 0.2, 0.54)
-    scene, spheres, tried = sphere_material(
-        d.synth, d.scene, d.stack, d.moving, d.noise, d.full_scale, d.lab, d.motion, SCHEDULE[-1].sigmas, alphas=grid
-    )
-    assert [t["roughness"] for t in tried[: len(grid)]] == list(grid) and len(tried) <= len(grid) + 1
-    chosen = scene.sphere_material
-    cost = {t["roughness"]: t["cost"] for t in tried}
-    assert chosen.roughness >= 0.2 and cost[chosen.roughness] == min(cost.values()) <= cost[0.2]
-    assert chosen.reflectance == 0.9
-    np.testing.assert_array_equal(scene.spheres, spheres)
-    assert len(spheres) == len(d.true.spheres)
-
-
-@settings(max_examples=200, deadline=None)
-@given(
-    st.floats(-30.0, 30.0),
-    st.floats(1e-6, 1e6),
-    st.floats(1e-9, 1e9),
-    st.floats(0.01, 0.99),
-    st.floats(-1e6, 1e6),
-)
-def test_a_parabolas_vertex_is_found_between_the_outer_points(
-    x0: float, width: float, curvature: float, share: float, floor: float
-) -> None:
-    """Through three points of a parabola whose middle one is the lowest, the vertex comes back where it is (within
-    the outer two points, at any scale where the parabola's rise shows in its values); with no curvature the middle
-    point is kept."""
-    x = np.array([x0, x0 + share * width, x0 + width])
-    vertex = x[1] + (np.random.default_rng(0).uniform(-0.5, 0.5)) * min(x[1] - x[0], x[2] - x[1])
-    y = floor + curvature * (x - vertex) ** 2
-    if curvature * width**2 < 1e-6 * max(1.0, abs(floor)):  # the rise over the points is lost in the floor's digits
-        return
-    found = parabola_vertex(x, y)
-    assert x[0] <= found <= x[2]
-    assert found == pytest.approx(vertex, abs=1e-6 * width + 1e-9 * abs(x0))
-    assert parabola_vertex(x, np.full(3, floor)) == x[1]
+    found = _spheres(d.synth, d.scene, d.stack, d.moving, d.noise, d.full_scale)
+    truth = glint_positions(d.true, d.true.spheres)
+    nearest = np.linalg.norm(glint_positions(d.scene, found)[:, None] - truth[None], axis=-1).argmin(axis=1)
+    ratio = found[:, 3] / d.true.spheres[nearest, 3]
+    assert abs(np.median(ratio) - 1) < 0.05 and (np.abs(ratio - 1) < 0.3).all()

@@ -92,11 +92,6 @@ LIGHT_REACH_DEG = 10.0
 LIGHT = ("light.azimuth_deg", "light.elevation_deg")
 #: Least-squares evaluations refining each frame's motion (from its nearest library render) to score a light.
 LIGHT_EVALUATIONS = 6
-#: GGX roughness of the defects' material tried (:func:`sphere_material`, then the parabola's vertex in log alpha
-#: round the best), from near-mirrors to rough specks that glint from many directions. The frames tell a defect that
-#: glints only towards the camera from one that glints widely, not two rough ones apart (the radii, sized from the
-#: flux, take that up): what is chosen is the look that fits (docs/new_camera.md, "The defects' look").
-SPHERE_ALPHAS = (0.015, 0.03, 0.06, 0.12, 0.24, 0.48)
 
 
 @dataclass
@@ -117,7 +112,6 @@ class Calibration:
     builds: int
     starts: list[dict] = field(default_factory=list)
     profiles: dict[str, Profile] = field(default_factory=dict)  # the finest level's cost along weak parameters
-    materials: list[dict] = field(default_factory=list)  # the defects' roughness tried and the frames' cost with each
     moves: list[dict] = field(default_factory=list)  # the descent along the profiles after the finest stage
     ridge: list[dict] = field(default_factory=list)  # the points of the profiles scored by whole windows, and which won
     finest: Stage = SCHEDULE[-1]  # the finest stage's blur levels and rays, which the report's figure renders with
@@ -560,9 +554,8 @@ def calibrate(
     noise = fit_noise(lab_stack, ~moving, scene.sensor.offset, footage.full_scale)
     scene = _with_noise(scene, noise)
     lab = crop(footage.frames, scene)
-    scene, spheres, materials = sphere_material(
-        synth, scene, lab_stack, moving, noise, footage.full_scale, lab, motion, last
-    )
+    spheres = _spheres(synth, scene, lab_stack, moving, noise, footage.full_scale)
+    scene = with_spheres(scene, spheres)
     return Calibration(
         guess=guess,
         scene=scene,
@@ -578,7 +571,6 @@ def calibrate(
         builds=synth.builds,
         starts=starts,
         profiles=profiles,
-        materials=materials,
         moves=moves,
         ridge=scored,
         finest=finest,
@@ -631,71 +623,12 @@ def _with_noise(scene: Scene, noise: NoiseFit) -> Scene:
     return Scene.from_dict(data)
 
 
-def sphere_material(
-    synth: Synthesis,
-    scene: Scene,
-    lab_stack: np.ndarray,
-    moving: np.ndarray,
-    noise: NoiseFit,
-    full_scale: float,
-    lab: np.ndarray,
-    motion: np.ndarray,
-    sigmas: tuple[float, ...],
-    alphas: tuple[float, ...] = SPHERE_ALPHAS,
-) -> tuple[Scene, np.ndarray, list[dict]]:
-    """``scene`` with the defects' roughness whose spheres (found and sized with it, :func:`_spheres`) leave the
-    fitted ``lab`` frames (K, h, w) at their ``motion`` (K, 4) the lowest cost on the levels ``sigmas``: the best of
-    ``alphas`` (ascending), or the vertex of the parabola in log alpha through it and its neighbours where that
-    scores lower. Returns the scene, its spheres (G, 4) and each roughness tried with its cost, in the order tried
-    (none where no glint is found with any). The reflectance is kept: it trades with the radii, as the roughness
-    partly does (what is chosen is the look that fits, :data:`SPHERE_ALPHAS`)."""
-    reflectance = scene.sphere_material.reflectance
-
-    def trial(alpha: float) -> tuple[float, Scene, np.ndarray] | None:
-        data = scene.as_dict()
-        data["artifacts"]["material"] = {"roughness": alpha, "reflectance": reflectance}
-        candidate = Scene.from_dict(data)
-        found = _spheres(synth, candidate, lab_stack, moving, noise, full_scale)
-        if found is None:
-            return None
-        candidate = with_spheres(candidate, found)
-        cost = 0.5 * float(Problem(synth, candidate, lab, sigmas).frame_costs(candidate, motion).sum())
-        tried.append({"roughness": alpha, "spheres": len(found), "cost": cost})
-        return cost, candidate, found
-
-    tried: list[dict] = []
-    grid = [(alpha, trial(alpha)) for alpha in alphas]
-    scored = [(alpha, t) for alpha, t in grid if t is not None]
-    if not scored:
-        return with_spheres(scene, np.zeros((0, 4))), np.zeros((0, 4)), tried
-    i = min(range(len(scored)), key=lambda j: scored[j][1][0])
-    best = scored[i][1]
-    if 0 < i < len(scored) - 1:
-        near = scored[i - 1 : i + 2]
-        x = parabola_vertex(np.log([a for a, _ in near]), np.array([t[0] for _, t in near]))
-        between = trial(float(np.exp(x)))
-        if between is not None and between[0] < best[0]:
-            best = between
-    return best[1], best[2], tried
-
-
-def parabola_vertex(x: np.ndarray, y: np.ndarray) -> float:
-    """Where the parabola through three points (x ascending, the middle y the lowest) has its minimum, kept within
-    the outer two x (the middle x where the three lie on a line)."""
-    (x0, x1, x2), (y0, y1, y2) = x, y
-    left, right = (y1 - y0) / (x1 - x0), (y2 - y1) / (x2 - x1)
-    curvature = (right - left) / (x2 - x0)  # half the second derivative
-    if not curvature > 0:
-        return float(x1)
-    vertex = (x0 + x1) / 2 - left / (2 * curvature)
-    return float(np.clip(vertex, x0, x2))
-
-
 def _spheres(
     synth: Synthesis, scene: Scene, lab_stack: np.ndarray, moving: np.ndarray, noise: NoiseFit, full_scale: float
-) -> np.ndarray | None:
-    """The artifact spheres from the static residual (lab median minus the model's static frame without them),
-    looked for on the face wherever the lab's pixels are still (however near the bore)."""
+) -> np.ndarray:
+    """The artifact spheres (G, 4) from the static residual (lab median minus the model's static frame without them),
+    looked for on the face wherever the lab's pixels are still (however near the bore), in the guess's material: a
+    sphere's glint is a point source whose flux its roughness does not change (:mod:`service.render.glints`)."""
     static = synth.stored(scene, np.zeros((1, 4)))[0]
     residual = np.median(lab_stack, axis=0) - static
     sigma_median = max(noise.read_noise_fraction, 1e-4) * 1.25 / math.sqrt(len(lab_stack))
@@ -704,5 +637,4 @@ def _spheres(
     allowed = still & face_pixels(scene)
     # the face's level without the fluid: by the fluid's edge its blurred light would raise the bar over a glint
     face = gaussian(synth.renderer(scene).static_frame[None], scene.sensor.blur_sigma_px)[0]
-    found = recover(scene, residual, allowed, max(sigma_median, spread), face)
-    return found if len(found) else None
+    return recover(scene, residual, allowed, max(sigma_median, spread), face)

@@ -69,8 +69,8 @@ UNIDENTIFIABLE: dict[str, str] = {
     "camera.azimuth_deg": "rotating camera, light and defects together about the nozzle axis changes nothing "
     "(the gauge: kept, the light's azimuth is fitted relative to it)",
     "camera.distance_mm": "with fov_deg only their ratio (the scale in px/mm) is seen; kept",
-    "artifacts.material.roughness": "a defect is 1-3 px across and its radius is sized from its glint's flux: "
-    "the roughness chosen (fit.SPHERE_ALPHAS, by the fitted frames' cost) is the look that fits, not a measurement",
+    "artifacts.material.roughness": "a defect's glint, the sun's image in a sphere of a pixel or less, is a point "
+    "source whose flux (F E r^2 / 4) its roughness does not change (service.render.glints): kept",
     "artifacts.material.reflectance": "a glint's flux grows as reflectance x radius^2: the radii take it up; kept",
 }
 

@@ -144,7 +144,6 @@ def document(cal: Calibration, footage: Footage) -> dict[str, Any]:
             if cal.spheres_found
             else None,
             "material": cal.scene.sphere_material.model_dump(),
-            "materials_tried": cal.materials,
         },
         "motion": {"columns": ["d", "p", "a", "b"], "frames": [[float(v) for v in m] for m in cal.motion]},
         "starts": cal.starts,

@@ -16,7 +16,7 @@ from enum import IntEnum
 
 import numpy as np
 
-from service.render.shading import lambert_sun, specular_sun
+from service.render.shading import lambert_sun
 from service.scene import Scene
 
 #: Offset (mm) that moves a shadow ray's origin off its own surface.
@@ -144,7 +144,9 @@ def sun_visibility(scene: Scene, point: np.ndarray, normal: np.ndarray, suns: np
 
 
 def shade(scene: Scene, origin: np.ndarray, direction: np.ndarray, hits: StaticHits, suns: np.ndarray) -> np.ndarray:
-    """Radiance (P,) of each ray's static hit under the sun (0 where it met nothing or the liquid column)."""
+    """Radiance (P,) of each ray's static hit under the sun (0 where it met nothing or the liquid column, or a
+    sphere: its sun glint, a spot far smaller than a pixel that rays find or miss by luck, is a point source added to
+    its pixel whole, :mod:`service.render.glints`)."""
     radiance = np.zeros(origin.shape[0])
     point = origin + np.where(np.isfinite(hits.t), hits.t, 0.0)[:, None] * direction
     inside_bore = (point[:, 0] ** 2 + point[:, 1] ** 2) < scene.nozzle.radius_mm**2
@@ -152,11 +154,4 @@ def shade(scene: Scene, origin: np.ndarray, direction: np.ndarray, hits: StaticH
     if diffuse.any():
         vis = sun_visibility(scene, point[diffuse], hits.normal[diffuse], suns)
         radiance[diffuse] = lambert_sun(hits.normal[diffuse], suns, vis, scene.nozzle.albedo, scene.light.strength)
-    glossy = hits.kind == Hit.SPHERE
-    if glossy.any():
-        vis = sun_visibility(scene, point[glossy], hits.normal[glossy], suns)
-        metal = scene.sphere_material
-        radiance[glossy] = specular_sun(
-            hits.normal[glossy], -direction[glossy], suns, vis, metal.roughness, metal.reflectance, scene.light.strength
-        )
     return radiance

@@ -33,7 +33,7 @@ from scipy.ndimage import binary_dilation
 
 from service.errors import MeniscopeError
 from service.physics import coefficient_array
-from service.render import kernel, nozzle
+from service.render import glints, kernel, nozzle
 from service.render.camera import pixel_rays
 from service.render.meniscus import Profiles, ray_terms
 from service.render.shading import mirror_ball_intensity, sun_directions
@@ -155,6 +155,8 @@ class Renderer:
         radiance, static_t = np.zeros(n), np.full(n, -np.inf)  # an untraced ray meets no fluid
         radiance[traced], static_t[traced] = shaded, static.t
         static_pixels = radiance.reshape(h, ss, w, ss).mean(axis=(1, 3)).ravel()  # (H W,)
+        glint_pixels, glint_radiance = glints.splats(scene, sun_directions(scene, static_sun_samples))
+        np.add.at(static_pixels, glint_pixels, glint_radiance)
         leave = np.minimum(leave, static_t)
         idx = np.flatnonzero(np.isfinite(enter) & (enter < leave))
         self._origin, self._direction = rays.origin[idx], rays.direction[idx]
