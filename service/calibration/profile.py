@@ -224,10 +224,10 @@ def descend(
     value from the calibrated one: the least squares stops on a highlight's ridge short of where a single parameter,
     its partners and the frames' motion refitted, costs less (Blender's all-at-once recording). Each round profiles
     ``profiled``, moves to the lowest-cost profile whose centre the frames tell from its best, and fits the whole
-    problem again from there (``evaluations``, the ``fitted`` parameters, motion tied within ``windows``); it stops when no profile does, when a
-    round's centre costs no less than the round's before (that round is undone), or after ``rounds`` moves. ``each``
-    is called after every profile. Returns the scene, the motion, the profiles at them (the report's), the moves, and
-    the last kept fit as ``(problem, x, result)`` (None without a move)."""
+    problem again from there (``evaluations``, the ``fitted`` parameters, motion tied within ``windows``); it stops
+    when no profile does, when a round's centre costs no less than the round's before (that round is undone), or after
+    ``rounds`` moves. ``each`` is called after every profile. Returns the scene, the motion, the profiles at them (the
+    report's), the moves, and the last kept fit as ``(problem, x, result)`` (None without a move)."""
     moves: list[dict] = []
     kept: tuple | None = None
     previous = None
