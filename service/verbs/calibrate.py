@@ -104,8 +104,9 @@ def run(args: argparse.Namespace) -> int:
         if chosen["parameter"] is None
         else f"; {len(footage.lab_windows)} windows moved it to {chosen['parameter']} {chosen['value']:.4g}"
     )
+    held = f"; held at the guess's value: {', '.join(cal.held)}" if cal.held else ""
     print(
         f"{args.out}: calibrated in {cal.seconds:.0f} s, residual {cal.residual_before * footage.full_scale:.1f} "
-        f"-> {cal.residual_after * footage.full_scale:.1f} DN RMS{ridge}; report {doc}, figure {png}"
+        f"-> {cal.residual_after * footage.full_scale:.1f} DN RMS{ridge}{held}; report {doc}, figure {png}"
     )
     return 0
