@@ -11,6 +11,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from service import DEFAULT_SCENE
+from service.bench.render import flux_ratios, glint_fluxes
 from service.calibration.artifacts import glint_positions, with_spheres
 from service.render import Renderer, glints
 from service.render.camera import focal_px
@@ -74,3 +75,23 @@ def test_spheres_the_camera_cannot_see_add_nothing() -> None:
     scene = _scene([[0.0, 0.0, 0.3, 0.01], [5.0, 5.0, 0.0, 0.01]])
     pixel, _ = splats(scene, sun_directions(scene, 8))
     assert len(pixel) == 0
+
+
+def test_the_benchs_glint_comparison_takes_the_defects_both_renderers_show() -> None:
+    """``bench render``'s defects column: ours over Cycles' flux with the frames' gain, over the defects Cycles shows
+    (a glint under 1e-3 of a full-scale pixel there, or one outside the frame, is left out)."""
+    ours = np.array([0.2, 0.4, 0.3, np.nan, 0.1])
+    cycles = np.array([0.25, 0.4, 1e-4, 0.3, 0.2])
+    found = flux_ratios(ours, cycles, 1.25)
+    assert found["defects"] == 3
+    assert found["flux_ratio_min"] == pytest.approx(0.625) and found["flux_ratio_max"] == pytest.approx(1.25)
+    assert found["flux_ratio_median"] == pytest.approx(1.0)
+    assert flux_ratios(np.zeros(0), np.zeros(0), None) == {
+        "defects": 0,
+        "flux_ratio_median": None,
+        "flux_ratio_min": None,
+        "flux_ratio_max": None,
+    }
+    scene = _scene([[0.3 * np.cos(2.0), 0.3 * np.sin(2.0), 0.0, 0.015]])
+    shown = glint_fluxes(lambda s, c: Renderer(s, supersample=2).render(c), scene)
+    assert shown.shape == (1,) and shown[0] > 0  # the glint outshines the face the sphere hides

@@ -4,7 +4,8 @@ Both render the same N seeded draws from ``CoefficientRanges`` in one run, so th
 speeds are measured under the same machine load. Ours at several settings (supersampling x
 sun samples: the speed-for-accuracy trade), each timed over ``--repeats`` passes after a
 warm-up call; Cycles per frame, excluding Blender's one-time start (reported too). Per
-setting: median frames/s, the ratio to Cycles, and the agreement of ``service.render.agreement``. Writes ``render.json``, ``render.md``,
+setting: median frames/s, the ratio to Cycles, the agreement of ``service.render.agreement``, and the defects' sun
+glints (the fluid at rest, with the spheres minus without: their flux, ours over Cycles'). Writes ``render.json``, ``render.md``,
 ``render.png`` (ours | Cycles | difference for a few frames), both frame stacks (ours at the last setting) and the
 coefficients to ``--out``, and prints the table.
 """
@@ -80,6 +81,41 @@ def _fmt(x: float | None, spec: str = ".3g") -> str:
     return "n/a" if x is None else format(x, spec)
 
 
+def glint_fluxes(render: Callable[[Scene, np.ndarray], np.ndarray], scene: Scene) -> np.ndarray:
+    """Each defect's sun glint (G,) in ``render(scene, coeffs)``'s frames: the fluid at rest with the spheres minus
+    without them, summed over the detector's square round where it glints (its flux, full-scale pixels); empty where
+    the scene has no sphere."""
+    from service.calibration.artifacts import FLUX_HALF_PX, glint_positions, with_spheres
+
+    if not len(scene.spheres):
+        return np.zeros(0)
+    rest = np.zeros((1, 4))
+    glints = render(scene, rest)[0].astype(np.float64) - render(with_spheres(scene, np.zeros((0, 4))), rest)[0]
+    h, w = glints.shape
+    out = []
+    for col, row in np.rint(glint_positions(scene, scene.spheres)).astype(int):
+        square = glints[
+            max(row - FLUX_HALF_PX, 0) : row + FLUX_HALF_PX + 1, max(col - FLUX_HALF_PX, 0) : col + FLUX_HALF_PX + 1
+        ]
+        out.append(float(square.sum()) if 0 <= row < h and 0 <= col < w else np.nan)
+    return np.array(out)
+
+
+def flux_ratios(ours: np.ndarray, cycles: np.ndarray, gain: float | None) -> dict[str, float | int | None]:
+    """Ours over Cycles' glint flux (gain applied) of the defects both show (Cycles' over 1e-3 of a full-scale pixel):
+    median, lowest and highest, and how many."""
+    shown = np.isfinite(ours) & np.isfinite(cycles) & (cycles > 1e-3)
+    ratio = (gain or 1.0) * ours[shown] / cycles[shown]
+    if not ratio.size:
+        return {"defects": 0, "flux_ratio_median": None, "flux_ratio_min": None, "flux_ratio_max": None}
+    return {
+        "defects": int(ratio.size),
+        "flux_ratio_median": float(np.median(ratio)),
+        "flux_ratio_min": float(ratio.min()),
+        "flux_ratio_max": float(ratio.max()),
+    }
+
+
 def markdown(results: dict) -> str:
     """The results as Markdown: one row per setting of ours beside Cycles, speed ratio and agreement."""
     c = results["cycles"]
@@ -92,17 +128,19 @@ def markdown(results: dict) -> str:
         f"one-time start {_fmt(c['startup_s'])} s).",
         "",
         "| ours (supersample x sun samples) | frames/s (median) | x Cycles | first call (s) | "
-        "correlation median / p10 | centroid median / p90 (px) | highlight in both | gain |",
-        "|---|---|---|---|---|---|---|---|",
+        "correlation median / p10 | centroid median / p90 (px) | highlight in both | gain | "
+        "defects' glint flux, ours / Cycles: median (range) |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for o in results["ours"]:
-        a = o["agreement"]
+        a, d = o["agreement"], o["glints"]
         lines.append(
             f"| {o['supersample']} x {o['sun_samples']} | {_fmt(o['frames_per_s'], '.0f')} | "
             f"{_fmt(o['speed_ratio'], '.0f')} | {_fmt(o['warmup_s'])} | "
             f"{_fmt(a['correlation_median'], '.4f')} / {_fmt(a['correlation_p10'], '.4f')} | "
             f"{_fmt(a['centroid_distance_median_px'])} / {_fmt(a['centroid_distance_p90_px'])} | "
-            f"{a['highlight_both']}/{n} | {_fmt(a['gain_median'])} |"
+            f"{a['highlight_both']}/{n} | {_fmt(a['gain_median'])} | "
+            f"{_fmt(d['flux_ratio_median'])} ({_fmt(d['flux_ratio_min'])}-{_fmt(d['flux_ratio_max'])}) of {d['defects']} |"
         )
     return "\n".join(lines) + "\n"
 
@@ -153,6 +191,9 @@ def run(args: argparse.Namespace) -> int:
     blender = BlenderRenderer(scene, samples=samples, blender=args.blender, seed=args.seed)
     cycles = blender.render(coeffs)
     timing = blender.last_timing
+    cycles_glints = glint_fluxes(
+        lambda s, c: BlenderRenderer(s, samples=samples, blender=args.blender, seed=args.seed).render(c), scene
+    )
     cycles_median = float(np.median(timing.frame_s))
     cycles_rate = _rate(cycles_median)
     ours_results, best = [], None
@@ -161,6 +202,7 @@ def run(args: argparse.Namespace) -> int:
             Renderer(scene, supersample=ss, sun_samples=sun).render, coeffs, args.repeats, f"{ss}x{sun}"
         )
         agreement = compare(ours, cycles)
+        summary = agreement.summary()
         rate = _rate(float(np.median(ours_s)))
         ours_results.append(
             {
@@ -170,12 +212,17 @@ def run(args: argparse.Namespace) -> int:
                 "median_s_per_frame": float(np.median(ours_s)),
                 "frames_per_s": rate,
                 "speed_ratio": rate / cycles_rate if rate and cycles_rate else None,
-                "agreement": agreement.summary(),
+                "agreement": summary,
+                "glints": flux_ratios(
+                    glint_fluxes(lambda s, c: Renderer(s, supersample=ss, sun_samples=sun).render(c), scene),
+                    cycles_glints,
+                    summary["gain_median"],
+                ),
             }
         )
         best = (ours, agreement, ss, sun)  # the last (most accurate) setting goes into the figure
     results = {
-        "schema": "meniscope.bench.render/2",
+        "schema": "meniscope.bench.render/3",
         "scene": {"path": str(args.scene), "sha256": scene.sha256},
         "seed": args.seed,
         "frames": frames,
