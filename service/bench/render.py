@@ -83,26 +83,19 @@ def _fmt(x: float | None, spec: str = ".3g") -> str:
 
 def glint_fluxes(render: Callable[[Scene, np.ndarray], np.ndarray], scene: Scene) -> np.ndarray:
     """Each defect's sun glint (G,) in ``render(scene, coeffs)``'s frames: the fluid at rest with the spheres minus
-    without them, summed over the detector's square round where it glints (its flux, full-scale pixels); empty where
-    the scene has no sphere."""
-    from service.calibration.artifacts import FLUX_HALF_PX, glint_positions, with_spheres
+    without them, summed over the detector's square round where it glints (its flux, full-scale pixels; 0 outside the
+    frame); empty where the scene has no sphere."""
+    from service.calibration.artifacts import glint_positions, square_flux, with_spheres
 
     if not len(scene.spheres):
         return np.zeros(0)
     rest = np.zeros((1, 4))
     glints = render(scene, rest)[0].astype(np.float64) - render(with_spheres(scene, np.zeros((0, 4))), rest)[0]
-    h, w = glints.shape
-    out = []
-    for col, row in np.rint(glint_positions(scene, scene.spheres)).astype(int):
-        square = glints[
-            max(row - FLUX_HALF_PX, 0) : row + FLUX_HALF_PX + 1, max(col - FLUX_HALF_PX, 0) : col + FLUX_HALF_PX + 1
-        ]
-        out.append(float(square.sum()) if 0 <= row < h and 0 <= col < w else np.nan)
-    return np.array(out)
+    return square_flux(glints, glint_positions(scene, scene.spheres))
 
 
 def flux_ratios(ours: np.ndarray, cycles: np.ndarray, gain: float | None) -> dict[str, float | int | None]:
-    """Ours over Cycles' glint flux (gain applied) of the defects both show (Cycles' over 1e-3 of a full-scale pixel):
+    """Ours over Cycles' glint flux (gain applied) of the defects Cycles shows (over 1e-3 of a full-scale pixel):
     median, lowest and highest, and how many."""
     shown = np.isfinite(ours) & np.isfinite(cycles) & (cycles > 1e-3)
     ratio = (gain or 1.0) * ours[shown] / cycles[shown]

@@ -125,6 +125,16 @@ def with_spheres(scene: Scene, spheres: np.ndarray) -> Scene:
     return Scene.from_dict(data)
 
 
+def square_flux(image: np.ndarray, at: np.ndarray) -> np.ndarray:
+    """Sums (G,) of ``image`` (h, w) over the FLUX_HALF_PX square round each point ``at`` (G, 2: col, row), the part
+    inside the image (0 where none is)."""
+    k = FLUX_HALF_PX
+    squares = (
+        image[max(0, row - k) : row + k + 1, max(0, col - k) : col + k + 1] for col, row in np.rint(at).astype(int)
+    )
+    return np.array([float(square.sum()) for square in squares])
+
+
 def glint_flux(scene: Scene, spheres: np.ndarray, at: np.ndarray, supersample: int = 3) -> np.ndarray:
     """Flux (G,) over the FLUX_HALF_PX square around each point ``at`` (G, 2) of a render of ``scene`` with
     ``spheres`` minus one without them (the fluid at rest)."""
@@ -132,16 +142,7 @@ def glint_flux(scene: Scene, spheres: np.ndarray, at: np.ndarray, supersample: i
         Renderer(with_spheres(scene, s), supersample=supersample).render(np.zeros((1, 4)))[0]
         for s in (spheres, np.zeros((0, 4)))
     ]
-    diff = frames[0] - frames[1]
-    h, w = diff.shape
-    out = []
-    for col, row in np.rint(at).astype(int):
-        patch = diff[
-            max(0, row - FLUX_HALF_PX) : min(h, row + FLUX_HALF_PX + 1),
-            max(0, col - FLUX_HALF_PX) : min(w, col + FLUX_HALF_PX + 1),
-        ]
-        out.append(max(float(patch.sum()), 1e-9))
-    return np.array(out)
+    return np.maximum(square_flux(frames[0] - frames[1], at), 1e-9)
 
 
 def recover(scene: Scene, residual: np.ndarray, allowed: np.ndarray, noise: float, level: np.ndarray) -> np.ndarray:

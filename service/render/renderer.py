@@ -149,13 +149,12 @@ class Renderer:
         enter = np.maximum(enter, rays.camera_s)
         traced = slice(None) if pixels is None else np.flatnonzero(np.isin(pixel_of, pixels))
         static = nozzle.trace(scene, rays.origin[traced], rays.direction[traced], rays.camera_s[traced])
-        shaded = nozzle.shade(
-            scene, rays.origin[traced], rays.direction[traced], static, sun_directions(scene, static_sun_samples)
-        )
+        static_suns = sun_directions(scene, static_sun_samples)
+        shaded = nozzle.shade(scene, rays.origin[traced], rays.direction[traced], static, static_suns)
         radiance, static_t = np.zeros(n), np.full(n, -np.inf)  # an untraced ray meets no fluid
         radiance[traced], static_t[traced] = shaded, static.t
         static_pixels = radiance.reshape(h, ss, w, ss).mean(axis=(1, 3)).ravel()  # (H W,)
-        glint_pixels, glint_radiance = glints.splats(scene, sun_directions(scene, static_sun_samples))
+        glint_pixels, glint_radiance = glints.splats(scene, static_suns)
         np.add.at(static_pixels, glint_pixels, glint_radiance)
         leave = np.minimum(leave, static_t)
         idx = np.flatnonzero(np.isfinite(enter) & (enter < leave))
