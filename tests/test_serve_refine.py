@@ -81,6 +81,7 @@ def offline(demo_cine: Path) -> dict[int, dict]:
         settings=FitSettings(poles="series"),
         progress=False,
         refine=True,
+        workers=1,
     )
     assert analysis.report.method == "network+synthesis"
     return {w.start_frame: w.model_dump(mode="json") for w in analysis.report.windows}
