@@ -30,7 +30,7 @@ from service.calibration.profile import PARTNERS, Profile, descend, indistinct
 from service.calibration.report import document, profile_verdicts, ridge_ranges
 from service.calibration.roi import refine_shift
 from service.calibration.synthesis import Synthesis, pyramid
-from service.calibration.windows import Point, choose, further, pick
+from service.calibration.windows import SPREAD, Point, choose, further, pick, spread
 from service.camera_effects import CameraEffects
 from service.scene import Scene, direction
 from service.simulate import simulate
@@ -454,7 +454,16 @@ def test_whole_windows_held_to_eq1_choose_the_scene_their_frames_were_made_with(
     assert chosen.scene.light.azimuth_deg == 183.0
     assert [row["chosen"] for row in rows] == [False, True, False]
     assert rows[1]["cost"] < min(rows[0]["cost"], rows[2]["cost"]) and rows[1]["better_in_every_window"]
-    assert all(len(row["rms"]) == 2 for row in rows)
+    assert all(len(row["rms"]) == 2 and len(row["windows"]) == 2 for row in rows)
+    made = [
+        w
+        for w in truth["windows"]
+        if any(w["start_frame"] <= lw.indices[0] < w["end_frame"] for lw in footage.lab_windows)
+    ]
+    for refined, true in zip(rows[1]["windows"], made):  # the chosen scene's windows refined near their truth
+        assert refined["offset_mm"] == pytest.approx(true["offset_mm"], abs=0.005)
+    moved = spread(rows)
+    assert set(moved) == {"light.azimuth_deg"} and all(np.isfinite(v) for v in moved["light.azimuth_deg"].values())
     json.dumps(rows, allow_nan=False)
 
 
@@ -506,3 +515,55 @@ def test_a_point_replaces_the_calibrated_scene_only_where_every_window_fits_it_b
     assert chosen == 0 if not better else chosen in better
     costs = np.square(table).sum(axis=1)
     assert costs[chosen] == min(costs[[0, *better]])
+
+
+def _ridge_row(parameter: str | None, windows: list[dict], chosen: bool = False, beyond: bool = False) -> dict:
+    """A row of :func:`choose`'s table with only what :func:`spread` reads."""
+    return {"parameter": parameter, "windows": windows, "chosen": chosen, "beyond": beyond}
+
+
+_NUMBERS = st.fixed_dictionaries(
+    {"offset_mm": st.floats(-0.1, 0.1), **{key: st.floats(1e-3, 1e4) for key, relative in SPREAD.items() if relative}}
+)
+
+
+@given(
+    st.lists(_NUMBERS, min_size=1, max_size=5),
+    st.floats(-0.05, 0.05),
+    st.floats(0.5, 2.0),
+    st.integers(0, 2),
+)
+def test_the_ridge_spread_is_how_far_the_windows_numbers_move_from_the_chosen_scene(
+    windows: list[dict], shift: float, factor: float, chosen: int
+) -> None:
+    """Each profiled parameter's spread is the median over windows of its points' change from the chosen point (the
+    offset in mm, the rest relative), the largest over its points; the chosen point, the calibrated scene's row and
+    points walked beyond a profile count for nothing, and a number that is 0 at the chosen point is not divided by."""
+    moved = [
+        {**w, "offset_mm": w["offset_mm"] + shift, **{k: w[k] * factor for k, r in SPREAD.items() if r}}
+        for w in windows
+    ]
+    far = [{**w, "offset_mm": w["offset_mm"] + 10.0, "amplitude_mm": w["amplitude_mm"] * 50} for w in windows]
+    rows = [
+        _ridge_row(None, windows, chosen=chosen == 0),
+        _ridge_row("light.elevation_deg", windows, chosen=chosen == 1),
+        _ridge_row("fluid.roughness", moved),
+        _ridge_row("fluid.roughness", windows),
+        _ridge_row("fluid.roughness", far, beyond=True),
+        _ridge_row("camera.elevation_deg", windows, chosen=chosen == 2),
+    ]
+    out = spread(rows)
+    assert out["fluid.roughness"]["offset_mm"] == pytest.approx(abs(shift), abs=1e-12)
+    for key in ("amplitude_mm", "frequency_hz", "decay_rate_per_s"):
+        assert out["fluid.roughness"][key] == pytest.approx(abs(factor - 1.0), rel=1e-9, abs=1e-12)
+    for name in ("light.elevation_deg", "camera.elevation_deg"):  # the same windows as the chosen: nothing moves
+        assert out.get(name, dict.fromkeys(SPREAD, 0.0)) == dict.fromkeys(SPREAD, 0.0)
+    zero = [{**w, "amplitude_mm": 0.0} for w in windows]
+    assert (
+        spread([_ridge_row(None, zero, chosen=True), _ridge_row("fluid.roughness", windows)])["fluid.roughness"][
+            "amplitude_mm"
+        ]
+        == 0.0
+    )
+    json.dumps(out, allow_nan=False)
+    assert spread([]) == {} and spread([_ridge_row(None, windows)]) == {}

@@ -18,6 +18,7 @@ from service.calibration.open_ranges import SCHEMA, report_paths
 from service.calibration.profile import Profile
 from service.calibration.synthesis import Synthesis
 from service.calibration.truth import load_truth, score
+from service.calibration.windows import spread
 from service.plotting import pyplot
 
 #: One sigma at or below which a parameter counts as identified by the video (file units; "rel": relative).
@@ -149,6 +150,7 @@ def document(cal: Calibration, footage: Footage) -> dict[str, Any]:
         "starts": cal.starts,
         "descent": cal.moves,
         "ridge": {"windows": [w.as_dict() for w in footage.lab_windows], "points": cal.ridge},
+        "systematic": spread(cal.ridge),
         "seconds": cal.seconds,
         "renderer_builds": cal.builds,
         "versus_truth": None if truth is None else score(cal.scene, truth),
@@ -163,7 +165,10 @@ def document(cal: Calibration, footage: Footage) -> dict[str, Any]:
         "its refitted values where it trades with the profiled one) and its calibrated value, which whole windows may "
         "have chosen along such a ridge: how far the scenes the single frames leave open let it move. A 'held' "
         "parameter kept the guess's value (calibrate --hold: the user's measurement): not fitted, so neither "
-        "identified nor not",
+        "identified nor not. 'systematic': per parameter whose ridge the whole windows scored, how far the lab windows' "
+        "refined numbers move from the chosen scene's over the points neither the frames nor the windows told apart "
+        "(median over windows, the largest over the points; the offset in mm, the rest relative): what no method "
+        "reading the video through this scene can be surer of (a parameter held at a measured value has none)",
     }
 
 

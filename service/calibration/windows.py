@@ -104,14 +104,14 @@ def choose(
 
     def score(point: Point) -> dict:  # the windows through ``point``, each from where the first point's ended
         renderer = Renderer(point.scene, sun_samples=synthesis.SUN_SAMPLES, threads=None, **synth.rays)
-        rms = [
-            synthesis.polish(renderer, crop(window.frames, point.scene), window.t, s.motion, s.blur_sigma_px).rms
+        polished = [
+            synthesis.polish(renderer, crop(window.frames, point.scene), window.t, s.motion, s.blur_sigma_px)
             for window, s in zip(windows, starts)
         ]
         each()
-        return _row(point, rms)
+        return _row(point, polished)
 
-    rows = [_row(points[0], [refined.rms for refined in starts])] + [score(point) for point in points[1:]]
+    rows = [_row(points[0], starts)] + [score(point) for point in points[1:]]
     rms = np.array([row["rms"] for row in rows])
     for row, better in zip(rows, np.all(rms < rms[0], axis=1)):
         row["better_in_every_window"] = bool(better)
@@ -139,16 +139,55 @@ def pick(rms: np.ndarray) -> int:
     return int(eligible[np.argmin(np.square(rms[eligible]).sum(axis=1))])
 
 
-def _row(point: Point, rms: list[float]) -> dict:
+def _row(point: Point, refined: list[synthesis.Refined]) -> dict:
     """A point's line in the report: which profile and value (none for the calibrated scene), its windows' residual
-    RMS and their summed mean square. A point walked to beyond its profile says ``beyond``; there,
-    ``better_in_every_window`` is against the point it was walked from."""
+    RMS and their summed mean square, and each window's offset (d + p R) and dominant mode refined there (what a
+    point on the ridge does to the numbers a user reads: :func:`spread`). A point walked to beyond its profile says
+    ``beyond``; there, ``better_in_every_window`` is against the point it was walked from."""
+    radius = point.scene.nozzle.radius_mm
     return {
         "parameter": point.parameter,
         "value": None if point.parameter is None else point.value,
         "scene": {p.name: p.from_fit(float(v)) for p, v in zip(P.PARAMETERS, P.read(point.scene))},
-        "rms": [float(r) for r in rms],
-        "cost": float(np.sum(np.square(rms))),
+        "rms": [float(r.rms) for r in refined],
+        "cost": float(np.sum(np.square([r.rms for r in refined]))),
+        "windows": [
+            {
+                "offset_mm": float(r.motion.d + r.motion.p * radius),
+                "amplitude_mm": float(r.motion.A1),
+                "frequency_hz": float(r.motion.f1),
+                "decay_rate_per_s": float(r.motion.g1),
+            }
+            for r in refined
+        ],
         "chosen": False,
         "beyond": False,
     }
+
+
+#: The numbers :func:`spread` compares across the ridge, and whether each is compared relative to the chosen point's.
+SPREAD = {"offset_mm": False, "amplitude_mm": True, "frequency_hz": True, "decay_rate_per_s": True}
+
+
+def spread(rows: list[dict]) -> dict[str, dict[str, float]]:
+    """How far the lab windows' numbers move over the scenes the single frames leave open: for each profiled parameter
+    with points in ``rows`` (:func:`choose`'s; points walked beyond a profile are left out unless chosen), the median
+    over windows of each number's change from the chosen point (offset in mm, the rest relative), the largest over
+    that parameter's points. Neither the frames nor the windows told these scenes apart, so no method reading the
+    video through the calibrated scene is surer of these numbers than this: a floor under their systematic error."""
+    chosen = next((row for row in rows if row["chosen"]), None)
+    out: dict[str, dict[str, float]] = {}
+    for row in rows:
+        if chosen is None or row is chosen or row["parameter"] is None or row["beyond"]:
+            continue
+        moved = out.setdefault(row["parameter"], dict.fromkeys(SPREAD, 0.0))
+        for key, relative in SPREAD.items():
+            here = np.array([w[key] for w in row["windows"]])
+            there = np.array([w[key] for w in chosen["windows"]])
+            change = np.abs(here - there)
+            if relative:  # a window whose number is 0 at the chosen point has no relative change to count
+                keep = there != 0
+                change = change[keep] / np.abs(there[keep])
+            if change.size:
+                moved[key] = max(moved[key], float(np.median(change)))
+    return out

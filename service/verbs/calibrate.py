@@ -72,6 +72,7 @@ def run(args: argparse.Namespace) -> int:
     from service.calibration.fit import SCHEDULE, calibrate, with_edge_rays
     from service.calibration.footage import read_footage
     from service.calibration.report import write_report
+    from service.calibration.windows import spread
 
     if not 2 <= args.frames <= 200:
         raise MeniscopeError("--frames", f"must be between 2 and 200, got {args.frames}")
@@ -105,8 +106,16 @@ def run(args: argparse.Namespace) -> int:
         else f"; {len(footage.lab_windows)} windows moved it to {chosen['parameter']} {chosen['value']:.4g}"
     )
     held = f"; held at the guess's value: {', '.join(cal.held)}" if cal.held else ""
+    moved = spread(cal.ridge)
+    widest = max(moved, key=lambda name: moved[name]["offset_mm"], default=None)
+    systematic = (
+        ""
+        if widest is None
+        else f"; along {widest} the windows' offsets move {moved[widest]['offset_mm'] * 1e3:.2g} um (median), "
+        "which the video does not settle"
+    )
     print(
         f"{args.out}: calibrated in {cal.seconds:.0f} s, residual {cal.residual_before * footage.full_scale:.1f} "
-        f"-> {cal.residual_after * footage.full_scale:.1f} DN RMS{ridge}{held}; report {doc}, figure {png}"
+        f"-> {cal.residual_after * footage.full_scale:.1f} DN RMS{ridge}{held}{systematic}; report {doc}, figure {png}"
     )
     return 0
