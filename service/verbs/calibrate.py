@@ -112,7 +112,7 @@ def run(args: argparse.Namespace) -> int:
         ""
         if widest is None
         else f"; along {widest} the windows' offsets move {moved[widest]['offset_mm'] * 1e3:.2g} um (median), "
-        "which the video does not settle"
+        "which this calibration leaves open"
     )
     print(
         f"{args.out}: calibrated in {cal.seconds:.0f} s, residual {cal.residual_before * footage.full_scale:.1f} "
