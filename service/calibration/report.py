@@ -166,9 +166,10 @@ def document(cal: Calibration, footage: Footage) -> dict[str, Any]:
         "have chosen along such a ridge: how far the scenes the single frames leave open let it move. A 'held' "
         "parameter kept the guess's value (calibrate --hold: the user's measurement): not fitted, so neither "
         "identified nor not. 'systematic': per parameter whose ridge the whole windows scored, how far the lab windows' "
-        "refined numbers move from the chosen scene's over the points neither the frames nor the windows told apart "
-        "(median over windows, the largest over the points; the offset in mm, the rest relative): what no method "
-        "reading the video through this scene can be surer of (a parameter held at a measured value has none)",
+        "refined offset and first mode move from the chosen scene's over the points neither the profiles nor the "
+        "windows told apart (median over windows, the largest over the points; the offset in mm, the rest relative): "
+        "what this calibration leaves open in the numbers a method reads through its scene, one step along each "
+        "profile (a lower estimate, not a bound; a parameter held at a measured value has none)",
     }
 
 

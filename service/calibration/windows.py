@@ -141,8 +141,8 @@ def pick(rms: np.ndarray) -> int:
 
 def _row(point: Point, refined: list[synthesis.Refined]) -> dict:
     """A point's line in the report: which profile and value (none for the calibrated scene), its windows' residual
-    RMS and their summed mean square, and each window's offset (d + p R) and dominant mode refined there (what a
-    point on the ridge does to the numbers a user reads: :func:`spread`). A point walked to beyond its profile says
+    RMS and their summed mean square, and each window's offset (d + p R) and Eq. 1's first mode refined there (what
+    a point on the ridge does to the numbers a user reads: :func:`spread`). A point walked to beyond its profile says
     ``beyond``; there, ``better_in_every_window`` is against the point it was walked from."""
     radius = point.scene.nozzle.radius_mm
     return {
@@ -173,8 +173,9 @@ def spread(rows: list[dict]) -> dict[str, dict[str, float]]:
     """How far the lab windows' numbers move over the scenes the single frames leave open: for each profiled parameter
     with points in ``rows`` (:func:`choose`'s; points walked beyond a profile are left out unless chosen), the median
     over windows of each number's change from the chosen point (offset in mm, the rest relative), the largest over
-    that parameter's points. Neither the frames nor the windows told these scenes apart, so no method reading the
-    video through the calibrated scene is surer of these numbers than this: a floor under their systematic error."""
+    that parameter's points. Neither the profiles' paired test nor the windows told these scenes apart, so this is
+    what the calibration leaves open in the numbers a method reads through its scene: one step along each profile,
+    a lower estimate of their systematic error, not a bound."""
     chosen = next((row for row in rows if row["chosen"]), None)
     out: dict[str, dict[str, float]] = {}
     for row in rows:
