@@ -125,6 +125,10 @@ class WindowMotion:
             b=damped_mode(t, self.A2, self.g2, self.f2, self.phi2),
         )
 
+    def offset_mm(self, radius_mm: float) -> float:
+        """The steady centre displacement d + p R (mm): what a report's ``offset_mm`` and the truth's hold."""
+        return float(self.d + self.p * radius_mm)
+
     def as_dict(self) -> dict[str, float]:
         return {f.name: float(getattr(self, f.name)) for f in fields(self)}
 

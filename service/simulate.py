@@ -138,7 +138,7 @@ class Plan:
             "end_frame": end,
             "oscillation_start_frame": start + self.transient_frames,
             "bulge_mm": float(self.bulges_mm[window]),
-            "offset_mm": truth.d + truth.p * radius_mm,
+            "offset_mm": truth.offset_mm(radius_mm),
             "truth": truth.as_dict(),
         }
 

@@ -153,7 +153,7 @@ def _row(point: Point, refined: list[synthesis.Refined]) -> dict:
         "cost": float(np.sum(np.square([r.rms for r in refined]))),
         "windows": [
             {
-                "offset_mm": float(r.motion.d + r.motion.p * radius),
+                "offset_mm": r.motion.offset_mm(radius),
                 "amplitude_mm": float(r.motion.A1),
                 "frequency_hz": float(r.motion.f1),
                 "decay_rate_per_s": float(r.motion.g1),
