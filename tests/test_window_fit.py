@@ -123,6 +123,44 @@ def test_the_brightness_second_harmonic_is_not_taken_for_a_mode():
     assert pinned.poles_from == "frames" and [round(m.frequency_hz) for m in pinned.modes] == [1200]
 
 
+def brightening_twice(hz: float, decay: float, phase: float, linear: float, seed: int = 0) -> np.ndarray:
+    """A window's brightness where a highlight brightens twice a cycle: the mode squared (its second harmonic and a
+    decaying mean), with ``linear`` times the mode itself beside it, and noise."""
+    mode = series([(1.0, decay, hz, phase)])
+    return 80.0 + 5.0 * (linear * mode + mode**2) + np.random.default_rng(seed).normal(0, 5e-3, N)
+
+
+def test_a_brightness_turning_twice_a_cycle_gives_the_mode_not_its_harmonic():
+    """Where the brightness holds the mode only at its second harmonic, the series is fitted at half its frequency
+    and decay rate, and the report says so."""
+    y = series([(0.02, 150.0, 1500.0, 0.3)], offset=0.01, noise=5e-4, seed=1)
+    r = fit_window(y, FPS, brightness=brightening_twice(1500.0, 150.0, 0.3, 0.0))
+    assert r.poles_from == "frames" and "its mode halved" in r.reason
+    assert r.modes[0].frequency_hz == pytest.approx(1500, rel=2e-3)
+    assert r.modes[0].decay_rate_per_s == pytest.approx(150, rel=0.1)
+    assert r.modes[0].amplitude_mm == pytest.approx(0.02, rel=0.05)
+
+
+@settings(max_examples=30, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(
+    hz=st.floats(500.0, 2500.0),
+    decay=st.floats(100.0, 700.0),
+    phase=st.floats(0.0, 2 * np.pi),
+    linear=st.sampled_from([0.0, 0.3, 1.0]),
+    seed=st.integers(0, 2**16),
+)
+def test_whatever_the_brightness_holds_of_the_mode_its_harmonic_is_never_reported(hz, decay, phase, linear, seed):
+    """The mode squared in the brightness, with ``linear`` times the mode beside it: the reported frequency is the
+    mode's, not its second harmonic; the mode is halved wherever the brightness holds no more than its square, and
+    never where it holds the mode at least as strongly."""
+    y = series([(0.02, decay, hz, phase)], offset=0.01, noise=5e-4, seed=seed + 1)
+    r = fit_window(y, FPS, brightness=brightening_twice(hz, decay, phase, linear, seed))
+    assert r.modes and abs(r.modes[0].frequency_hz - hz) < abs(r.modes[0].frequency_hz - 2 * hz)
+    halved = "its mode halved" in (r.reason or "")
+    assert not (linear == 1.0 and halved)
+    assert halved or linear > 0.0 or r.poles_from == "series"
+
+
 def test_the_frames_poles_hold_where_only_a_higher_order_of_the_brightness_is_unresolved():
     """Brightness swinging slowly (under a cycle per window) beside the mode: its 2-mode fit is unresolved, its
     1-mode fit is not, and that one gives the poles."""

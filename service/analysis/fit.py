@@ -92,6 +92,12 @@ _PRODUCT_SHIFT, _PRODUCT_FACTOR = 0.05, 2.0
 #: Radians over which a pole must decay by no more than e to be an oscillation of the surface (issue 17's fluids:
 #: >= 3.1): to start the brightness' polynomial fit as mode 1, and to be handed to the window's series.
 _UNDERDAMPED = 2.0
+#: The brightness' lowest mode is taken at half its frequency and decay rate where the series fitted with that costs
+#: under this fraction of its cost with the mode as found: between the windows whose brightness held only the second
+#: harmonic and every other (docs/benchmarks.md, "The brightness' second harmonic").
+_HALVED_GAIN = 0.9
+#: Frequency ratios of the brightness' two poles taken for a mode and its second harmonic (Eq. 1's modes: 2.30).
+_HARMONIC_RATIO = (1.8, 2.15)
 _IRLS_STEPS = 100  # at most; the order-0 cost settles to 1e-6 (relative) in ~5-10 rounds
 
 
@@ -426,7 +432,7 @@ def _fit_window(
     later = settings.brightness_frames(fps) if starts_at_ejection else 0
     poles = _brightness_poles(brightness, x.size, skip, later, settings) if use_frames else None
     if poles is not None:
-        chosen, problem = window.pinned(poles), None
+        chosen, problem = _fundamental(window, poles)
     else:
         fits = _order_fits(window, x.size, settings)
         outliers = _outliers(window, fits)
@@ -546,7 +552,45 @@ def _brightness_poles(
     if settings.brightness_model == "modes":
         return _oscillations(chosen)
     kept = n >= later  # the polynomial's fit starts later: the ejection's light is no function of the modes
-    return _oscillations(_product_poles(n[kept], y[kept], chosen, settings))
+    poles = _oscillations(_product_poles(n[kept], y[kept], chosen, settings))
+    return _fundamental_alone(poles) if poles is not None else None
+
+
+def _fundamental_alone(fit: _OrderFit) -> _OrderFit:
+    """``fit`` with its lower mode alone where its higher one, :data:`_HARMONIC_RATIO` times its frequency, decays
+    slower: the polynomial's fit may end with the second harmonic as its mode 1 and the mode itself as its mode 2
+    (started from a brightness whose strongest pole was the harmonic), and the harmonic would be reported as the
+    dominant mode. Eq. 1's second mode lies 2.30 times the first's frequency and decays faster."""
+    w, g = fit.params[_BASE + 2 :: _PER_MODE], fit.params[_BASE + 3 :: _PER_MODE]
+    if fit.order < 2 or not (
+        _HARMONIC_RATIO[0] < w.max() / w.min() < _HARMONIC_RATIO[1] and g[np.argmax(w)] < g[np.argmin(w)]
+    ):
+        return fit
+    lower = int(np.argmin(w))
+    columns = np.r_[np.arange(_BASE), _BASE + _PER_MODE * lower + np.arange(_PER_MODE)]
+    return replace(fit, order=1, params=fit.params[columns], half_width=fit.half_width[columns])
+
+
+def _fundamental(window: _Window, poles: _OrderFit) -> tuple[_OrderFit, str | None]:
+    """``window`` fitted with the brightness' ``poles``, or with their lowest mode at half its frequency and decay
+    rate where that fits the series far better (cost under :data:`_HALVED_GAIN` times) and is still resolved, with
+    the note that says so. A highlight that sweeps across the surface and back brightens twice a cycle: the
+    brightness may then hold a mode only at its second harmonic, which turns and decays twice as fast."""
+    pinned = window.pinned(poles)
+    at = _BASE + _PER_MODE * int(np.argmin(poles.params[_BASE + 2 :: _PER_MODE])) + 2
+    params, half = poles.params.copy(), poles.half_width.copy()
+    params[at : at + 2] /= 2
+    half[at : at + 2] /= 2
+    if not _resolved(params.tolist(), half.tolist(), window.span):
+        return pinned, None
+    halved = window.pinned(replace(poles, params=params, half_width=half))
+    if not halved.cost < _HALVED_GAIN * pinned.cost:
+        return pinned, None
+    hz = params[at] / (2 * np.pi)
+    return halved, (
+        f"the frames' brightness turned at twice the series' {hz:.3g} cycles/frame (a highlight brightening twice "
+        "a cycle): its mode halved"
+    )
 
 
 def _oscillations(fit: _OrderFit) -> _OrderFit | None:
