@@ -550,10 +550,11 @@ def _brightness_poles(
     if chosen.order == 0 or chosen.problem is not None:
         return None
     if settings.brightness_model == "modes":
-        return _oscillations(chosen)
-    kept = n >= later  # the polynomial's fit starts later: the ejection's light is no function of the modes
-    poles = _oscillations(_product_poles(n[kept], y[kept], chosen, settings))
-    return _fundamental_alone(poles) if poles is not None else None
+        poles = _oscillations(chosen)
+    else:
+        kept = n >= later  # the polynomial's fit starts later: the ejection's light is no function of the modes
+        poles = _oscillations(_product_poles(n[kept], y[kept], chosen, settings))
+    return None if poles is None else _fundamental_alone(poles)
 
 
 def _fundamental_alone(fit: _OrderFit) -> _OrderFit:
