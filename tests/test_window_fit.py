@@ -151,8 +151,8 @@ def test_a_brightness_turning_twice_a_cycle_gives_the_mode_not_its_harmonic():
 )
 def test_whatever_the_brightness_holds_of_the_mode_its_harmonic_is_never_reported(hz, decay, phase, linear, seed):
     """The mode squared in the brightness, with ``linear`` times the mode beside it: the reported frequency is the
-    mode's, not its second harmonic; the mode is halved wherever the brightness holds no more than its square, and
-    never where it holds the mode at least as strongly."""
+    mode's, not its second harmonic; the mode is halved wherever the brightness holds its square alone (unless the
+    brightness resolves no pole and the series gives them), and never where it holds the mode as strongly."""
     y = series([(0.02, decay, hz, phase)], offset=0.01, noise=5e-4, seed=seed + 1)
     r = fit_window(y, FPS, brightness=brightening_twice(hz, decay, phase, linear, seed))
     assert r.modes and abs(r.modes[0].frequency_hz - hz) < abs(r.modes[0].frequency_hz - 2 * hz)

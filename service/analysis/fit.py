@@ -559,17 +559,15 @@ def _brightness_poles(
 
 def _fundamental_alone(fit: _OrderFit) -> _OrderFit:
     """``fit`` with its lower mode alone where its higher one, :data:`_HARMONIC_RATIO` times its frequency, decays
-    slower: the polynomial's fit may end with the second harmonic as its mode 1 and the mode itself as its mode 2
-    (started from a brightness whose strongest pole was the harmonic), and the harmonic would be reported as the
-    dominant mode. Eq. 1's second mode lies 2.30 times the first's frequency and decays faster."""
+    slower: the brightness' fit may end with the second harmonic beside the mode itself (the polynomial's, started
+    from a brightness whose strongest pole was the harmonic), and the harmonic would be reported as the dominant
+    mode. Eq. 1's second mode lies 2.30 times the first's frequency and decays faster."""
     w, g = fit.params[_BASE + 2 :: _PER_MODE], fit.params[_BASE + 3 :: _PER_MODE]
     if fit.order < 2 or not (
         _HARMONIC_RATIO[0] < w.max() / w.min() < _HARMONIC_RATIO[1] and g[np.argmax(w)] < g[np.argmin(w)]
     ):
         return fit
-    lower = int(np.argmin(w))
-    columns = np.r_[np.arange(_BASE), _BASE + _PER_MODE * lower + np.arange(_PER_MODE)]
-    return replace(fit, order=1, params=fit.params[columns], half_width=fit.half_width[columns])
+    return _with_modes(fit, np.array([np.argmin(w)]))
 
 
 def _fundamental(window: _Window, poles: _OrderFit) -> tuple[_OrderFit, str | None]:
@@ -605,6 +603,11 @@ def _oscillations(fit: _OrderFit) -> _OrderFit | None:
         return fit
     if keep.size == 0:
         return None
+    return _with_modes(fit, keep)
+
+
+def _with_modes(fit: _OrderFit, keep: np.ndarray) -> _OrderFit:
+    """``fit`` with only its modes ``keep`` (indices), offset and drift as they are."""
     columns = np.r_[np.arange(_BASE), (_BASE + _PER_MODE * keep[:, None] + np.arange(_PER_MODE)).ravel()]
     return replace(fit, order=int(keep.size), params=fit.params[columns], half_width=fit.half_width[columns])
 
