@@ -8,9 +8,13 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import pkgutil
+import signal
 import sys
-from collections.abc import Callable, Sequence
+import threading
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
 from importlib.metadata import entry_points
 
 from service.errors import MeniscopeError
@@ -43,13 +47,46 @@ def main(argv: Sequence[str] | None = None) -> int:
             parser.parse_args(argv)
         args.options = [*rest, *args.options]
     try:
-        return int(args.func(args) or 0)
+        with _terminable(not getattr(args, "own_signals", False)):
+            return int(args.func(args) or 0)
     except MeniscopeError as exc:
         print(f"meniscope {args.verb}: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print(f"meniscope {args.verb}: interrupted", file=sys.stderr)
         return 130
+    except Terminated:
+        print(f"meniscope {args.verb}: terminated", file=sys.stderr)
+        return 128 + signal.SIGTERM
+
+
+class Terminated(Exception):
+    """SIGTERM (``kill``, a service manager's stop) in a verb's process: raised where the verb is, so that it unwinds
+    as an interrupt does and its scratch folders go with it (a training's are tens of GB: killed ones filled a disk)."""
+
+
+@contextmanager
+def _terminable(enabled: bool) -> Iterator[None]:
+    """SIGTERM raises :class:`Terminated` in this process while the block runs (from the main thread; ``enabled``
+    False for a verb that handles its signals itself, ``serve``). A worker forked meanwhile inherits the handler and
+    is ended by the signal as it would have been without it."""
+    if not enabled or threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    pid = os.getpid()
+
+    def terminate(signum: int, frame: object) -> None:
+        if os.getpid() != pid:
+            signal.signal(signum, signal.SIG_DFL)
+            os.kill(os.getpid(), signum)
+            return
+        raise Terminated
+
+    previous = signal.signal(signal.SIGTERM, terminate)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
 
 
 if __name__ == "__main__":

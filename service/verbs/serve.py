@@ -37,7 +37,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="also refine windows by synthesis on a lane of their own (as analyze --refine; tens of seconds a "
         "window: the newest each time, published as an update of the same window id; setting refine)",
     )
-    p.set_defaults(func=run)
+    p.set_defaults(func=run, own_signals=True)  # uvicorn's shutdown and the pipeline process' stop
 
 
 def serve_settings(args: argparse.Namespace) -> ServiceSettings:
