@@ -202,26 +202,32 @@ class _Window:
         over ``_DRIFT_TEST`` standard errors or a mode turns under ``_SWING_CYCLES`` (a slow swing standing in for
         a drift); with one first (where offset and drift alone already show a drift), leaving it out is tried
         where it is within ``_DRIFT_TEST`` standard errors of 0 or a mode turns under ``_SWING_CYCLES``."""
-        free = np.ones(start.size, dtype=np.bool_)
         if drift_first:
-            with_drift = self._judge(order, self._refine(start, free))
+            with_drift = self.fit_as(order, start, True)
             t = t_quantile(max(self.n.size - start.size, 1), self.settings.confidence)
             evident = abs(with_drift.params[1]) * t >= _DRIFT_TEST * with_drift.half_width[1]
             if evident and not _slow_swing(with_drift.params, self.span):
                 return with_drift
             start = with_drift.params
-        flat = start.copy()
-        flat[0] += flat[1] * self.mean_n
-        flat[1] = 0.0
-        free[1] = False
-        without = self._judge(order, self._refine(flat, free), drift=False)
+        without = self.fit_as(order, start, False)
         if drift_first:
             return min(without, with_drift, key=lambda f: f.bic)
         slow = _slow_swing(without.params, self.span)
         if not slow and kernels.step_z(self.n, self.y, self.scale, self.robust, without.params, 1) < _DRIFT_TEST:
             return without
-        with_drift = self._judge(order, self._refine(without.params, np.ones(start.size, np.bool_)))
+        with_drift = self.fit_as(order, without.params, True)
         return min(without, with_drift, key=lambda f: f.bic)
+
+    def fit_as(self, order: int, start: np.ndarray, drift: bool) -> _OrderFit:
+        """Refine ``start`` by LM with the drift free, or (not ``drift``) held at 0 with the offset taking its mean,
+        judged: one search of the two :meth:`fit` may make."""
+        free = np.ones(start.size, dtype=np.bool_)
+        if not drift:
+            start = start.copy()
+            start[0] += start[1] * self.mean_n
+            start[1] = 0.0
+            free[1] = False
+        return self._judge(order, self._refine(start, free), drift=drift)
 
     def _refine(self, start: np.ndarray, free: np.ndarray) -> np.ndarray:
         """The LM optimum from ``start`` over the ``free`` parameters, its modes in canonical form
@@ -482,8 +488,10 @@ def _centred(x: np.ndarray) -> tuple[np.ndarray, np.ndarray, float, float]:
     return np.flatnonzero(finite).astype(np.float64), raw, centre, float(np.max(np.abs(raw - centre)))
 
 
-def _order_fits(window: _Window, length: int, settings: FitSettings) -> list[_OrderFit]:
-    """The fit of each model order (0 to ``settings.max_modes``) a window ``length`` frames long can take."""
+def _order_fits(window: _Window, length: int, settings: FitSettings, drift_of_one: bool = False) -> list[_OrderFit]:
+    """The fit of each model order (0 to ``settings.max_modes``) a window ``length`` frames long can take; with
+    ``drift_of_one``, two modes are searched from the pencil with the drift the one-mode fit chose, not with both
+    (the brightness' search, whose poles alone are wanted: ~10 % of a window's fit, docs/benchmarks.md)."""
     fits = [window.fit_baseline()]
     orders = [m for m in range(1, settings.max_modes + 1) if window.n.size >= min_samples(m)]
     if orders:
@@ -493,7 +501,11 @@ def _order_fits(window: _Window, length: int, settings: FitSettings) -> list[_Or
         if run is not None:  # gaps: their linear filling misleads the pencil, which a gap-free stretch does not
             starts.append(_pencil_modes(window.n[run] - window.n[run[0]], window.y[run], run.size, poles))
         for m in orders:
-            fit = min((window.fit(m, window.starts(m, modes), fits[0].drift) for modes in starts), key=lambda f: f.cost)
+            if drift_of_one and m >= 2 and fits[-1].order == m - 1:
+                searches = (window.fit_as(m, window.starts(m, modes), fits[-1].drift) for modes in starts)
+            else:
+                searches = (window.fit(m, window.starts(m, modes), fits[0].drift) for modes in starts)
+            fit = min(searches, key=lambda f: f.cost)
             if fit.problem is not None and m == 1:  # a short window's most energetic pencil pair may be a spurious one
                 for w, g in starts:
                     for i in range(1, w.size):
@@ -545,7 +557,7 @@ def _brightness_poles(
     if not 0 < spread < _MAX_VALUE:
         return None
     y = (raw - centre) / spread
-    fits = _order_fits(_Window(n, y, settings), x.size, settings)
+    fits = _order_fits(_Window(n, y, settings), x.size, settings, drift_of_one=True)
     chosen, _ = _choose([f for f in fits if not _has_harmonic(f)])  # resolved, if a higher order was not
     if chosen.order == 0 or chosen.problem is not None:
         return None
