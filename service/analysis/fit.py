@@ -491,7 +491,7 @@ def _centred(x: np.ndarray) -> tuple[np.ndarray, np.ndarray, float, float]:
 def _order_fits(window: _Window, length: int, settings: FitSettings, drift_of_one: bool = False) -> list[_OrderFit]:
     """The fit of each model order (0 to ``settings.max_modes``) a window ``length`` frames long can take; with
     ``drift_of_one``, two modes are searched from the pencil with the drift the one-mode fit chose, not with both
-    (the brightness' search, whose poles alone are wanted: ~10 % of a window's fit, docs/benchmarks.md)."""
+    (the brightness' search, whose poles alone are wanted; what it saves: docs/benchmarks.md)."""
     fits = [window.fit_baseline()]
     orders = [m for m in range(1, settings.max_modes + 1) if window.n.size >= min_samples(m)]
     if orders:
