@@ -6,6 +6,7 @@ through the ``meniscope.verbs`` entry-point group, so the runtime never imports 
 
 from __future__ import annotations
 
+import _thread
 import argparse
 import importlib
 import os
@@ -68,8 +69,10 @@ class Terminated(Exception):
 @contextmanager
 def _terminable(enabled: bool) -> Iterator[None]:
     """SIGTERM raises :class:`Terminated` in this process while the block runs (from the main thread; ``enabled``
-    False for a verb that handles its signals itself, ``serve``). A worker forked meanwhile inherits the handler and
-    is ended by the signal as it would have been without it."""
+    False for a verb that handles its signals itself, ``serve``). Where it lands in code whose exceptions Python
+    swallows (an at-fork or ``__del__`` callback: a test run met one as a pool forked), it is delivered again once that
+    code has returned. A worker forked meanwhile inherits the handler and is ended by the signal as it would have been
+    without it."""
     if not enabled or threading.current_thread() is not threading.main_thread():
         yield
         return
@@ -82,11 +85,19 @@ def _terminable(enabled: bool) -> Iterator[None]:
             return
         raise Terminated
 
-    previous = signal.signal(signal.SIGTERM, terminate)
+    def again(unraisable: sys.UnraisableHookArgs) -> None:
+        if isinstance(unraisable.exc_value, Terminated):  # again from another thread, once this code has returned
+            threading.Timer(0.01, _thread.interrupt_main, (signal.SIGTERM,)).start()
+        else:
+            hook(unraisable)
+
+    previous, hook = signal.signal(signal.SIGTERM, terminate), sys.unraisablehook
+    sys.unraisablehook = again
     try:
         yield
     finally:
         signal.signal(signal.SIGTERM, previous)
+        sys.unraisablehook = hook
 
 
 if __name__ == "__main__":

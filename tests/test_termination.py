@@ -4,18 +4,35 @@ this left 25 GB in /tmp and its workers rendering on."""
 
 from __future__ import annotations
 
+import os
 import signal
 import subprocess
+import time
 from pathlib import Path
 
 import pytest
 
+from service import cli
 from tests.servicekit import MENISCOPE, checkout_env, meniscope, wait_for
 
-pytest.importorskip("torch", reason="training needs the train extra (torch)")
+
+def test_a_sigterm_that_lands_where_python_swallows_exceptions_is_delivered_again() -> None:
+    """Python ignores an exception raised in a ``__del__`` or an at-fork callback (a pool forking met one): the verb
+    must still stop, once that code has returned."""
+
+    class SignalledWhileCollected:
+        def __del__(self) -> None:
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(0.05)  # the handler runs here, where its exception is swallowed
+
+    with pytest.raises(cli.Terminated), cli._terminable(True):
+        SignalledWhileCollected()
+        for _ in range(200):
+            time.sleep(0.01)
 
 
 def test_a_terminated_training_leaves_no_scratch_folder_behind(tmp_path: Path) -> None:
+    pytest.importorskip("torch", reason="training needs the train extra (torch)")
     lab, scratch, models = tmp_path / "lab.cine", tmp_path / "scratch", tmp_path / "models"
     scratch.mkdir()
     done = meniscope("simulate", "--out", lab, "--windows", "3", "--seed", "1")
