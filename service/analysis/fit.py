@@ -501,7 +501,7 @@ def _order_fits(window: _Window, length: int, settings: FitSettings, drift_of_on
         if run is not None:  # gaps: their linear filling misleads the pencil, which a gap-free stretch does not
             starts.append(_pencil_modes(window.n[run] - window.n[run[0]], window.y[run], run.size, poles))
         for m in orders:
-            if drift_of_one and m >= 2 and fits[-1].order == m - 1:
+            if drift_of_one and m >= 2:  # fits[-1] is the fit of m - 1 modes
                 searches = (window.fit_as(m, window.starts(m, modes), fits[-1].drift) for modes in starts)
             else:
                 searches = (window.fit(m, window.starts(m, modes), fits[0].drift) for modes in starts)
