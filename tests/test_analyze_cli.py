@@ -11,7 +11,7 @@ import pytest
 
 from service.analysis.results import Report
 from service.csvtable import read_columns
-from service.validation.score import ejection_matches
+from service.validation.score import ejection_matches, summary
 from service.validation.truth import read_truth, truth_centre
 from tests.servicekit import meniscope
 
@@ -171,13 +171,20 @@ def test_a_csv_without_the_column_is_refused(tmp_path: Path):
 
 def test_bench_analysis_scores_every_method_against_the_truth(recording: Path, tmp_path: Path):
     """(``bench fit``, the window-fit suite, has its own test in test_fit_suite.py.)"""
-    out = tmp_path / "analysis.json"
-    done = meniscope("bench", "analysis", "--recordings", recording.parent, "--methods", "direct", "--out", out)
+    out, reports = tmp_path / "analysis.json", tmp_path / "reports"
+    done = meniscope(
+        "bench", "analysis", "--recordings", recording.parent, "--methods", "direct", "--out", out, "--reports", reports
+    )
     assert done.returncode == 0, done.stderr
     figures = json.loads(out.read_text())["methods"]["direct"]["lab"]
     assert figures["recall"] == figures["precision"] == 1.0 and figures["frames_per_s"] > 0
     assert 0 <= figures["offset_mm_coverage"] <= 1  # the share of windows whose interval holds the truth
     assert "| direct | lab |" in out.with_suffix(".md").read_text()
+    # the windows behind the figures, kept as analyze writes them: scored again, they give the same figures
+    kept = Report.load(reports / "direct" / f"{recording.stem}.json")
+    again = summary(kept, read_truth(recording))
+    assert again["offset_mm_median"] == pytest.approx(figures["offset_mm_median"])
+    assert again["frequency_p90"] == pytest.approx(figures["frequency_p90"])
 
 
 def test_bench_analysis_asked_for_no_rows_says_so_and_writes_nothing(recording: Path, tmp_path: Path):
@@ -191,3 +198,12 @@ def test_bench_analysis_asked_for_no_rows_says_so_and_writes_nothing(recording: 
         assert done.returncode == 2
         assert done.stderr.count("\n") == 1 and "--series" in done.stderr and "gives no rows" in done.stderr
         assert not out.exists()
+
+
+def test_bench_analysis_refuses_reports_that_are_a_file(recording: Path, tmp_path: Path):
+    taken = tmp_path / "reports"
+    taken.write_text("kept")
+    out = tmp_path / "analysis.json"
+    done = meniscope("bench", "analysis", "--recordings", recording.parent, "--out", out, "--reports", taken)
+    assert done.returncode == 2 and done.stderr.count("\n") == 1 and "not a folder" in done.stderr
+    assert taken.read_text() == "kept" and not out.exists()

@@ -79,6 +79,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "window rows are the network method's only, without --refine",
     )
     p.add_argument("--out", type=Path, default=Path("bench-analysis.json"), help="JSON of the results (+ .md)")
+    p.add_argument(
+        "--reports",
+        type=Path,
+        help="folder to keep each recording's REPORT.json in (as analyze writes it), one subfolder per row's method, "
+        "to look at the windows behind the figures",
+    )
     p.set_defaults(func=run)
 
 
@@ -98,11 +104,13 @@ def run_method(
     database: Path | None,
     refine: bool = False,
     series: str = "steady",
+    reports: Path | None = None,
 ) -> dict:
     """Open ``method`` once (timed), then one row per recording: noise preset, wall time, frames and
     :func:`summary` figures; with this process's peak resident memory. Run in a fresh process per method.
     ``refine``: each window's motion refined on its frames (:mod:`service.inverse.synthesis`); ``series``:
-    :attr:`FitSettings.series_model`."""
+    :attr:`FitSettings.series_model`; ``reports``: each recording's report kept there, in the row's
+    :func:`row_label` folder."""
     settings = FitSettings(series_model=series)
     start = time.perf_counter()
     opened = open_method(method, scene, models, database)
@@ -115,6 +123,10 @@ def run_method(
             path, scene, method, models, database, settings=settings, progress=False, opened=opened, refine=refine
         )
         seconds = time.perf_counter() - start
+        if reports is not None:
+            folder = reports / row_label(method, refine, series)
+            folder.mkdir(parents=True, exist_ok=True)
+            analysis.report.write(folder / f"{path.stem}.json")
         rows.append(
             {
                 "recording": path.name,
@@ -127,6 +139,12 @@ def run_method(
         )
     peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     return {"setup_s": setup_s, "peak_memory_mb": peak_mb, "rows": rows}
+
+
+def row_label(method: str, refine: bool, series: str) -> str:
+    """The table's name of a method run: the report's method label, and "+window" where the window model's series
+    is fitted."""
+    return method_label(method, refine) + ("+window" if series == "window" else "")
 
 
 def run_method_apart(*args: object) -> dict:
@@ -173,6 +191,10 @@ def run(args: argparse.Namespace) -> int:
     if any(m in DATABASE_METHODS for m in methods):
         database_folder(args.models, args.database)  # refuses a missing database before any method runs
     require_folder_of(args.out)
+    if args.reports is not None:
+        require_folder_of(args.reports)
+        if args.reports.exists() and not args.reports.is_dir():
+            raise MeniscopeError(args.reports, "not a folder: --reports keeps one report per recording in it")
     recordings = recordings_in(args.recordings)
     scene = Scene.load(args.scene)
     results: dict = {"recordings": [p.name for p in recordings], "methods": {}, "per_recording": {}}
@@ -185,8 +207,10 @@ def run(args: argparse.Namespace) -> int:
             "--series", f"{args.series!r} gives no rows: window rows are the network method's, without --refine"
         )
     for method, fitted in runs:
-        measured = run_method_apart(method, recordings, scene, args.models, args.database, args.refine, fitted)
-        method = method_label(method, args.refine) + ("+window" if fitted == "window" else "")
+        measured = run_method_apart(
+            method, recordings, scene, args.models, args.database, args.refine, fitted, args.reports
+        )
+        method = row_label(method, args.refine, fitted)
         rows = measured["rows"]
         by_noise = defaultdict(list)
         for r in rows:
