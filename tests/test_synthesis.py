@@ -20,10 +20,15 @@ from service.analysis.offline import _with_pixel_intervals
 from service.analysis.results import ModeEstimate, WindowResult
 from service.camera_effects import CameraEffects
 from service.inverse.synthesis import (
+    _SAGS,
     _SCALE,
     SUN_SAMPLES,
+    _along_sag,
+    _canonical,
     _coefficient_derivatives,
     _coefficients,
+    _motion,
+    _motion_covariance,
     _point,
     _Problem,
     covariance,
@@ -289,8 +294,8 @@ def test_the_chain_rule_of_eq1_matches_finite_differences_at_extreme_motions(
 ) -> None:
     """The search's Jacobian is each frame's d(pixels)/d(d, p, a, b) times d(d, p, a, b)/d(motion) of Eq. 1, exact:
     central differences of the per-frame coefficients agree with it over the window at the coefficient ranges'
-    amplitudes, decays to 20,000 /s (of either sign: the search's decay stands for its absolute value), frequencies
-    to Nyquist and beyond (negative too) and any phase."""
+    amplitudes, decays to 20,000 /s (of either sign: the search's decay stands for its absolute value; mode 2's is
+    mode 1's plus its own, so mode 1's moves b too), frequencies to Nyquist and beyond (negative too) and any phase."""
     params = np.array([0.02, -0.1, amplitudes[0], decays[0], frequencies[0], phases[0]] + [amplitudes[1], decays[1]])
     params = np.append(params, [frequencies[1], phases[1]])
     exact = _coefficient_derivatives(params, T)
@@ -303,3 +308,52 @@ def test_the_chain_rule_of_eq1_matches_finite_differences_at_extreme_motions(
         numeric = (_coefficients(up, T) - _coefficients(down, T)) / (2 * step)
         scale = np.abs(numeric).max() + np.abs(exact[:, k]).max() + 1e-12
         np.testing.assert_allclose(exact[:, k], numeric, rtol=0, atol=1e-5 * scale, err_msg=f"parameter {k}")
+
+
+@settings(max_examples=60, deadline=None)
+@given(point=st.lists(st.floats(-1e4, 1e4), min_size=11, max_size=11))
+def test_no_point_of_the_search_gives_mode_2_the_slower_decay(point: list[float]) -> None:
+    """scene.md's membrane: mode 2 decays faster than mode 1 (mode 1 is the dominant one). Wherever LM's unbounded
+    steps go, the motion it stands for keeps that order, and a motion that broke it starts the search from both
+    modes at mode 1's rate."""
+    motion = _canonical(_motion(np.array(point) * _SCALE))
+    assert 0 <= motion.g1 <= motion.g2
+    slower = replace(TRUE, g2=0.5 * TRUE.g1)
+    assert _canonical(_motion(_point(slower, 0.7) * _SCALE)).g2 == pytest.approx(TRUE.g1)
+
+
+@settings(max_examples=40, deadline=None)
+@given(seed=st.integers(0, 2**32 - 1), unpinned=st.sampled_from([None, 3, 7, 10]))
+def test_the_motion_s_covariance_is_the_search_s_carried_through_g2_as_g1_plus_its_own(
+    seed: int, unpinned: int | None
+) -> None:
+    """T C T' with T the Jacobian of the motion (g2 = g1 + excess) in the search's parameters; a parameter the pixels
+    do not pin down (an infinite row and column) stays infinite, and nothing becomes NaN."""
+    rng = np.random.default_rng(seed)
+    a = rng.normal(size=(11, 11))
+    searched = a @ a.T
+    transform = np.eye(11)
+    transform[7, 3] = 1.0
+    expected = transform @ searched @ transform.T
+    if unpinned is not None:
+        searched[unpinned, :] = searched[:, unpinned] = np.inf
+    found = _motion_covariance(searched)
+    assert not np.isnan(found).any()
+    finite = np.isfinite(found)
+    np.testing.assert_allclose(found[finite], expected[finite], rtol=1e-12, atol=1e-12)
+    if unpinned is not None:
+        assert not finite[unpinned].any() and (unpinned not in (3, 7) or not finite[7].any())
+
+
+@pytest.mark.parametrize("wrong_by", [0.2, 0.12, -0.1])
+def test_a_start_at_the_wrong_sag_is_moved_along_its_offset_to_the_frames_sag(renderer, wrong_by: float):
+    """The window fit gives the centre's offset d + p R, the per-frame method the sag p, and that can be far off
+    (+0.035 for -0.120 on a Blender window): the search starts from the sag across the coefficient ranges whose
+    frames fit best, with the offset kept, not from the per-frame one."""
+    frames = frames_of(renderer, TRUE, CameraEffects(bit_depth=12, blur_sigma_px=0.7, read_noise_dn=2.0))
+    R = renderer.scene.nozzle.radius_mm
+    wrong = replace(TRUE, p=TRUE.p + wrong_by, d=TRUE.d - wrong_by * R)
+    moved = _along_sag(_Problem(renderer, frames, T), wrong)
+    spacing = np.ptp(CoefficientRanges().p) / (_SAGS - 1)
+    assert abs(moved.p - TRUE.p) <= spacing / 2 + 1e-9
+    assert moved.d + moved.p * R == pytest.approx(TRUE.d + TRUE.p * R, abs=1e-12)
