@@ -74,9 +74,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     p.add_argument(
         "--series",
-        default="steady,window",
-        help="comma-separated, of steady, window: the series each window is fitted to (analyze --series); "
-        "window rows are the network method's only, without --refine",
+        help="comma-separated, of steady, window: the series each window is fitted to (analyze --series; default "
+        "both), with --refine the one whose fit the refinement starts from (default window: what analyze --refine "
+        "does); window rows are the network method's only",
     )
     p.add_argument("--out", type=Path, default=Path("bench-analysis.json"), help="JSON of the results (+ .md)")
     p.add_argument(
@@ -143,7 +143,10 @@ def run_method(
 
 def row_label(method: str, refine: bool, series: str) -> str:
     """The table's name of a method run: the report's method label, and "+window" where the window model's series
-    is fitted."""
+    is fitted; with ``refine``, "+steady" where the network method's refinement starts from the steady series' fit
+    (``analyze --refine --series steady``) rather than the window model's (``analyze --refine``)."""
+    if refine:
+        return method_label(method, refine) + ("+steady" if method == "network" and series == "steady" else "")
     return method_label(method, refine) + ("+window" if series == "window" else "")
 
 
@@ -198,14 +201,13 @@ def run(args: argparse.Namespace) -> int:
     recordings = recordings_in(args.recordings)
     scene = Scene.load(args.scene)
     results: dict = {"recordings": [p.name for p in recordings], "methods": {}, "per_recording": {}}
-    series = [s.strip() for s in args.series.split(",") if s.strip()]
+    asked = args.series or ("window" if args.refine else "steady,window")
+    series = [s.strip() for s in asked.split(",") if s.strip()]
     if not series or any(s not in ("steady", "window") for s in series):
-        raise MeniscopeError("--series", f"{args.series!r}: choose from steady, window")
-    runs = [(m, s) for m in methods for s in series if s == "steady" or (m == "network" and not args.refine)]
+        raise MeniscopeError("--series", f"{asked!r}: choose from steady, window")
+    runs = [(m, s) for m in methods for s in series if s == "steady" or m == "network"]
     if not runs:  # nothing to measure is a mistake in the options, not an empty table
-        raise MeniscopeError(
-            "--series", f"{args.series!r} gives no rows: window rows are the network method's, without --refine"
-        )
+        raise MeniscopeError("--series", f"{asked!r} gives no rows: window rows are the network method's")
     for method, fitted in runs:
         measured = run_method_apart(
             method, recordings, scene, args.models, args.database, args.refine, fitted, args.reports
