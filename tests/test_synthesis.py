@@ -348,7 +348,7 @@ def test_the_motion_s_covariance_is_the_search_s_carried_through_g2_as_g1_plus_i
 @pytest.mark.parametrize("wrong_by", [0.2, 0.12, -0.1])
 def test_a_start_at_the_wrong_sag_is_moved_along_its_offset_to_the_frames_sag(renderer, wrong_by: float):
     """The window fit gives the centre's offset d + p R, the per-frame method the sag p, and that can be far off
-    (+0.035 for -0.120 on a Blender window): the search starts from the sag across the coefficient ranges whose
+    (of the wrong sign on a Blender window): the search starts from the sag across the coefficient ranges whose
     frames fit best, with the offset kept, not from the per-frame one."""
     frames = frames_of(renderer, TRUE, CameraEffects(bit_depth=12, blur_sigma_px=0.7, read_noise_dn=2.0))
     R = renderer.scene.nozzle.radius_mm

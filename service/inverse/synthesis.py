@@ -36,9 +36,9 @@ from service.render.renderer import Renderer
 #: Search parameters: Eq. 1's window motion in WindowMotion's order (d, p, A1, g1, f1, phi1, A2, g2, f2,
 #: phi2), then the camera's blur sigma (px), except that the search's g2 is mode 2's decay rate in excess of mode 1's
 #: (:func:`_motion`): the membrane's mode 2 decays faster (scene.md's world, the simulator's ``g2_over_g1 > 1``), and
-#: a search free to give it the slower decay made it the window's dominant mode (a Blender recording of the true
-#: scene: 2 of 20 windows reported at mode 2's frequency, docs/new_camera.md). Typical size of each parameter's change
-#: (mm, -, mm, 1/s, Hz, rad, ..., px): LM works in units of these.
+#: a search free to give it the slower decay reported it as the window's dominant mode (docs/benchmarks.md, "--refine:
+#: mode 2 decays faster than mode 1"). Typical size of each parameter's change (mm, -, mm, 1/s, Hz, rad, ..., px): LM
+#: works in units of these.
 _SCALE = np.array([1e-3, 1e-2, 1e-3, 30.0, 5.0, 0.05, 1e-3, 60.0, 10.0, 0.1, 0.1])
 #: Finite-difference steps of the per-frame coefficients (d mm, p, a mm, b mm) and of the blur (px):
 #: large enough to move a highlight across the supersampled pixel grid, small against the motion.
@@ -55,9 +55,9 @@ _MAX_BLUR = 10.0
 _AMPLIFY = (1.0, 2.0, 4.0)
 #: Shifts of the sag p of the starts tried (the shipped models' per-frame p is off by ~0.03-0.08 RMS).
 _SHIFT_P = (-0.03, 0.0, 0.03)
-#: Sags tried before them, across :class:`CoefficientRanges`' p, d moved to keep the centre's offset d + p R: on a
-#: Blender recording the per-frame p was +0.035 for a true -0.120, and LM from there (16 times the pixel residual of
-#: the truth) let both modes die within a frame to move the surface's still shape (docs/new_camera.md).
+#: Sags tried before them, across :class:`CoefficientRanges`' p, d moved to keep the centre's offset d + p R: from a
+#: per-frame p of the wrong sign LM let both modes die within a frame to move the surface's still shape instead
+#: (docs/benchmarks.md, "--refine: mode 2 decays faster than mode 1").
 _SAGS = 13
 #: l2 / l1 of scene.md: mode 2's frequency over mode 1's for an ideal membrane.
 _BESSEL_RATIO = L2 / L1
