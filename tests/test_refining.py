@@ -242,43 +242,58 @@ def test_the_lane_runs_in_the_idle_class_at_the_lowest_niceness_and_its_threads_
     assert normal == (os.SCHED_OTHER, min(19, os.nice(0) + 5), os.SCHED_OTHER)  # niceness adds to this process's
 
 
+def _window_of(motion):  # type: ignore[no-untyped-def]
+    """A 190-frame window (19,000 frames/s, the default scene) whose per-frame records are ``motion``'s, with a
+    highlight in every frame, and what refining it takes: (scene, window, records, fps, refined settings)."""
+    from service import DEFAULT_SCENE
+    from service.analysis import offline
+    from service.analysis.results import FitSettings
+    from service.analysis.segment import Window
+    from service.physics import centre_displacement
+    from service.pipeline.records import COEFFICIENTS, FRAME
+    from service.scene import Scene
+
+    scene, fps, n = Scene.load(DEFAULT_SCENE), 19000.0, 190
+    records = np.zeros(n, FRAME)
+    for name, column in zip(COEFFICIENTS, motion.coefficients(np.arange(n) / fps).to_array().T):
+        records[name] = column
+    records["centre"] = centre_displacement(*(records[name] for name in COEFFICIENTS), scene.nozzle.radius_mm)
+    records["highlight"] = 0.5  # a highlight in every frame: the meniscus is seen
+    return scene, Window(0, 0, n, True, True), records, fps, offline.refined_settings(FitSettings())
+
+
+def _searching_to(monkeypatch, motion):  # type: ignore[no-untyped-def]
+    """The search stood in for by one that ends at ``motion``."""
+    from service.analysis import offline
+
+    def search(scene, frames, t, start, threads=1, fitted=None):  # type: ignore[no-untyped-def]
+        return motion.coefficients(t).to_array(), motion, np.eye(10), 20
+
+    monkeypatch.setattr(offline, "refine_task", search)
+
+
+_TRUTH = dict(d=0.01, p=0.05, A1=0.02, g1=300.0, f1=1500.0, phi1=0.3, A2=0.004, g2=700.0, f2=3600.0, phi2=1.0)
+
+
 @pytest.mark.parametrize("with_first", [True, False])
 def test_a_refinement_that_leaves_the_coefficient_ranges_reports_the_unrefined_window(monkeypatch, with_first) -> None:  # type: ignore[no-untyped-def]
     """A search that ends at a motion no meniscus makes (a Blender recording analysed through an uncalibrated scene:
     its tilt p far outside the ranges, the offset reported 42 mm off) is not reported as refined: the window keeps its
     records and its first fit (else the fit of its records) and says why; inside the ranges the refined motion is
     what the window reports."""
-    from service import DEFAULT_SCENE
     from service.analysis import offline
     from service.analysis.fit import fit_window
-    from service.analysis.results import FitSettings
-    from service.analysis.segment import Window
     from service.inverse.synthesis import within_ranges
-    from service.physics import WindowMotion, centre_displacement
-    from service.pipeline.records import COEFFICIENTS, FRAME
-    from service.scene import Scene
+    from service.physics import WindowMotion
 
-    scene, fps, n = Scene.load(DEFAULT_SCENE), 19000.0, 190
-    radius = scene.nozzle.radius_mm
-    truth = WindowMotion(
-        d=0.01, p=0.05, A1=0.02, g1=300.0, f1=1500.0, phi1=0.3, A2=0.004, g2=700.0, f2=3600.0, phi2=1.0
-    )
-    records = np.zeros(n, FRAME)
-    for name, column in zip(COEFFICIENTS, truth.coefficients(np.arange(n) / fps).to_array().T):
-        records[name] = column
-    records["centre"] = centre_displacement(*(records[name] for name in COEFFICIENTS), radius)
-    records["highlight"] = 0.5  # a highlight in every frame: the meniscus is seen
-    settings = offline.refined_settings(FitSettings())
+    truth = WindowMotion(**_TRUTH)
+    scene, window, records, fps, settings = _window_of(truth)
+    n, radius = len(records), scene.nozzle.radius_mm
     first = fit_window(records["centre"], fps, settings) if with_first else None
-    window = Window(0, 0, n, True, True)
     astray = WindowMotion(**{**truth.__dict__, "p": 160.0})  # D(0, t) 40 mm from the truth's
     for motion, refined in ((astray, False), (truth, True)):
         assert within_ranges(motion, np.arange(n) / fps) == refined
-
-        def search(scene, frames, t, start, threads=1, fitted=None, motion=motion):  # type: ignore[no-untyped-def]
-            return motion.coefficients(t).to_array(), motion, np.eye(10), 20
-
-        monkeypatch.setattr(offline, "refine_task", search)
+        _searching_to(monkeypatch, motion)
         out = offline.refine_window(scene, window, records, np.zeros((n, 96, 96), np.uint16), fps, settings, first)
         offset = out.result.offset_mm
         assert offset is not None and abs(offset - (truth.d + truth.p * radius)) < 0.005
@@ -287,3 +302,34 @@ def test_a_refinement_that_leaves_the_coefficient_ranges_reports_the_unrefined_w
             assert out.records.tobytes() == records.tobytes()
             if first is not None:
                 assert out.result.modes == first.modes
+
+
+@pytest.mark.parametrize("off", [0.0, 0.005, 0.03, 1.3])
+def test_a_refinement_off_the_frames_frequency_reports_the_default_methods_window(monkeypatch, off) -> None:  # type: ignore[no-untyped-def]
+    """Where the default method's window is given (its poles from the frames' brightness), a refinement whose mode 1
+    lies over ASTRAY_FREQUENCY from its frequency (it settled on mode 2, or on the frames' noise) is not reported:
+    the default method's window is, records, fit and series as they were, saying why; nearer, the refined motion is
+    reported (its fit's own frequency, with the pixel fit's intervals)."""
+    from service.analysis import offline
+    from service.analysis.fit import fit_window
+    from service.physics import WindowMotion
+
+    truth = WindowMotion(**_TRUTH)
+    scene, window, records, fps, settings = _window_of(truth)
+    n = len(records)
+    default = fit_window(records["centre"], fps, settings)
+    unrefined = offline.RefinedWindow(window, records.copy(), default, records["centre"].copy())
+    refined_motion = WindowMotion(**{**_TRUTH, "f1": truth.f1 * (1 + off), "f2": truth.f2 * (1 + off)})
+    _searching_to(monkeypatch, refined_motion)
+    out = offline.refine_window(
+        scene, window, records, np.zeros((n, 96, 96), np.uint16), fps, settings, default, 1, unrefined
+    )
+    kept = off > offline.ASTRAY_FREQUENCY
+    assert ("the unrefined window is reported" in (out.result.reason or "")) == kept
+    if kept:
+        assert out.records.tobytes() == records.tobytes()
+        assert out.result.modes == default.modes
+        assert np.array_equal(out.series, unrefined.series)
+    else:
+        assert abs(out.result.modes[0].frequency_hz / refined_motion.f1 - 1) < 1e-3
+        assert out.result.intervals == "pixels"

@@ -16,7 +16,7 @@ from collections import deque
 from collections.abc import Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
 from contextlib import ExitStack
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TypeVar
 
@@ -101,7 +101,7 @@ def analyse_recording(
     fitted_first = refine and method == "network"  # the window model's fit: the refinement's start
     if method != "network":  # the window model reads the network's per-frame values
         settings = settings.model_copy(update={"series_model": "steady"})
-    first_settings = settings  # the windows' first fit: the report's, or with ``refine`` the search's start
+    first_settings = default_settings = settings  # the windows' first fit: the report's, or the search's start
     if refine:
         first_settings, settings = start_settings(settings), refined_settings(settings)
     with ExitStack() as stack:
@@ -171,8 +171,16 @@ def analyse_recording(
             _set_coefficients(records, *_regularise(db, np.concatenate(found), windows, fps, settings, progress))
         refined: dict[int, RefinedWindow] = {}
         if refine:
-            fitted = {r.index: r for r in runner.results(progress)} if fitted_first else {}
-            refined = _refine(path, scene, records, windows, fps, settings, runner, progress, fitted)
+            fitted, unrefined = {}, {}
+            if fitted_first:  # the search's starts, then the same jobs fitted as the default method fits them
+                fitted = {r.index: r for r in runner.results(progress)}
+                runner.settings = default_settings
+                runner.send(jobs, fps, last=True)
+                unrefined = {
+                    r.index: RefinedWindow(job.window, records[job.window.start : job.window.end].copy(), r, job.series)
+                    for job, r in zip(jobs, runner.results(progress))
+                }
+            refined = _refine(path, scene, records, windows, fps, settings, runner, progress, fitted, unrefined)
             for w in windows:
                 if w.index in refined:
                     records[w.start : w.end] = refined[w.index].records
@@ -319,9 +327,11 @@ def _refine(
     runner: JobRunner,
     progress: bool,
     fitted: dict[int, WindowResult],
+    unrefined: dict[int, RefinedWindow],
 ) -> dict[int, RefinedWindow]:
     """Each window long enough for the search refined by :func:`refine_window` (from its result in ``fitted``, by
-    index, where it has one), by index; each window an independent task on ``runner``."""
+    index, where it has one, and reporting ``unrefined``'s where the refinement is rejected), by index; each window
+    an independent task on ``runner``."""
     futures = []
     with open_recording(path) as rec:
         for w in windows:
@@ -330,7 +340,16 @@ def _refine(
                 window = records[w.start : w.end]
                 futures.append(
                     runner.call(
-                        refine_window, scene, w, window, frames, fps, settings, fitted.get(w.index), runner.threads
+                        refine_window,
+                        scene,
+                        w,
+                        window,
+                        frames,
+                        fps,
+                        settings,
+                        fitted.get(w.index),
+                        runner.threads,
+                        unrefined.get(w.index),
                     )
                 )
     refined = [f.result() for f in tqdm(futures, desc="refine by synthesis", unit="window", disable=not progress)]
@@ -358,6 +377,24 @@ def refined_from(window: Window, fps: float, settings: FitSettings) -> int | Non
 
 #: The reason a window whose refinement left the coefficient ranges gives for its unrefined result.
 UNREFINED = "the refinement by synthesis ended outside the coefficient ranges: the unrefined fit is reported"
+#: How far (relative) the refined window's mode 1 may lie from the frequency the frames' brightness puts it at
+#: before the refinement is taken to have settled on another motion (docs/benchmarks.md, "--refine" tails).
+ASTRAY_FREQUENCY = 0.01
+
+
+def _astray(refined: WindowResult, unrefined: WindowResult) -> str | None:
+    """Why a refined window's result is not to be reported (None: it is): its mode 1 off the unrefined window's
+    (the default method's: the poles of the frames' brightness, which a refinement that settled on mode 2, or on
+    the frames' noise, does not move) by over :data:`ASTRAY_FREQUENCY`."""
+    if not refined.modes or not unrefined.modes:
+        return None
+    ours, theirs = refined.modes[0].frequency_hz, unrefined.modes[0].frequency_hz
+    if abs(ours - theirs) <= ASTRAY_FREQUENCY * theirs:
+        return None
+    return (
+        f"the refinement by synthesis ended at {ours:.0f} Hz, {100 * abs(ours / theirs - 1):.1f} % off the "
+        f"{theirs:.0f} Hz of the frames' brightness: the unrefined window is reported"
+    )
 
 
 def refine_window(
@@ -369,15 +406,17 @@ def refine_window(
     settings: FitSettings,
     first: WindowResult | None = None,
     threads: int = 1,
+    unrefined: RefinedWindow | None = None,
 ) -> RefinedWindow:
     """One window of ``meniscope analyze --refine`` (and of ``meniscope serve --refine``'s lane: the same numbers
     from both): its motion refined on its ROI ``frames`` (as stored, one per record) through the renderer, searched
     from its ``first`` fit where there is one (:func:`synthesis.window_start`), else from its per-frame values
     (``records``, :data:`FRAME`), then the refined D(0, t)'s fit with ``settings`` (the refined motion's own series
     and poles) and the pixel fit's intervals. Where the search ends outside the coefficient ranges
-    (:func:`synthesis.within_ranges`: a motion no meniscus makes), nothing refined is reported: the window keeps its
-    records and its ``first`` fit (else the fit of its records), with the reason. ``window`` must be long enough
-    (:func:`refined_from`)."""
+    (:func:`synthesis.within_ranges`: a motion no meniscus makes), or (``unrefined`` given: the window as the default
+    method reports it) its mode 1 is off the frames' frequency (:func:`_astray`), nothing refined is reported: the
+    window is ``unrefined``'s (else its records with their ``first`` fit, else the fit of its records), with the
+    reason. ``window`` must be long enough (:func:`refined_from`)."""
     lo = refined_from(window, fps, settings)
     if lo is None:
         raise MeniscopeError(f"window {window.index}", f"{window.end - window.start} frames: too short to refine")
@@ -388,16 +427,36 @@ def refine_window(
     from_fit = None if first is None else synthesis.window_start(first, coefficients[k:], radius)
     coefficients[k:], motion, covariance, clusters = refine_task(scene, frames[k:], t, start, threads, from_fit)
     if not synthesis.within_ranges(motion, t):
-        job = job_for(window, records, radius, settings.transient_frames(fps))
-        kept = first if first is not None else fit_or_failed(job, fps, settings)
-        reason = "; ".join(r for r in (kept.reason, UNREFINED) if r)
-        return RefinedWindow(window, records.copy(), kept.model_copy(update={"reason": reason}), job.series)
-    records = records.copy()
-    _set_coefficients(records, coefficients, centre_displacement(*coefficients.T, radius))
-    job = job_for(window, records, radius, settings.transient_frames(fps))
+        return _kept(window, records, radius, fps, settings, first, unrefined, UNREFINED)
+    refined = records.copy()
+    _set_coefficients(refined, coefficients, centre_displacement(*coefficients.T, radius))
+    job = job_for(window, refined, radius, settings.transient_frames(fps))
     result = fit_or_failed(job, fps, settings)
+    astray = None if unrefined is None else _astray(result, unrefined.result)
+    if astray is not None:
+        return _kept(window, records, radius, fps, settings, first, unrefined, astray)
     intervals = _with_pixel_intervals(result, motion, covariance, clusters, fps, settings.confidence, radius)
-    return RefinedWindow(window, records, intervals, job.series)
+    return RefinedWindow(window, refined, intervals, job.series)
+
+
+def _kept(
+    window: Window,
+    records: np.ndarray,
+    radius_mm: float,
+    fps: float,
+    settings: FitSettings,
+    first: WindowResult | None,
+    unrefined: RefinedWindow | None,
+    why: str,
+) -> RefinedWindow:
+    """A window whose refinement is rejected (``why``): ``unrefined`` where given (the default method's window),
+    else its records with their ``first`` fit (else the fit of its records), saying why."""
+    if unrefined is None:
+        job = job_for(window, records, radius_mm, settings.transient_frames(fps))
+        kept = first if first is not None else fit_or_failed(job, fps, settings)
+        unrefined = RefinedWindow(window, records.copy(), kept, job.series)
+    reason = "; ".join(r for r in (unrefined.result.reason, why) if r)
+    return replace(unrefined, result=unrefined.result.model_copy(update={"reason": reason}))
 
 
 #: One renderer per scene and thread count in each process that refines windows (building one costs more than a

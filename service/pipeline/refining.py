@@ -169,7 +169,7 @@ def _serve(conn: Connection, config: LaneConfig, nice: int) -> None:
     """The lane's process: refine each (window, records, frames, fps) the pipe brings until None, answering each
     with (result, series, started, finished) or, where it raised, the error as text."""
     idle_priority(nice)
-    from service.analysis.offline import refine_window, refined_settings, start_settings
+    from service.analysis.offline import RefinedWindow, refine_window, refined_settings, start_settings
     from service.pipeline.windows import fit_or_failed, job_for, window_model_for
     from service.scene import Scene
 
@@ -183,11 +183,12 @@ def _serve(conn: Connection, config: LaneConfig, nice: int) -> None:
             window, records, frames, fps = sent
             started = time.monotonic()
             try:
-                start = None
-                if fitted_first:
+                start, unrefined = None, None
+                if fitted_first:  # the search's start, and the window as the fit workers fitted it
                     job = job_for(window, records, scene.nozzle.radius_mm, first.transient_frames(fps), model=model)
                     start = fit_or_failed(job, fps, first)
-                out = refine_window(scene, window, records, frames, fps, refined, start)
+                    unrefined = RefinedWindow(window, records.copy(), fit_or_failed(job, fps, config.fit), job.series)
+                out = refine_window(scene, window, records, frames, fps, refined, start, unrefined=unrefined)
                 answer: tuple | str = (out.result, out.series, started, time.monotonic())
             except Exception as exc:
                 answer = f"{type(exc).__name__}: {exc}"
