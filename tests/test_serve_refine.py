@@ -72,13 +72,14 @@ def session(demo_cine: Path, tmp_path_factory: pytest.TempPathFactory):  # type:
 
 @pytest.fixture(scope="module")
 def offline(demo_cine: Path) -> dict[int, dict]:
-    """``analyze --refine``'s windows of the demo (its CLI's fit settings: the series' poles), by start frame."""
+    """``analyze --refine``'s windows of the demo (its CLI's fit settings, the service's: the default method's window,
+    which a rejected refinement reports, takes its poles from the frames), by start frame."""
     analysis = analyse_recording(
         demo_cine,
         Scene.load(DEFAULT_SCENE),
         "network",
         DEFAULT_MODELS,
-        settings=FitSettings(poles="series"),
+        settings=FitSettings(),
         progress=False,
         refine=True,
         workers=1,
