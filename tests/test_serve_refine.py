@@ -26,11 +26,12 @@ pytestmark = pytest.mark.timeout(2400)
 
 
 @pytest.fixture(scope="module")
-def session(demo_cine: Path, tmp_path_factory: pytest.TempPathFactory):  # type: ignore[no-untyped-def]
+def session(demo_cine: Path, offline: dict[int, dict], tmp_path_factory: pytest.TempPathFactory):  # type: ignore[no-untyped-def]
     """The service with ``refine`` on the demo (a twentieth of the camera's rate: no frame dropped on a busy machine,
     so that the windows are whole), a WebSocket client and a ZeroMQ subscriber to both topics, collecting until each
     has ``WANTED`` refined updates. The lane at the test's own niceness, not the lowest: on a CI machine shared with
-    other jobs nice 19 may get no CPU at all."""
+    other jobs nice 19 may get no CPU at all. Started once ``offline`` is done: its lane refines without a pause while
+    it runs, and would take a core from the offline analysis."""
     settings = service_settings(
         tmp_path_factory.mktemp("service"),
         demo_cine.parent,
@@ -82,7 +83,6 @@ def offline(demo_cine: Path) -> dict[int, dict]:
         settings=FitSettings(),
         progress=False,
         refine=True,
-        workers=1,
     )
     assert analysis.report.method == "network+synthesis"
     return {w.start_frame: w.model_dump(mode="json") for w in analysis.report.windows}
