@@ -96,7 +96,8 @@ def analyse_recording(
     recordings with one (they are opened here otherwise). With ``refine`` the windows keep their own poles
     (``settings.poles`` becomes "series"): the refined motion is the window's inversion. The network method's
     windows are fitted first with the window model and their series' own poles (:func:`start_settings`) and searched
-    from that fit.
+    from that fit; where a refinement is rejected (:func:`refine_window`) the window is reported as the default
+    method fits it.
     """
     fitted_first = refine and method == "network"  # the window model's fit: the refinement's start
     if method != "network":  # the window model reads the network's per-frame values
