@@ -178,7 +178,7 @@ def analyse_recording(
                 runner.settings = default_settings
                 runner.send(jobs, fps, last=True)
                 unrefined = {
-                    r.index: RefinedWindow(job.window, records[job.window.start : job.window.end].copy(), r, job.series)
+                    r.index: RefinedWindow.unrefined(job, records[job.window.start : job.window.end], r)
                     for job, r in zip(jobs, runner.results(progress))
                 }
             refined = _refine(path, scene, records, windows, fps, settings, runner, progress, fitted, unrefined)
@@ -368,6 +368,12 @@ class RefinedWindow:
     result: WindowResult
     series: np.ndarray
 
+    @classmethod
+    def unrefined(cls, job: WindowJob, records: np.ndarray, result: WindowResult) -> RefinedWindow:
+        """The window reported as it was, where its refinement is rejected: its own ``records`` (copied), ``result``
+        (a fit of ``job``) and ``job``'s series."""
+        return cls(job.window, records.copy(), result, job.series)
+
 
 def refined_from(window: Window, fps: float, settings: FitSettings) -> int | None:
     """The first frame the search reads of ``window`` (after the ejection's transient), None where too few frames
@@ -454,8 +460,9 @@ def _kept(
     else its records with their ``first`` fit (else the fit of its records), saying why."""
     if unrefined is None:
         job = job_for(window, records, radius_mm, settings.transient_frames(fps))
-        kept = first if first is not None else fit_or_failed(job, fps, settings)
-        unrefined = RefinedWindow(window, records.copy(), kept, job.series)
+        unrefined = RefinedWindow.unrefined(
+            job, records, first if first is not None else fit_or_failed(job, fps, settings)
+        )
     reason = "; ".join(r for r in (unrefined.result.reason, why) if r)
     return replace(unrefined, result=unrefined.result.model_copy(update={"reason": reason}))
 

@@ -187,7 +187,7 @@ def _serve(conn: Connection, config: LaneConfig, nice: int) -> None:
                 if fitted_first:  # the search's start, and the window as the fit workers fitted it
                     job = job_for(window, records, scene.nozzle.radius_mm, first.transient_frames(fps), model=model)
                     start = fit_or_failed(job, fps, first)
-                    unrefined = RefinedWindow(window, records.copy(), fit_or_failed(job, fps, config.fit), job.series)
+                    unrefined = RefinedWindow.unrefined(job, records, fit_or_failed(job, fps, config.fit))
                 out = refine_window(scene, window, records, frames, fps, refined, start, unrefined=unrefined)
                 answer: tuple | str = (out.result, out.series, started, time.monotonic())
             except Exception as exc:
