@@ -8,6 +8,7 @@ import multiprocessing
 import os
 import sqlite3
 import threading
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -333,3 +334,45 @@ def test_a_refinement_off_the_frames_frequency_reports_the_default_methods_windo
     else:
         assert abs(out.result.modes[0].frequency_hz / refined_motion.f1 - 1) < 1e-3
         assert out.result.intervals == "pixels"
+
+
+def test_the_lane_publishes_a_refinement_it_keeps_and_counts_one_it_rejects_as_skipped(monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    """In `serve --refine` a window whose refinement is rejected (here: mode 1 ended 30 % off the window's own
+    frequency) was published already, with the default method's numbers: the lane publishes no update of it, and
+    counts it skipped (``rejected``); a refinement it keeps is published."""
+    import time
+    from types import SimpleNamespace
+
+    from service import DEFAULT_MODELS, DEFAULT_SCENE
+    from service.analysis.results import FitSettings
+    from service.physics import WindowMotion
+    from service.pipeline import refining
+
+    truth = WindowMotion(**_TRUTH)
+    _, window, records, fps, _ = _window_of(truth)
+    frames = FrameBatch(
+        np.zeros((len(records), 96, 96), np.uint16), np.arange(len(records)), np.arange(len(records)) / fps
+    )
+    offered = refining.Offered(0, window, records, (frames,), fps, time.monotonic())
+    # the lane's process forked from this one, so that the search stood in for reaches it
+    forked = multiprocessing.get_context("fork")
+    monkeypatch.setattr(refining, "multiprocessing", SimpleNamespace(get_context=lambda _: forked))
+    fit = FitSettings(poles="series", series_model="steady")  # the series' own poles: the truth's frequency
+    astray = WindowMotion(**{**_TRUTH, "f1": 1.3 * truth.f1})
+    for motion, kept in ((astray, False), (truth, True)):
+        _searching_to(monkeypatch, motion)  # before the lane's process is forked
+        published, skipped = [], []
+        config = refining.LaneConfig(Path(DEFAULT_SCENE), DEFAULT_MODELS, "network", fit)
+        lane = refining.RefineLane(config, published.append, skipped.append, nice=0)
+        try:
+            lane.offer(offered, "test")
+            deadline = time.monotonic() + 120
+            while not published + skipped and time.monotonic() < deadline:
+                time.sleep(0.05)
+        finally:
+            lane.close()
+        if kept:
+            assert len(published) == 1 and not skipped
+            assert abs(published[0].result.modes[0].frequency_hz / truth.f1 - 1) < 1e-3
+        else:
+            assert (published, skipped) == ([], ["rejected"])

@@ -361,12 +361,13 @@ def _refine(
 class RefinedWindow:
     """A window refined by synthesis: its records with the refined motion's coefficients and D(0, t) (the
     transient's frames keep their per-frame values), the refined series' fit with the pixel fit's intervals, and
-    that series (mm per frame)."""
+    that series (mm per frame); or, where the refinement was rejected, the window as it was and why (``rejected``)."""
 
     window: Window
     records: np.ndarray
     result: WindowResult
     series: np.ndarray
+    rejected: str | None = None
 
     @classmethod
     def unrefined(cls, job: WindowJob, records: np.ndarray, result: WindowResult) -> RefinedWindow:
@@ -464,7 +465,7 @@ def _kept(
             job, records, first if first is not None else fit_or_failed(job, fps, settings)
         )
     reason = "; ".join(r for r in (unrefined.result.reason, why) if r)
-    return replace(unrefined, result=unrefined.result.model_copy(update={"reason": reason}))
+    return replace(unrefined, result=unrefined.result.model_copy(update={"reason": reason}), rejected=why)
 
 
 #: One renderer per scene and thread count in each process that refines windows (building one costs more than a

@@ -167,7 +167,8 @@ def idle_priority(nice: int) -> None:
 
 def _serve(conn: Connection, config: LaneConfig, nice: int) -> None:
     """The lane's process: refine each (window, records, frames, fps) the pipe brings until None, answering each
-    with (result, series, started, finished) or, where it raised, the error as text."""
+    with (result, series, started, finished), or (the reason,) where the refinement was rejected (the fit workers
+    already published that window as the default method reports it), or, where it raised, the error as text."""
     idle_priority(nice)
     from service.analysis.offline import RefinedWindow, refine_window, refined_settings, start_settings
     from service.pipeline.windows import fit_or_failed, job_for, window_model_for
@@ -189,7 +190,9 @@ def _serve(conn: Connection, config: LaneConfig, nice: int) -> None:
                     start = fit_or_failed(job, fps, first)
                     unrefined = RefinedWindow.unrefined(job, records, fit_or_failed(job, fps, config.fit))
                 out = refine_window(scene, window, records, frames, fps, refined, start, unrefined=unrefined)
-                answer: tuple | str = (out.result, out.series, started, time.monotonic())
+                answer: tuple | str = (
+                    (out.rejected,) if out.rejected else (out.result, out.series, started, time.monotonic())
+                )
             except Exception as exc:
                 answer = f"{type(exc).__name__}: {exc}"
             conn.send(answer)
@@ -200,7 +203,7 @@ def _serve(conn: Connection, config: LaneConfig, nice: int) -> None:
 class RefineLane:
     """One process at ``nice`` (added to this process's niceness) refining the newest closed window offered
     (:meth:`offer`), each result to ``on_refined``; each window skipped (replaced while it waited, its frames
-    incomplete, or its refinement failed: logged) to ``on_skipped``."""
+    incomplete, its refinement rejected or failed: logged) to ``on_skipped``."""
 
     def __init__(
         self,
@@ -267,6 +270,10 @@ class RefineLane:
                 if isinstance(answer, str):
                     log.warning("refining window %d (frames %d-%d) failed: %s", w.index, w.start, w.end, answer)
                     self.on_skipped("failed")
+                    continue
+                if len(answer) == 1:
+                    log.info("window %d (frames %d-%d) not refined: %s", w.index, w.start, w.end, answer[0])
+                    self.on_skipped("rejected")
                     continue
                 result, series, started, finished = answer
                 self.on_refined(

@@ -23,7 +23,7 @@ from service.pipeline.supervisor import SOURCE_SILENT_S, Health
 
 STATUSES = get_args(Status)
 #: Why the refinement lane skips a window (the ``reason`` label of ``meniscope_windows_refine_skipped_total``).
-REFINE_SKIPPED = ("replaced", "incomplete", "failed", "unmatched")
+REFINE_SKIPPED = ("replaced", "incomplete", "failed", "rejected", "unmatched")
 
 disable_created_metrics()  # no *_created series: nothing here reads them, and they double every counter
 
