@@ -49,6 +49,8 @@ FAINTEST = 5e-4
 CULL_MIN_COS_VIEW = 0.25
 #: Points along each ray (intervals + 1) at which it is decided which spheres can light it.
 CULL_SAMPLES = 33
+#: Fluid rays per block of :meth:`Renderer._sphere_reach`'s table.
+REACH_CHUNK = 512
 #: A pixel stepping by over this (of full scale) to a neighbour holds detail finer than its rays: with
 #: ``edge_supersample`` it takes the finer rays' value (the few such pixels hold nearly all that finer rays change:
 #: docs/calibration.md). Below it the two values are blended, linearly from ``EDGE_STEP / 2`` (none of the finer):
@@ -317,6 +319,15 @@ class Renderer:
         if not K or not M:
             return np.zeros((M, n_int, K), np.int16), lo, n_int / (hi - lo)
         length = (hi - lo) / n_int  # (M,) of each interval
+        reach = np.empty((M, n_int, K), np.int16)
+        for rows in range(0, M, REACH_CHUNK):  # (chunk, I, K, 3) temporaries stay in cache; the same bits as one go
+            at = slice(rows, rows + REACH_CHUNK)
+            reach[at] = self._reach_units(o[at], d[at], lo[at], length[at], n_int)
+        return reach, lo, n_int / (hi - lo)
+
+    def _reach_units(self, o: np.ndarray, d: np.ndarray, lo: np.ndarray, length: np.ndarray, n_int: int) -> np.ndarray:
+        """:meth:`_sphere_reach`'s table for the rays with origins ``o`` and directions ``d`` whose fluid segment
+        starts at ``lo`` with intervals of ``length``: (m, I, K) int16."""
         start = lo[:, None] + length[:, None] * np.arange(n_int)  # (M, I)
         p = o[:, None, :] + start[..., None] * d[:, None, :]  # (M, I, 3) interval starts
         centre, radius = self._spheres[:, :3], self._spheres[:, 3]
@@ -342,4 +353,4 @@ class Renderer:
         ratio = np.minimum(FAINTEST / brightest, 1.0) / 2  # D / D_max below which it is invisible
         lobe = np.arctan(alpha * np.sqrt(np.maximum(ratio**-0.5 - 1.0, 0.0)))
         units = np.floor((beta - change - lobe) / kernel.REACH_UNIT)
-        return np.clip(units, -32768, 32767).astype(np.int16), lo, n_int / (hi - lo)
+        return np.clip(units, -32768, 32767).astype(np.int16)
