@@ -8,6 +8,8 @@
 #   PYTHON          the Python (>= 3.11) the environment is made from; default python3
 #   MENISCOPE_VENV  where the environment goes; default .venv in this checkout
 #   MENISCOPE_BIN   where the `meniscope` link goes; default /usr/local/bin as root, else ~/.local/bin
+#   MENISCOPE_NO_WARM=1  leave the fit's kernels to compile at the first window (tests/test_install.py: the
+#                   test command's own install has compiled them once already)
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -53,7 +55,7 @@ else
   "$vpy" -m pip install -q -e ".[aravis]"
 fi
 # compile the window fit's numba kernels now (cached beside the code), not at the service's first window
-"$vpy" -c "from service.analysis.fit import warm; warm()"
+[ "${MENISCOPE_NO_WARM:-0}" = 1 ] || "$vpy" -c "from service.analysis.fit import warm; warm()"
 
 # the command, where a shell finds it
 if [ -n "${MENISCOPE_BIN:-}" ]; then bin=$MENISCOPE_BIN

@@ -4,7 +4,8 @@ Debian 12's /usr/bin/python3 is "externally managed" (PEP 668): pip refuses to i
 script makes a virtual environment from it and links the command into a folder on the PATH. Run on a
 copy of this checkout (the files git knows), with the link put in a folder of the test's own
 (MENISCOPE_BIN), so that the machine's /usr/local/bin is left alone. The runtime install only: the
-wheels come from pip's cache (tests/run.sh filled it a moment before), so it takes a minute or two.
+wheels come from pip's cache (tests/run.sh filled it a moment before), so it takes a minute or two; the fit's
+kernels are not compiled again (MENISCOPE_NO_WARM: the test command's own install ran that step).
 """
 
 from __future__ import annotations
@@ -65,6 +66,7 @@ def installed(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
         MENISCOPE_BIN=str(bin_dir),
         HOME=str(home),
         PIP_CACHE_DIR=os.environ.get("PIP_CACHE_DIR", str(Path.home() / ".cache" / "pip")),
+        MENISCOPE_NO_WARM="1",  # tests/run.sh's install compiled the fit's kernels; nothing here fits a window
     )
     done = subprocess.run(
         ["bash", "deploy/install.sh"], cwd=checkout, env=env, capture_output=True, text=True, timeout=INSTALL_TIMEOUT_S
