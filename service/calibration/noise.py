@@ -101,6 +101,7 @@ class _Levels:
         p = levels.shape[1]
         self.counts = np.bincount((index + width * np.arange(p)).ravel(), minlength=p * width).reshape(p, width)
         self.level = low[:, None] + np.arange(width)  # (P, K) DN
+        self.edges = low[:, None] + (np.arange(width + 1) - 0.5)  # (P, K + 1) DN: each level's lower edge, and the top
         self.mean = levels.mean(axis=0)
         self.black = black
         #: the lowest level takes the whole lower tail (a sensor clips at 0)
@@ -108,8 +109,8 @@ class _Levels:
 
     def _pixels(self, mu: np.ndarray, sigma: np.ndarray) -> np.ndarray:
         """Each pixel's negative log-likelihood (P,) with its level at ``mu`` and its noise ``sigma`` (DN)."""
-        upper = ndtr((self.level + 0.5 - mu[:, None]) / sigma[:, None])
-        lower = np.where(self.floor, 0.0, ndtr((self.level - 0.5 - mu[:, None]) / sigma[:, None]))
+        below = ndtr((self.edges - mu[:, None]) / sigma[:, None])  # a level's upper edge is the next one's lower
+        upper, lower = below[:, 1:], np.where(self.floor, 0.0, below[:, :-1])
         return -(self.counts * np.log(np.maximum(upper - lower, 1e-300))).sum(axis=1)
 
     def nll(self, read2: float, gain: float) -> float:
