@@ -110,3 +110,14 @@ def test_a_forked_worker_never_frees_what_it_inherited(tmp_path):
         gc.enable()
     gc.collect()
     assert log.read_text().split() == [str(os.getpid())]
+
+
+def test_fewer_tasks_than_workers_share_the_cores_among_them(monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    """A task's threads (a renderer's) are its share of the cores: one each where the pool's workers are all busy,
+    all of them for a window refined alone (a short recording's)."""
+    from service import blas
+
+    monkeypatch.setattr(blas, "usable_cores", lambda: 4)
+    with JobRunner(FitSettings(), workers=4) as four, JobRunner(FitSettings(), workers=2) as two:
+        assert [four.threads_for(n) for n in (0, 1, 2, 3, 4, 9)] == [4, 4, 2, 1, 1, 1]
+        assert [two.threads_for(n) for n in (1, 2, 5)] == [4, 2, 2]

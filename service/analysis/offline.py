@@ -332,27 +332,27 @@ def _refine(
 ) -> dict[int, RefinedWindow]:
     """Each window long enough for the search refined by :func:`refine_window` (from its result in ``fitted``, by
     index, where it has one, and reporting ``unrefined``'s where the refinement is rejected), by index; each window
-    an independent task on ``runner``."""
+    an independent task on ``runner`` (on a share of the cores: all of them for a window alone)."""
     futures = []
+    refinable = [w for w in windows if refined_from(w, fps, settings) is not None]
+    threads = runner.threads_for(len(refinable))
     with open_recording(path) as rec:
-        for w in windows:
-            if refined_from(w, fps, settings) is not None:
-                frames = roi_frames(rec, scene, w.start, w.end - w.start)
-                window = records[w.start : w.end]
-                futures.append(
-                    runner.call(
-                        refine_window,
-                        scene,
-                        w,
-                        window,
-                        frames,
-                        fps,
-                        settings,
-                        fitted.get(w.index),
-                        runner.threads,
-                        unrefined.get(w.index),
-                    )
+        for w in refinable:
+            frames = roi_frames(rec, scene, w.start, w.end - w.start)
+            futures.append(
+                runner.call(
+                    refine_window,
+                    scene,
+                    w,
+                    records[w.start : w.end],
+                    frames,
+                    fps,
+                    settings,
+                    fitted.get(w.index),
+                    threads,
+                    unrefined.get(w.index),
                 )
+            )
     refined = [f.result() for f in tqdm(futures, desc="refine by synthesis", unit="window", disable=not progress)]
     return {r.window.index: r for r in refined}
 
@@ -482,7 +482,7 @@ def refine_task(
     fitted: WindowMotion | None = None,
 ) -> tuple[np.ndarray, WindowMotion, np.ndarray, int]:
     """One window's refinement by synthesis (a task that runs wherever the runner sends it, rendering on ``threads``,
-    :attr:`JobRunner.threads`; the result does not depend on them): the refined motion's coefficients at times
+    :meth:`JobRunner.threads_for`; the result does not depend on them): the refined motion's coefficients at times
     ``t`` (m, 4), the motion, and the pixel fit's covariance and clusters (:func:`synthesis.covariance`)."""
     key = scene.model_dump_json(), threads
     renderer = _RENDERERS.get(key) or _RENDERERS.setdefault(

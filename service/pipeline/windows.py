@@ -160,7 +160,7 @@ class JobRunner:
         self._waiting: list[WindowJob] = []  # sent, not yet started: fewer than a chunk
         self._started: list[tuple[list[WindowJob], float, Future]] = []  # (jobs, fps, future of results) per task
         self._fps = math.nan  # of the jobs queued
-        self.threads = 1
+        self.threads, self._cores, self._workers = 1, 1, 1
         if scheduler is not None:
             self._client = _dask_client(scheduler)
         else:
@@ -169,7 +169,7 @@ class JobRunner:
 
             cores = blas.usable_cores()
             count = workers or cores
-            self.threads = max(1, cores // count)
+            self.threads, self._cores, self._workers = max(1, cores // count), cores, count
             _warm()  # here, once: the forked workers inherit the compiled fit instead of each loading it again
             # fork: a worker starts in milliseconds with everything imported (spawned ones took seconds of the two
             # cores the frames need). Safe here although the caller may run inference threads: a worker only fits
@@ -220,6 +220,11 @@ class JobRunner:
         else:
             future = self._pool.submit(_fit_all, jobs, fps, self.settings)
         self._started.append((jobs, fps, future))
+
+    def threads_for(self, tasks: int) -> int:
+        """The threads each of ``tasks`` tasks started together may run: :attr:`threads`, or, where they are fewer
+        than the local pool's workers (a short recording's few windows to refine), the cores shared among them."""
+        return max(self.threads, self._cores // max(1, min(tasks, self._workers)))
 
     def call(self, task: Callable[..., Any], *args: Any) -> Future:
         """Start any other window-level ``task(*args)`` (a picklable function of self-contained arguments)."""
