@@ -1,4 +1,5 @@
-"""Fixtures shared by every test module: the example scene, the demo recording and the ../shared folder."""
+"""Fixtures shared by every test module: the example scene, the demo recording, the ../shared folder and an int8
+copy of the shipped models."""
 
 from __future__ import annotations
 
@@ -7,9 +8,10 @@ from pathlib import Path
 import pytest
 from hypothesis import settings
 
-from service import DEFAULT_SCENE
+from service import DEFAULT_MODELS, DEFAULT_SCENE
 from service.pipeline.demo import demo_recording
 from service.scene import Scene
+from tests.servicekit import meniscope
 
 # The same examples on every run (CI must not fail by chance); `--hypothesis-profile explore` draws new ones.
 settings.register_profile("ci", derandomize=True, print_blob=True)
@@ -40,3 +42,14 @@ def shared_dir() -> Path:
             f"../shared not found at {SHARED}: the shared specs and recordings are not checked out beside the repo"
         )
     return SHARED
+
+
+@pytest.fixture(scope="session")
+def int8(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """The shipped models, quantised (static, `meniscope quantize`) from 128 calibration renders and compared on 128
+    others: made once, for the quantisation's own tests and the tradeoff's int8 rows."""
+    out = tmp_path_factory.mktemp("quantize") / "int8"
+    done = meniscope("quantize", "--models", DEFAULT_MODELS, "--out", out, "--calibration", "128", "--parity", "128")
+    assert done.returncode == 0, done.stderr
+    assert "network int8 (static)" in done.stdout and "direct int8 (static)" in done.stdout
+    return out

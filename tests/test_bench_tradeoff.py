@@ -9,7 +9,6 @@ from pathlib import Path
 
 import pytest
 
-from service import DEFAULT_MODELS
 from service.bench import fitsuite
 from service.bench.tradeoff import misses
 from tests.servicekit import meniscope
@@ -76,13 +75,10 @@ def test_every_target_missed_is_listed_accuracy_first() -> None:
 
 
 @pytest.fixture(scope="module")
-def tradeoff(tmp_path_factory: pytest.TempPathFactory) -> Path:
+def tradeoff(tmp_path_factory: pytest.TempPathFactory, int8: Path) -> Path:
     root = tmp_path_factory.mktemp("tradeoff")
     db = root / "db600"
     done = meniscope("database", "--samples", "600", "--chunk-size", "300", "--workers", "1", "--out", db)
-    assert done.returncode == 0, done.stderr
-    int8 = root / "int8"
-    done = meniscope("quantize", "--models", DEFAULT_MODELS, "--out", int8, "--calibration", "64", "--parity", "16")
     assert done.returncode == 0, done.stderr
     out = root / "out"
     done = meniscope("bench", "tradeoff", "--mode", "quick", "--database", db, "--more-models", int8, "--out", out)

@@ -30,16 +30,6 @@ INT8_MAX_DIFF = np.array([0.02, 0.1, 0.01, 0.01])
 INT8_RMS_DIFF_MM, INT8_EXTRA_ERROR = 0.004, 0.10
 
 
-@pytest.fixture(scope="module")
-def int8(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """The shipped models, quantised (static) from 128 calibration renders and compared on 128 others."""
-    out = tmp_path_factory.mktemp("quantize") / "int8"
-    done = meniscope("quantize", "--models", DEFAULT_MODELS, "--out", out, "--calibration", "128", "--parity", "128")
-    assert done.returncode == 0, done.stderr
-    assert "network int8 (static)" in done.stdout and "direct int8 (static)" in done.stdout
-    return out
-
-
 def test_the_manifest_says_it_is_int8_how_it_was_made_and_how_far_it_lies_from_float(int8: Path, scene: Scene):
     manifest, source = load_manifest(int8, scene), load_manifest(DEFAULT_MODELS, scene)
     q = manifest.quantisation
