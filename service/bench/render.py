@@ -17,6 +17,7 @@ import os
 import time
 from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 from tqdm import tqdm
@@ -28,6 +29,9 @@ from service.physics import CoefficientRanges
 from service.plotting import pyplot
 from service.scene import Scene
 from service.verbs import add_scene_option
+
+if TYPE_CHECKING:
+    from service.render import Renderer
 
 #: (frames, samples) for a full run and for ``--quick``.
 FULL, QUICK = (300, 32), (12, 8)
@@ -92,6 +96,14 @@ def glint_fluxes(render: Callable[[Scene, np.ndarray], np.ndarray], scene: Scene
     rest = np.zeros((1, 4))
     glints = render(scene, rest)[0].astype(np.float64) - render(with_spheres(scene, np.zeros((0, 4))), rest)[0]
     return square_flux(glints, glint_positions(scene, scene.spheres))
+
+
+def _through(renderer: Renderer, **rays: int) -> Callable[[Scene, np.ndarray], np.ndarray]:
+    """:func:`glint_fluxes`' ``render``: ``renderer``'s own scene through it (built once: the large ones take
+    seconds), any other (the scene without its spheres) through a new renderer of the same ``rays``."""
+    from service.render import Renderer
+
+    return lambda s, c: (renderer if s is renderer.scene else Renderer(s, **rays)).render(c)
 
 
 def flux_ratios(ours: np.ndarray, cycles: np.ndarray, gain: float | None) -> dict[str, float | int | None]:
@@ -191,9 +203,8 @@ def run(args: argparse.Namespace) -> int:
     cycles_rate = _rate(cycles_median)
     ours_results, best = [], None
     for ss, sun in settings:
-        ours, warmup, ours_s = time_ours(
-            Renderer(scene, supersample=ss, sun_samples=sun).render, coeffs, args.repeats, f"{ss}x{sun}"
-        )
+        renderer = Renderer(scene, supersample=ss, sun_samples=sun)
+        ours, warmup, ours_s = time_ours(renderer.render, coeffs, args.repeats, f"{ss}x{sun}")
         agreement = compare(ours, cycles)
         summary = agreement.summary()
         rate = _rate(float(np.median(ours_s)))
@@ -207,7 +218,7 @@ def run(args: argparse.Namespace) -> int:
                 "speed_ratio": rate / cycles_rate if rate and cycles_rate else None,
                 "agreement": summary,
                 "glints": flux_ratios(
-                    glint_fluxes(lambda s, c: Renderer(s, supersample=ss, sun_samples=sun).render(c), scene),
+                    glint_fluxes(_through(renderer, supersample=ss, sun_samples=sun), scene),
                     cycles_glints,
                     summary["gain_median"],
                 ),
