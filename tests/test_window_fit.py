@@ -810,7 +810,9 @@ def test_warm_leaves_every_fit_kernel_in_numba_s_cache() -> None:
         "if isinstance(f, numba.core.registry.CPUDispatcher)]; "
         "print(sum(sum(s.cache_misses.values()) for s in stats), sum(sum(s.cache_hits.values()) for s in stats))"
     )
-    runs = [subprocess.run([sys.executable, "-c", report], capture_output=True, text=True, timeout=300) for _ in "12"]
+    runs = [
+        subprocess.run([sys.executable, "-c", report], capture_output=True, text=True, timeout=300) for _ in range(2)
+    ]
     assert all(r.returncode == 0 for r in runs), runs[-1].stderr
     misses, hits = map(int, runs[1].stdout.split())
     assert misses == 0 and hits > 0

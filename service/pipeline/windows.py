@@ -160,7 +160,7 @@ class JobRunner:
         self._waiting: list[WindowJob] = []  # sent, not yet started: fewer than a chunk
         self._started: list[tuple[list[WindowJob], float, Future]] = []  # (jobs, fps, future of results) per task
         self._fps = math.nan  # of the jobs queued
-        self.threads, self._cores, self._workers = 1, 1, 1
+        self._cores, self._workers = 1, 1  # a Dask worker thread is one core
         if scheduler is not None:
             self._client = _dask_client(scheduler)
         else:
@@ -169,7 +169,7 @@ class JobRunner:
 
             cores = blas.usable_cores()
             count = workers or cores
-            self.threads, self._cores, self._workers = max(1, cores // count), cores, count
+            self._cores, self._workers = cores, count
             _warm()  # here, once: the forked workers inherit the compiled fit instead of each loading it again
             # fork: a worker starts in milliseconds with everything imported (spawned ones took seconds of the two
             # cores the frames need). Safe here although the caller may run inference threads: a worker only fits
@@ -221,10 +221,15 @@ class JobRunner:
             future = self._pool.submit(_fit_all, jobs, fps, self.settings)
         self._started.append((jobs, fps, future))
 
+    @property
+    def threads(self) -> int:
+        """The threads a task may run while every worker has one: its share of the cores."""
+        return self.threads_for(self._workers)
+
     def threads_for(self, tasks: int) -> int:
-        """The threads each of ``tasks`` tasks started together may run: :attr:`threads`, or, where they are fewer
-        than the local pool's workers (a short recording's few windows to refine), the cores shared among them."""
-        return max(self.threads, self._cores // max(1, min(tasks, self._workers)))
+        """The threads each of ``tasks`` tasks started together may run: the cores shared among them, or among the
+        local pool's workers where there are more tasks (fewer: a short recording's few windows to refine)."""
+        return max(1, self._cores // max(1, min(tasks, self._workers)))
 
     def call(self, task: Callable[..., Any], *args: Any) -> Future:
         """Start any other window-level ``task(*args)`` (a picklable function of self-contained arguments)."""
