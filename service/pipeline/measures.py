@@ -2,9 +2,9 @@
 mean brightness, its brightest pixel, and how new its coarse picture is.
 
 One compiled loop (numba) reads each pixel once for all of them (three numpy reductions and OpenCV's difference
-read them four times: 9.3 us per 96 x 96 16-bit frame against 3.2 here), with exact sums: integer pixels are
-summed in 32-bit integers (64-bit where a frame's sum could pass 2**32), so that the results are the same to the
-last bit as the exact means they replace.
+read them four times), with exact sums of integer pixels (the column sums held in 32-bit integers, 64-bit where a
+frame's sum could pass 2**32; the frame's own running sums numba carries in 64 bits), so that the results are the
+same to the last bit as the exact means they replace.
 
 Novelty is the distance (mean absolute difference of the :data:`GRID` x :data:`GRID` cells' means) from the
 frame to the nearest of the frames ``near .. far`` before it: ringing, however strong, keeps returning to the
@@ -116,9 +116,9 @@ def _novelty(cells, ring, filled, position, near, out):  # type: ignore[no-untyp
 
 
 def _zero(dtype: np.dtype, pixels: int) -> np.generic:
-    """The zero the sums of frames of ``pixels`` pixels of ``dtype`` start from, whose type they are kept in: 32-bit
-    unsigned where a frame's pixels all at full scale sum below 2**32 (exact, and the compiled loop adds twice as many
-    pixels an instruction as in 64 bits), 64-bit unsigned where not, float64 for pixels that are not unsigned
+    """The zero the sums of frames of ``pixels`` pixels of ``dtype`` start from, whose type the column sums and the
+    returned totals are kept in (numba widens the running scalar sums to 64 bits): 32-bit unsigned where a frame's
+    pixels all at full scale sum below 2**32, 64-bit unsigned where not, float64 for pixels that are not unsigned
     integers."""
     if dtype.kind != "u":
         return np.float64(0.0)
