@@ -4,6 +4,7 @@ brightness_model): a brightness that is a nonlinear function of the surface's tw
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -68,6 +69,32 @@ def test_the_modes_model_keeps_the_brightness_s_own_poles():
     brightness = 80.0 + 900.0 * surface() + noise(2e-5, 4)
     old, new = decays(FitSettings(brightness_model="modes"), brightness), decays(FitSettings(), brightness)
     assert old[0] == pytest.approx(MODE1[1], rel=0.01) and new[0] == pytest.approx(MODE1[1], rel=0.01)
+
+
+@pytest.mark.parametrize("shown", [1, 2])
+def test_the_series_keeps_the_polynomial_s_second_mode_only_where_it_shows_it(shown):
+    """The brightness holds both modes (a highlight crossing the view); the window reports mode 2 only where its own
+    series moves with it: a mode is reported where the series being reported shows it."""
+    brightness = np.exp(-(((surface() - 0.012) / 0.02) ** 2)) + noise(1e-3, 5)
+    series = 0.4 * surface((MODE1, MODE2)[:shown]) + noise(1e-4, 6)
+    result = fit_window(series, FPS, FitSettings(), brightness=brightness)
+    assert result.poles_from == "frames" and len(result.modes) == shown
+    assert result.modes[0].frequency_hz == pytest.approx(MODE1[2], rel=0.01)
+    if shown == 2:
+        assert result.modes[1].frequency_hz == pytest.approx(MODE2[2], rel=0.03)
+
+
+def test_a_blender_window_whose_brightness_opens_with_the_ejection_takes_its_poles_from_the_frames():
+    """A heavily damped window of a Blender Cycles recording (tests/data, with how it was made): the brightness'
+    one-mode fit spends its mode on the ejection's dip in the first frames, a pole dying within a cycle; the
+    polynomial then starts from the two-mode search, and the decay comes from the frames, within 15 %."""
+    window = json.loads((Path(__file__).parent / "data" / "blender_heavily_damped_window.json").read_text())
+    result = fit_window(
+        window["series_mm"], window["fps"], FitSettings(), starts_at_ejection=True, brightness=window["brightness"]
+    )
+    assert result.poles_from == "frames"
+    assert result.modes[0].frequency_hz == pytest.approx(window["truth"]["f1_hz"], rel=0.01)
+    assert result.modes[0].decay_rate_per_s == pytest.approx(window["truth"]["g1_per_s"], rel=0.15)
 
 
 def test_a_window_too_short_for_the_polynomial_has_no_product_fit():

@@ -488,19 +488,28 @@ def _centred(x: np.ndarray) -> tuple[np.ndarray, np.ndarray, float, float]:
     return np.flatnonzero(finite).astype(np.float64), raw, centre, float(np.max(np.abs(raw - centre)))
 
 
-def _order_fits(window: _Window, length: int, settings: FitSettings, drift_of_one: bool = False) -> list[_OrderFit]:
-    """The fit of each model order (0 to ``settings.max_modes``) a window ``length`` frames long can take; with
+def _order_fits(
+    window: _Window,
+    length: int,
+    settings: FitSettings,
+    drift_of_one: bool = False,
+    max_modes: int | None = None,
+    fewer: list[_OrderFit] | None = None,
+) -> list[_OrderFit]:
+    """The fit of each model order (0 to ``settings.max_modes``, or ``max_modes`` where fewer) a window ``length``
+    frames long can take, those of the lower orders in ``fewer`` (this function's, order 0 first) kept; with
     ``drift_of_one``, two modes are searched from the pencil with the drift the one-mode fit chose, not with both
     (the brightness' search, whose poles alone are wanted; what it saves: docs/benchmarks.md)."""
-    fits = [window.fit_baseline()]
-    orders = [m for m in range(1, settings.max_modes + 1) if window.n.size >= min_samples(m)]
+    fits = list(fewer or [window.fit_baseline()])
+    most = settings.max_modes if max_modes is None else min(max_modes, settings.max_modes)
+    orders = [m for m in range(1, most + 1) if window.n.size >= min_samples(m)]
     if orders:
         poles = 2 * orders[-1] + 2
         starts = [_pencil_modes(window.n, window.y, length, poles)]
         run = _strongest_run(window.n, window.y, 3 * poles)
         if run is not None:  # gaps: their linear filling misleads the pencil, which a gap-free stretch does not
             starts.append(_pencil_modes(window.n[run] - window.n[run[0]], window.y[run], run.size, poles))
-        for m in orders:
+        for m in orders[len(fits) - 1 :]:
             if drift_of_one and m >= 2:  # fits[-1] is the fit of m - 1 modes
                 searches = (window.fit_as(m, window.starts(m, modes), fits[-1].drift) for modes in starts)
             else:
@@ -557,8 +566,18 @@ def _brightness_poles(
     if not 0 < spread < _MAX_VALUE:
         return None
     y = (raw - centre) / spread
-    fits = _order_fits(_Window(n, y, settings), x.size, settings, drift_of_one=True)
-    chosen, _ = _choose([f for f in fits if not _has_harmonic(f)])  # resolved, if a higher order was not
+    # the polynomial takes only its start from the damped modes: their one-mode fit where it resolves an oscillation
+    # (its second mode is its own, which the series keeps where it needs it: _fundamental), else their two-mode
+    # search's (the one mode may be the ejection's light, dying within a cycle, beside a heavily damped mode); the
+    # damped modes' own poles are those of their order search
+    window = _Window(n, y, settings)
+    fits = chosen = None
+    if settings.brightness_model == "products":
+        fits = _order_fits(window, x.size, settings, max_modes=1)
+        chosen, _ = _choose(fits)
+    if chosen is None or chosen.order == 0 or chosen.problem is not None or _underdamped(chosen).size == 0:
+        fits = _order_fits(window, x.size, settings, drift_of_one=True, fewer=fits)
+        chosen, _ = _choose([f for f in fits if not _has_harmonic(f)])  # resolved, if a higher order was not
     if chosen.order == 0 or chosen.problem is not None:
         return None
     if settings.brightness_model == "modes":
@@ -583,13 +602,20 @@ def _fundamental_alone(fit: _OrderFit) -> _OrderFit:
 
 
 def _fundamental(window: _Window, poles: _OrderFit) -> tuple[_OrderFit, str | None]:
-    """``window`` fitted with the brightness' ``poles``, or with their lowest mode at half its frequency and decay
-    rate where that fits the series far better (cost under :data:`_HALVED_GAIN` times) and is still resolved, with
-    the note that says so. A highlight that sweeps across the surface and back brightens twice a cycle: the
-    brightness may then hold a mode only at its second harmonic, which turns and decays twice as fast."""
+    """``window`` fitted with the brightness' ``poles`` (of two, the first alone where the series' criterion,
+    :func:`_evidence`, does not want the second: a mode is reported only where the series shows it), or with their
+    lowest mode at half its frequency and decay rate where that fits the series far better (cost under
+    :data:`_HALVED_GAIN` times) and is still resolved, with the note that says so. A highlight that sweeps across the
+    surface and back brightens twice a cycle: the brightness may then hold a mode only at its second harmonic, which
+    turns and decays twice as fast."""
     pinned = window.pinned(poles)
+    if poles.order == 2:
+        first = _with_modes(poles, np.array([0]))
+        alone = window.pinned(first)
+        if _evidence(alone) <= _evidence(pinned):
+            poles, pinned = first, alone
     at = _BASE + _PER_MODE * int(np.argmin(poles.params[_BASE + 2 :: _PER_MODE])) + 2
-    params, half = poles.params.copy(), poles.half_width.copy()
+    params, half = poles.params.copy(), pinned.half_width.copy()  # the amplitudes' intervals the series' own
     params[at : at + 2] /= 2
     half[at : at + 2] /= 2
     if not _resolved(params.tolist(), half.tolist(), window.span):
@@ -609,13 +635,17 @@ def _oscillations(fit: _OrderFit) -> _OrderFit | None:
     poles handed to the window's series; None when none is left. The brightness' fit may spend a pole on the
     ejection's light dying within a fraction of a cycle: that is no oscillation of the surface, and a series
     fitted with it extrapolates to its start through many e-folds (amplitudes far beyond the nozzle)."""
-    w, g = fit.params[_BASE + 2 :: _PER_MODE], fit.params[_BASE + 3 :: _PER_MODE]
-    keep = np.flatnonzero(g * _UNDERDAMPED < w)
+    keep = _underdamped(fit)
     if keep.size == fit.order:
         return fit
     if keep.size == 0:
         return None
     return _with_modes(fit, keep)
+
+
+def _underdamped(fit: _OrderFit) -> np.ndarray:
+    """Indices of ``fit``'s modes that decay by e over more than :data:`_UNDERDAMPED` radians: oscillations."""
+    return np.flatnonzero(fit.params[_BASE + 3 :: _PER_MODE] * _UNDERDAMPED < fit.params[_BASE + 2 :: _PER_MODE])
 
 
 def _with_modes(fit: _OrderFit, keep: np.ndarray) -> _OrderFit:
@@ -625,33 +655,34 @@ def _with_modes(fit: _OrderFit, keep: np.ndarray) -> _OrderFit:
 
 
 def _product_poles(n: np.ndarray, y: np.ndarray, modes: _OrderFit, settings: FitSettings) -> _OrderFit:
-    """``modes`` (the brightness' fit as damped modes) with its poles those of the brightness fitted as a
-    polynomial of two modes (:func:`products.fit`), started from its lowest-frequency underdamped mode (decaying
-    by e over more than :data:`_UNDERDAMPED` radians: a pole that dies within a fraction of a cycle is the
-    ejection's light or noise; harmonics and sum frequencies lie above mode 1). ``modes`` itself where it has no
-    such mode, or the polynomial's fit fails, ends far from its start (frequency over :data:`_PRODUCT_SHIFT` off,
-    decay outside a factor :data:`_PRODUCT_FACTOR`) or with mode 2 less damped than mode 1 (Eq. 1's higher mode
-    damps faster: it has taken something else for it)."""
-    w, g = modes.params[_BASE + 2 :: _PER_MODE], modes.params[_BASE + 3 :: _PER_MODE]
-    under = np.flatnonzero(g * _UNDERDAMPED < w)
+    """The poles of the brightness fitted as a polynomial of two modes (:func:`products.fit`), started from the
+    lowest-frequency underdamped mode of ``modes`` (the brightness' fit as damped modes; underdamped: decaying by e
+    over more than :data:`_UNDERDAMPED` radians, for a pole that dies within a fraction of a cycle is the ejection's
+    light or noise, and harmonics and sum frequencies lie above mode 1): its mode 1 and, where ``settings`` allow
+    two modes, its mode 2, which the series keeps where it needs it (:func:`_fundamental`). ``modes`` itself where
+    it has no such mode, or the polynomial's fit fails, ends far from its start (frequency over
+    :data:`_PRODUCT_SHIFT` off, decay outside a factor :data:`_PRODUCT_FACTOR`) or with mode 2 less damped than mode
+    1 (Eq. 1's higher mode damps faster: it has taken something else for it)."""
+    under = _underdamped(modes)
     if under.size == 0:
         return modes
-    first = int(under[np.argmin(w[under])])
-    found = products.fit(n, y, float(w[first]), float(g[first]), settings.confidence)
+    first = _BASE + _PER_MODE * int(under[np.argmin(modes.params[_BASE + 2 :: _PER_MODE][under])])
+    w, g = float(modes.params[first + 2]), float(modes.params[first + 3])
+    found = products.fit(n, y, w, g, settings.confidence)
     if (
         found is None
-        or abs(found.w[0] - w[first]) > _PRODUCT_SHIFT * w[first]
-        or not g[first] / _PRODUCT_FACTOR <= found.g[0] <= g[first] * _PRODUCT_FACTOR
+        or abs(found.w[0] - w) > _PRODUCT_SHIFT * w
+        or not g / _PRODUCT_FACTOR <= found.g[0] <= g * _PRODUCT_FACTOR
         or found.g[1] <= found.g[0]
     ):
         return modes
-    params, half = modes.params.copy(), modes.half_width.copy()
-    keep = [first] + [k for k in range(modes.order) if k != first]  # mode 1 first, then the other, if any
-    for k, slot in enumerate(keep):
-        at = _BASE + _PER_MODE * slot
+    order = min(settings.max_modes, 2)  # the series refits the offset, drift and amplitudes (:meth:`_Window.pinned`)
+    params, half = np.zeros(_BASE + _PER_MODE * order), np.full(_BASE + _PER_MODE * order, np.inf)
+    for k in range(order):
+        at = _BASE + _PER_MODE * k
         params[at + 2 : at + 4] = found.w[k], found.g[k]
         half[at + 2 : at + 4] = found.w_half[k], found.g_half[k]
-    return replace(modes, params=params, half_width=half)
+    return replace(modes, order=order, params=params, half_width=half)
 
 
 def _pencil_modes(n: np.ndarray, y: np.ndarray, length: int, order: int) -> tuple[np.ndarray, np.ndarray]:
