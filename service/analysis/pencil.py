@@ -30,8 +30,10 @@ def powers(poles: np.ndarray, n: int) -> np.ndarray:
         z = poles[k] if poles[k] != 0 else np.exp(-_MAX_LOG_DECAY) + 0j
         log_z = np.log(z)
         log_r = min(max(log_z.real, -_MAX_LOG_DECAY), _MAX_LOG_GROWTH / max(n - 1, 1))
-        for j in range(n):
-            out[j, k] = np.exp(j * (log_r + 1j * log_z.imag))
+        step, power = np.exp(log_r + 1j * log_z.imag), 1.0 + 0j
+        for j in range(n):  # one complex product a sample, not an exp: ~n ulp of rounding, for ranking poles
+            out[j, k] = power
+            power *= step
     return out
 
 
@@ -62,9 +64,9 @@ def exponentials(x: np.ndarray, pencil: int, order: int) -> tuple[np.ndarray, np
     hankel /= max(np.abs(x).max(), 1e-300)  # its square finite for any finite x
     _, vectors = np.linalg.eigh(hankel.T @ hankel)  # ascending: the right singular vectors, the last dominant
     order = min(max(order, 1), min(size - rows, rows))
-    v = np.ascontiguousarray(vectors[:, ::-1][:, :order]).astype(np.complex128)  # (L + 1, K): spans [z^0 .. z^L]
+    v = np.ascontiguousarray(vectors[:, ::-1][:, :order])  # (L + 1, K): spans [z^0 .. z^L]
     shift = np.linalg.lstsq(np.ascontiguousarray(v[:-1]), np.ascontiguousarray(v[1:]))[0]  # v[1:] = v[:-1] @ shift
-    poles = np.linalg.eigvals(shift)
+    poles = np.linalg.eigvals(shift.astype(np.complex128))  # complex: a real shift has complex eigenvalues
     basis = powers(poles, size)
     largest = np.empty(poles.size)  # each column scaled to its largest |z^j| (up to e^600): its square stays finite
     for k in range(poles.size):
