@@ -566,10 +566,9 @@ def _brightness_poles(
     if not 0 < spread < _MAX_VALUE:
         return None
     y = (raw - centre) / spread
-    # the polynomial takes only its start from the damped modes: their one-mode fit where it resolves an oscillation
-    # (its second mode is its own, which the series keeps where it needs it: _fundamental), else their two-mode
-    # search's (the one mode may be the ejection's light, dying within a cycle, beside a heavily damped mode); the
-    # damped modes' own poles are those of their order search
+    # the polynomial takes only its start from the damped modes (both its modes are its own): their one-mode fit
+    # where it resolves an oscillation, else their two-mode search's (the one mode may be the ejection's light, dying
+    # within a cycle, beside a heavily damped mode); the damped modes' own poles are those of their order search
     window = _Window(n, y, settings)
     fits = chosen = None
     if settings.brightness_model == "products":
@@ -602,20 +601,14 @@ def _fundamental_alone(fit: _OrderFit) -> _OrderFit:
 
 
 def _fundamental(window: _Window, poles: _OrderFit) -> tuple[_OrderFit, str | None]:
-    """``window`` fitted with the brightness' ``poles`` (of two, the first alone where the series' criterion,
-    :func:`_evidence`, does not want the second: a mode is reported only where the series shows it), or with their
-    lowest mode at half its frequency and decay rate where that fits the series far better (cost under
-    :data:`_HALVED_GAIN` times) and is still resolved, with the note that says so. A highlight that sweeps across the
-    surface and back brightens twice a cycle: the brightness may then hold a mode only at its second harmonic, which
-    turns and decays twice as fast."""
+    """``window`` fitted with the brightness' ``poles``, or with their lowest mode at half its frequency and decay
+    rate where that fits the series far better (cost under :data:`_HALVED_GAIN` times) and is still resolved (the
+    amplitudes' intervals the series' own), with the note that says so. A highlight that sweeps across the surface
+    and back brightens twice a cycle: the brightness may then hold a mode only at its second harmonic, which turns
+    and decays twice as fast."""
     pinned = window.pinned(poles)
-    if poles.order == 2:
-        first = _with_modes(poles, np.array([0]))
-        alone = window.pinned(first)
-        if _evidence(alone) <= _evidence(pinned):
-            poles, pinned = first, alone
     at = _BASE + _PER_MODE * int(np.argmin(poles.params[_BASE + 2 :: _PER_MODE])) + 2
-    params, half = poles.params.copy(), pinned.half_width.copy()  # the amplitudes' intervals the series' own
+    params, half = poles.params.copy(), pinned.half_width.copy()
     params[at : at + 2] /= 2
     half[at : at + 2] /= 2
     if not _resolved(params.tolist(), half.tolist(), window.span):
@@ -659,7 +652,7 @@ def _product_poles(n: np.ndarray, y: np.ndarray, modes: _OrderFit, settings: Fit
     lowest-frequency underdamped mode of ``modes`` (the brightness' fit as damped modes; underdamped: decaying by e
     over more than :data:`_UNDERDAMPED` radians, for a pole that dies within a fraction of a cycle is the ejection's
     light or noise, and harmonics and sum frequencies lie above mode 1): its mode 1 and, where ``settings`` allow
-    two modes, its mode 2, which the series keeps where it needs it (:func:`_fundamental`). ``modes`` itself where
+    two modes, its mode 2 (the brightness holds both: Eq. 1's two modes). ``modes`` itself where
     it has no such mode, or the polynomial's fit fails, ends far from its start (frequency over
     :data:`_PRODUCT_SHIFT` off, decay outside a factor :data:`_PRODUCT_FACTOR`) or with mode 2 less damped than mode
     1 (Eq. 1's higher mode damps faster: it has taken something else for it)."""
