@@ -96,6 +96,10 @@ _UNDERDAMPED = 2.0
 #: under this fraction of its cost with the mode as found: between the windows whose brightness held only the second
 #: harmonic and every other (docs/benchmarks.md, "The brightness' second harmonic").
 _HALVED_GAIN = 0.9
+#: The polynomial's mode 2 is the window's where its frequency's interval is within this fraction of it: a mode of the
+#: surface comes out several times sharper, a second mode the polynomial spends on a harmonic or the ejection's light
+#: several times wider (docs/benchmarks.md, "The brightness polynomial from the one-mode fit").
+_SHARP = 0.01
 #: Frequency ratios of the brightness' two poles taken for a mode and its second harmonic (Eq. 1's modes: 2.30).
 _HARMONIC_RATIO = (1.8, 2.15)
 _IRLS_STEPS = 100  # at most; the order-0 cost settles to 1e-6 (relative) in ~5-10 rounds
@@ -566,7 +570,7 @@ def _brightness_poles(
     if not 0 < spread < _MAX_VALUE:
         return None
     y = (raw - centre) / spread
-    # the polynomial takes only its start from the damped modes (both its modes are its own): their one-mode fit
+    # the polynomial takes only its start from the damped modes (its modes are its own): their one-mode fit
     # where it resolves an oscillation, else their two-mode search's (the one mode may be the ejection's light, dying
     # within a cycle, beside a heavily damped mode); the damped modes' own poles are those of their order search
     window = _Window(n, y, settings)
@@ -652,7 +656,7 @@ def _product_poles(n: np.ndarray, y: np.ndarray, modes: _OrderFit, settings: Fit
     lowest-frequency underdamped mode of ``modes`` (the brightness' fit as damped modes; underdamped: decaying by e
     over more than :data:`_UNDERDAMPED` radians, for a pole that dies within a fraction of a cycle is the ejection's
     light or noise, and harmonics and sum frequencies lie above mode 1): its mode 1 and, where ``settings`` allow
-    two modes, its mode 2 (the brightness holds both: Eq. 1's two modes). ``modes`` itself where
+    two modes and its frequency is sharp (:data:`_SHARP`), its mode 2. ``modes`` itself where
     it has no such mode, or the polynomial's fit fails, ends far from its start (frequency over
     :data:`_PRODUCT_SHIFT` off, decay outside a factor :data:`_PRODUCT_FACTOR`) or with mode 2 less damped than mode
     1 (Eq. 1's higher mode damps faster: it has taken something else for it)."""
@@ -669,7 +673,8 @@ def _product_poles(n: np.ndarray, y: np.ndarray, modes: _OrderFit, settings: Fit
         or found.g[1] <= found.g[0]
     ):
         return modes
-    order = min(settings.max_modes, 2)  # the series refits the offset, drift and amplitudes (:meth:`_Window.pinned`)
+    order = 2 if settings.max_modes >= 2 and found.w_half[1] <= _SHARP * found.w[1] else 1
+    # the poles alone: the series refits the offset, drift and amplitudes (:meth:`_Window.pinned`)
     params, half = np.zeros(_BASE + _PER_MODE * order), np.full(_BASE + _PER_MODE * order, np.inf)
     for k in range(order):
         at = _BASE + _PER_MODE * k
