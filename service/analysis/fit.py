@@ -656,10 +656,10 @@ def _product_poles(n: np.ndarray, y: np.ndarray, modes: _OrderFit, settings: Fit
     lowest-frequency underdamped mode of ``modes`` (the brightness' fit as damped modes; underdamped: decaying by e
     over more than :data:`_UNDERDAMPED` radians, for a pole that dies within a fraction of a cycle is the ejection's
     light or noise, and harmonics and sum frequencies lie above mode 1): its mode 1 and, where ``settings`` allow
-    two modes and its frequency is sharp (:data:`_SHARP`), its mode 2. ``modes`` itself where
-    it has no such mode, or the polynomial's fit fails, ends far from its start (frequency over
-    :data:`_PRODUCT_SHIFT` off, decay outside a factor :data:`_PRODUCT_FACTOR`) or with mode 2 less damped than mode
-    1 (Eq. 1's higher mode damps faster: it has taken something else for it)."""
+    two modes and its frequency is sharp (:data:`_SHARP`), its mode 2. ``modes`` itself where it has no such mode,
+    or the polynomial's fit fails, ends far from its start (frequency over :data:`_PRODUCT_SHIFT` off, decay outside
+    a factor :data:`_PRODUCT_FACTOR`) or with mode 2 less damped than mode 1 (Eq. 1's higher mode damps faster: it
+    has taken something else for it)."""
     under = _underdamped(modes)
     if under.size == 0:
         return modes
