@@ -663,8 +663,9 @@ def _product_poles(n: np.ndarray, y: np.ndarray, modes: _OrderFit, settings: Fit
     under = _underdamped(modes)
     if under.size == 0:
         return modes
-    first = _BASE + _PER_MODE * int(under[np.argmin(modes.params[_BASE + 2 :: _PER_MODE][under])])
-    w, g = float(modes.params[first + 2]), float(modes.params[first + 3])
+    frequencies = modes.params[_BASE + 2 :: _PER_MODE]
+    first = int(under[np.argmin(frequencies[under])])
+    w, g = float(frequencies[first]), float(modes.params[_BASE + _PER_MODE * first + 3])
     found = products.fit(n, y, w, g, settings.confidence)
     if (
         found is None
