@@ -81,17 +81,24 @@ def test_the_polynomial_gives_the_window_both_modes_from_a_one_mode_start():
     assert result.modes[1].frequency_hz == pytest.approx(MODE2[2], rel=0.03)
 
 
-def test_a_blender_window_whose_brightness_opens_with_the_ejection_takes_its_poles_from_the_frames():
-    """A heavily damped window of a Blender Cycles recording (tests/data, with how it was made): the brightness'
-    one-mode fit spends its mode on the ejection's dip in the first frames, a pole dying within a cycle; the
-    polynomial then starts from the two-mode search, and the decay comes from the frames, within 15 %."""
-    window = json.loads((Path(__file__).parent / "data" / "blender_heavily_damped_window.json").read_text())
+@pytest.mark.parametrize(
+    "data, frequency_rel, decay_rel",
+    [("blender_heavily_damped_window.json", 0.01, 0.15), ("blender_decay_misread_window.json", 0.005, 0.05)],
+)
+def test_blender_windows_take_their_poles_from_the_frames(data, frequency_rel, decay_rel):
+    """Blender Cycles windows (tests/data, each with how it was made) whose brightness misleads its damped-mode fit:
+    a heavily damped window whose one-mode fit spends its mode on the ejection's dip in the first frames (a pole
+    dying within a cycle; the polynomial then starts from the two-mode search), and one whose one-mode fit decays
+    twice as fast as the surface (the polynomial started there is taken, not held to within a factor of its
+    start's decay). The poles come from the frames, the frequency within 1 % and 0.5 %, the decay within 15 % and
+    5 %."""
+    window = json.loads((Path(__file__).parent / "data" / data).read_text())
     result = fit_window(
         window["series_mm"], window["fps"], FitSettings(), starts_at_ejection=True, brightness=window["brightness"]
     )
     assert result.poles_from == "frames"
-    assert result.modes[0].frequency_hz == pytest.approx(window["truth"]["f1_hz"], rel=0.01)
-    assert result.modes[0].decay_rate_per_s == pytest.approx(window["truth"]["g1_per_s"], rel=0.15)
+    assert result.modes[0].frequency_hz == pytest.approx(window["truth"]["f1_hz"], rel=frequency_rel)
+    assert result.modes[0].decay_rate_per_s == pytest.approx(window["truth"]["g1_per_s"], rel=decay_rel)
 
 
 def test_a_window_too_short_for_the_polynomial_has_no_product_fit():

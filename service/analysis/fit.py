@@ -87,8 +87,10 @@ _DRIFT_TEST = 2.0
 #: Modes turning fewer cycles than this over the window are fitted both with and without a drift.
 _SWING_CYCLES = 1.5
 #: The brightness' polynomial fit replaces its modes' poles only within this relative shift of its start's
-#: frequency and this factor of its decay rate: further off, it has ended on another mode or a product.
-_PRODUCT_SHIFT, _PRODUCT_FACTOR = 0.05, 2.0
+#: frequency: further off, it has ended on another mode or a product. Its decay rate is not held to its start's: the
+#: damped modes fitted to the brightness misread the decay by over a factor of two where the polynomial reads it right
+#: (docs/benchmarks.md, "The polynomial's decay not held to its start").
+_PRODUCT_SHIFT = 0.05
 #: Radians over which a pole must decay by no more than e to be an oscillation of the surface (issue 17's fluids:
 #: >= 3.1): to start the brightness' polynomial fit as mode 1, and to be handed to the window's series.
 _UNDERDAMPED = 2.0
@@ -657,9 +659,9 @@ def _product_poles(n: np.ndarray, y: np.ndarray, modes: _OrderFit, settings: Fit
     over more than :data:`_UNDERDAMPED` radians, for a pole that dies within a fraction of a cycle is the ejection's
     light or noise, and harmonics and sum frequencies lie above mode 1): its mode 1 and, where ``settings`` allow
     two modes and its frequency is sharp (:data:`_SHARP`), its mode 2. ``modes`` itself where it has no such mode,
-    or the polynomial's fit fails, ends far from its start (frequency over :data:`_PRODUCT_SHIFT` off, decay outside
-    a factor :data:`_PRODUCT_FACTOR`) or with mode 2 less damped than mode 1 (Eq. 1's higher mode damps faster: it
-    has taken something else for it)."""
+    or the polynomial's fit fails, ends on another mode (frequency over :data:`_PRODUCT_SHIFT` off), with a mode 1
+    that is no oscillation (not underdamped) or with mode 2 less damped than mode 1 (Eq. 1's higher mode damps
+    faster: it has taken something else for it)."""
     under = _underdamped(modes)
     if under.size == 0:
         return modes
@@ -670,7 +672,7 @@ def _product_poles(n: np.ndarray, y: np.ndarray, modes: _OrderFit, settings: Fit
     if (
         found is None
         or abs(found.w[0] - w) > _PRODUCT_SHIFT * w
-        or not g / _PRODUCT_FACTOR <= found.g[0] <= g * _PRODUCT_FACTOR
+        or not found.g[0] * _UNDERDAMPED < found.w[0]
         or found.g[1] <= found.g[0]
     ):
         return modes
