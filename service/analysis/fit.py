@@ -87,10 +87,11 @@ _DRIFT_TEST = 2.0
 #: Modes turning fewer cycles than this over the window are fitted both with and without a drift.
 _SWING_CYCLES = 1.5
 #: The brightness' polynomial fit replaces its modes' poles only within this relative shift of its start's
-#: frequency: further off, it has ended on another mode or a product. Its decay rate is not held to its start's: the
-#: damped modes fitted to the brightness misread the decay by over a factor of two where the polynomial reads it right
-#: (docs/benchmarks.md, "The polynomial's decay not held to its start").
-_PRODUCT_SHIFT = 0.05
+#: frequency: further off, it has ended on another mode or a product (the nearest, mode 2 less mode 1, lies ~1.3 times
+#: mode 1). Its decay rate is not held to its start's: in heavily damped windows the damped modes fitted to the
+#: brightness misread the decay by over a factor of two, and the frequency by over 5 %, where the polynomial reads them
+#: right (docs/benchmarks.md, "The brightness polynomial's poles not held to their start").
+_PRODUCT_SHIFT = 0.15
 #: Radians over which a pole must decay by no more than e to be an oscillation of the surface (issue 17's fluids:
 #: >= 3.1): to start the brightness' polynomial fit as mode 1, and to be handed to the window's series.
 _UNDERDAMPED = 2.0
