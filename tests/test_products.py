@@ -87,16 +87,18 @@ def test_the_polynomial_gives_the_window_both_modes_from_a_one_mode_start():
         ("blender_heavily_damped_window.json", 0.01, 0.15),
         ("blender_decay_misread_window.json", 0.005, 0.05),
         ("blender_heavily_damped_frequency_window.json", 0.02, 0.35),
+        ("blender_faint_brightness_window.json", 0.01, 0.1),
     ],
 )
 def test_blender_windows_take_their_poles_from_the_frames(data, frequency_rel, decay_rel):
     """Blender Cycles windows (tests/data, each with how it was made) whose brightness misleads its damped-mode fit:
     a heavily damped window whose one-mode fit spends its mode on the ejection's dip in the first frames (a pole
     dying within a cycle; the polynomial then starts from the two-mode search), one whose one-mode fit decays twice
-    as fast as the surface, and one whose one-mode fit is 12 % off in frequency and three times the decay (the
-    polynomial started there is taken, not held to its start's decay, nor to its frequency within 5 %). The poles
-    come from the frames, the frequency within 1 %, 0.5 % and 2 %, the decay within 15 %, 5 % and 35 % (where the
-    damped fit's was 207 % off)."""
+    as fast as the surface, one whose one-mode fit is 12 % off in frequency and three times the decay (the
+    polynomial started there is taken, not held to its start's decay, nor to its frequency within 5 %), and a faint
+    brightness whose damped fits find no pole near the mode (the polynomial is started from its spectrum's strongest
+    line too). The poles come from the frames, the frequency within 1 %, 0.5 %, 2 % and 1 %, the decay within 15 %,
+    5 %, 35 % (where the damped fit's was 207 % off) and 10 %."""
     window = json.loads((Path(__file__).parent / "data" / data).read_text())
     result = fit_window(
         window["series_mm"], window["fps"], FitSettings(), starts_at_ejection=True, brightness=window["brightness"]

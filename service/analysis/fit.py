@@ -92,6 +92,13 @@ _SWING_CYCLES = 1.5
 #: brightness misread the decay by over a factor of two, and the frequency by over 5 %, where the polynomial reads them
 #: right (docs/benchmarks.md, "The brightness polynomial's poles not held to their start").
 _PRODUCT_SHIFT = 0.15
+#: The brightness' polynomial is also started from the strongest line of its spectrum, at this decay per radian,
+#: where that line lies further than :data:`_PRODUCT_SHIFT` from the damped modes' pole (the fit from the lower-cost
+#: start is kept): a brightness dominated by the ejection's fading light gave its damped fits no pole near the
+#: mode its spectrum shows (docs/benchmarks.md, "The brightness polynomial's poles not held to their start").
+_LINE_DECAY = 0.05
+#: Fewest cycles over the window the spectrum's strongest line is looked for at (below: the drift's and swing's).
+_LINE_CYCLES = 4
 #: Radians over which a pole must decay by no more than e to be an oscillation of the surface (issue 17's fluids:
 #: >= 3.1): to start the brightness' polynomial fit as mode 1, and to be handed to the window's series.
 _UNDERDAMPED = 2.0
@@ -658,11 +665,10 @@ def _product_poles(n: np.ndarray, y: np.ndarray, modes: _OrderFit, settings: Fit
     """The poles of the brightness fitted as a polynomial of two modes (:func:`products.fit`), started from the
     lowest-frequency underdamped mode of ``modes`` (the brightness' fit as damped modes; underdamped: decaying by e
     over more than :data:`_UNDERDAMPED` radians, for a pole that dies within a fraction of a cycle is the ejection's
-    light or noise, and harmonics and sum frequencies lie above mode 1): its mode 1 and, where ``settings`` allow
-    two modes and its frequency is sharp (:data:`_SHARP`), its mode 2. ``modes`` itself where it has no such mode,
-    or the polynomial's fit fails, ends on another mode (frequency over :data:`_PRODUCT_SHIFT` off), with a mode 1
-    that is no oscillation (not underdamped) or with mode 2 less damped than mode 1 (Eq. 1's higher mode damps
-    faster: it has taken something else for it)."""
+    light or noise, and harmonics and sum frequencies lie above mode 1), or from the brightness' strongest line
+    (:func:`_strongest_line`) where that lies elsewhere and its fit is acceptable and costs less: its mode 1 and,
+    where ``settings`` allow two modes and its frequency is sharp (:data:`_SHARP`), its mode 2. ``modes`` itself
+    where it has no such mode or the fit kept is not acceptable (:func:`_acceptable`)."""
     under = _underdamped(modes)
     if under.size == 0:
         return modes
@@ -670,12 +676,12 @@ def _product_poles(n: np.ndarray, y: np.ndarray, modes: _OrderFit, settings: Fit
     first = int(under[np.argmin(frequencies[under])])
     w, g = float(frequencies[first]), float(modes.params[_BASE + _PER_MODE * first + 3])
     found = products.fit(n, y, w, g, settings.confidence)
-    if (
-        found is None
-        or abs(found.w[0] - w) > _PRODUCT_SHIFT * w
-        or not found.g[0] * _UNDERDAMPED < found.w[0]
-        or found.g[1] <= found.g[0]
-    ):
+    line = _strongest_line(n, y)
+    if line is not None and abs(line - w) > _PRODUCT_SHIFT * w:
+        other = products.fit(n, y, line, _LINE_DECAY * line, settings.confidence)
+        if _acceptable(other, line) and (found is None or other.cost < found.cost):
+            found, w = other, line
+    if not _acceptable(found, w):
         return modes
     order = 2 if settings.max_modes >= 2 and found.w_half[1] <= _SHARP * found.w[1] else 1
     # the poles alone: the series refits the offset, drift and amplitudes (:meth:`_Window.pinned`)
@@ -687,13 +693,45 @@ def _product_poles(n: np.ndarray, y: np.ndarray, modes: _OrderFit, settings: Fit
     return replace(modes, order=order, params=params, half_width=half)
 
 
+def _acceptable(found: products.ProductFit | None, w: float) -> bool:
+    """Whether the polynomial fitted from mode 1 at ``w`` converged near it: not on another mode (frequency within
+    :data:`_PRODUCT_SHIFT`), with a mode 1 that is an oscillation (underdamped) and mode 2 more damped than mode 1
+    (Eq. 1's higher mode damps faster: else it has taken something else for it)."""
+    return (
+        found is not None
+        and abs(found.w[0] - w) <= _PRODUCT_SHIFT * w
+        and found.g[0] * _UNDERDAMPED < found.w[0]
+        and found.g[1] > found.g[0]
+    )
+
+
+def _strongest_line(n: np.ndarray, y: np.ndarray) -> float | None:
+    """The frequency (radians per sample) of the highest peak of the gap-filled, detrended series' spectrum (Hann
+    window, zero-padded to a power of two at least 4 times its length: a start for a fit, to a few % of it) between
+    :data:`_LINE_CYCLES` cycles over the window and 0.9 pi; None where the window is too short to hold that many."""
+    grid = np.arange(n[0], n[-1] + 1, dtype=np.float64)
+    filled = _detrended(grid, n, y)
+    padded = 1 << int(np.ceil(np.log2(4 * grid.size)))  # a power of two: the FFT's fastest length
+    w = 2 * np.pi * np.fft.rfftfreq(padded)
+    band = (w > 2 * np.pi * _LINE_CYCLES / grid.size) & (w < 0.9 * np.pi)
+    if not band.any():
+        return None
+    power = np.abs(np.fft.rfft(filled * np.hanning(grid.size), padded))
+    return float(w[band][np.argmax(power[band])])
+
+
 def _pencil_modes(n: np.ndarray, y: np.ndarray, length: int, order: int) -> tuple[np.ndarray, np.ndarray]:
     """Pencil pole pairs (w, g per sample, most energetic first) of the gap-filled, detrended series."""
-    grid = np.arange(length, dtype=np.float64)
+    filled = _detrended(np.arange(length, dtype=np.float64), n, y)
+    return pencil.damped_sinusoids(filled, min(max(_PENCIL, order), length // 3), order, _PENCIL_MIN_CYCLES)
+
+
+def _detrended(grid: np.ndarray, n: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """The series ``y`` at samples ``n`` interpolated onto ``grid`` (its gaps filled), less its least-squares line."""
     filled = np.interp(grid, n, y)
     centred = grid - grid.mean()
-    filled -= filled.mean() + centred * (centred @ filled) / (centred @ centred)  # least-squares line
-    return pencil.damped_sinusoids(filled, min(max(_PENCIL, order), length // 3), order, _PENCIL_MIN_CYCLES)
+    filled -= filled.mean() + centred * (centred @ filled) / (centred @ centred)
+    return filled
 
 
 def _result(

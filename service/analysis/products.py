@@ -38,12 +38,14 @@ _RATIO_W, _RATIO_G = 2.3, 2.0
 @dataclass(frozen=True)
 class ProductFit:
     """The two modes' poles (w, g per sample) and the half-widths of w and g at the confidence asked, (2,) each,
-    mode 1 (the start's) first."""
+    mode 1 (the start's) first, and the fit's residual sum of squares (fits of one series from other starts compare
+    by it)."""
 
     w: np.ndarray
     g: np.ndarray
     w_half: np.ndarray
     g_half: np.ndarray
+    cost: float
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -257,4 +259,4 @@ def fit(n: np.ndarray, y: np.ndarray, w1: float, g1: float, confidence: float) -
     half = t_quantile(dof, confidence) * np.sqrt(np.maximum(variance, 0.0))
     if not np.all(np.isfinite(half)):  # a Jacobian gone non-finite where a mode's powers underflowed
         return None
-    return ProductFit(w, g, half[0::3], half[1::3])
+    return ProductFit(w, g, half[0::3], half[1::3], float(cost))
