@@ -108,6 +108,42 @@ def test_blender_windows_take_their_poles_from_the_frames(data, frequency_rel, d
     assert result.modes[0].decay_rate_per_s == pytest.approx(window["truth"]["g1_per_s"], rel=decay_rel)
 
 
+def test_a_brightness_whose_damped_fits_resolve_nothing_gives_its_poles_from_its_strongest_line():
+    """A window of our renderer (tests/data, with how it was made) whose brightness' damped fits resolve no
+    oscillation, where the series' own poles read the decay three times too fast and called the meniscus settled
+    with 5.7 um of the mode left at the window's end: the polynomial from the brightness' strongest line gives the
+    poles (frequency within 0.5 %, decay within 10 %), and the window is not settled."""
+    window = json.loads((Path(__file__).parent / "data" / "faint_brightness_unsettled_window.json").read_text())
+    result = fit_window(
+        window["series_mm"],
+        window["fps"],
+        FitSettings(),
+        starts_at_ejection=window["starts_at_ejection"],
+        brightness=window["brightness"],
+    )
+    assert result.poles_from == "frames"
+    assert result.modes[0].frequency_hz == pytest.approx(window["truth"]["f1_hz"], rel=0.005)
+    assert result.modes[0].decay_rate_per_s == pytest.approx(window["truth"]["g1_per_s"], rel=0.1)
+    assert result.settled is False
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    level=st.sampled_from([0.01, 0.1, 1.0]),
+    curve=st.sampled_from([0.0, 0.5]),
+    seed=st.integers(0, 2**16),
+)
+def test_a_noise_only_brightness_over_a_still_series_gives_no_mode(level, curve, seed):
+    """A brightness of noise (any level, with or without a slow curve and an ejection's fading light) over a
+    series that holds still: whatever line its spectrum's noise shows, the window reports no mode and is settled."""
+    rng = np.random.default_rng(seed)
+    brightness = 100 + level * rng.standard_normal(N) + curve * np.linspace(0, 1, N) ** 2
+    brightness[:5] += 30 * np.exp(-np.arange(5))
+    series = 0.01 + 1e-6 * rng.standard_normal(N)
+    result = fit_window(series, FPS, FitSettings(), starts_at_ejection=True, brightness=brightness)
+    assert result.modes == [] and result.settled
+
+
 def test_a_window_too_short_for_the_polynomial_has_no_product_fit():
     n = np.arange(20, dtype=float)
     assert products.fit(n, np.cos(0.5 * n), 0.5, 0.01, 0.95) is None

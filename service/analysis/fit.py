@@ -450,7 +450,7 @@ def _fit_window(
     window = _Window(n, (raw - centre) / spread, settings)
     use_frames = settings.poles == "frames" and brightness is not None
     later = settings.brightness_frames(fps) if starts_at_ejection else 0
-    poles = _brightness_poles(brightness, x.size, skip, later, settings) if use_frames else None
+    poles = _brightness_poles(brightness, x.size, skip, later, settings, window) if use_frames else None
     if poles is not None:
         chosen, problem = _fundamental(window, poles)
     else:
@@ -565,11 +565,12 @@ def _has_harmonic(fit: _OrderFit) -> bool:
 
 
 def _brightness_poles(
-    brightness: ArrayLike, length: int, skip: int, later: int, settings: FitSettings
+    brightness: ArrayLike, length: int, skip: int, later: int, settings: FitSettings, series: _Window
 ) -> _OrderFit | None:
     """The fit of a window's mean frame brightness (``length`` values, NaN missing; its first ``skip`` left out, and
     its first ``later`` out of the polynomial's fit) when it resolves an oscillation: its modes' w and g are the
-    poles the window's series is fitted with. None when it does not."""
+    poles the window's ``series`` is fitted with. None when it does not (as damped modes, nor, with the polynomial,
+    from its strongest line where the series confirms it: :func:`_line_poles`)."""
     x = np.asarray(brightness, dtype=np.float64).reshape(-1)
     if x.size != length:
         raise ValueError(f"{x.size} brightness values for a window of {length} frames")
@@ -591,13 +592,16 @@ def _brightness_poles(
     if chosen is None or chosen.order == 0 or chosen.problem is not None or _underdamped(chosen).size == 0:
         fits = _order_fits(window, x.size, settings, drift_of_one=True, fewer=fits)
         chosen, _ = _choose([f for f in fits if not _has_harmonic(f)])  # resolved, if a higher order was not
+    kept = n >= later  # the polynomial's fit starts later: the ejection's light is no function of the modes
     if chosen.order == 0 or chosen.problem is not None:
-        return None
-    if settings.brightness_model == "modes":
-        poles = _oscillations(chosen)
+        if settings.brightness_model == "modes":
+            return None
+        poles = _line_poles(n[kept], y[kept], window.fit_baseline(), settings, series)
+    elif settings.brightness_model == "modes":
+        poles = chosen
     else:
-        kept = n >= later  # the polynomial's fit starts later: the ejection's light is no function of the modes
-        poles = _oscillations(_product_poles(n[kept], y[kept], chosen, settings))
+        poles = _product_poles(n[kept], y[kept], chosen, settings)
+    poles = None if poles is None else _oscillations(poles)
     return None if poles is None else _fundamental_alone(poles)
 
 
@@ -681,16 +685,40 @@ def _product_poles(n: np.ndarray, y: np.ndarray, modes: _OrderFit, settings: Fit
         other = products.fit(n, y, line, _LINE_DECAY * line, settings.confidence)
         if _acceptable(other, line) and (found is None or other.cost < found.cost):
             found, w = other, line
-    if not _acceptable(found, w):
-        return modes
+    return _poles_of(found, modes, settings) if _acceptable(found, w) else modes
+
+
+def _line_poles(
+    n: np.ndarray, y: np.ndarray, baseline: _OrderFit, settings: FitSettings, series: _Window
+) -> _OrderFit | None:
+    """Where the brightness' damped fits resolve no oscillation: the poles of its polynomial of two modes started
+    from its strongest line (:func:`_strongest_line`), where that fit is acceptable, its mode 1's frequency sharp
+    (:data:`_SHARP`) and the ``series`` fitted with them beats its offset and drift alone by the evidence a mode must
+    bring (:data:`_EVIDENCE`: a noise-only brightness gave sharp poles too); None otherwise. A faint brightness under
+    the ejection's fading light shows its mode in its spectrum where the damped fits do not, and the series' own
+    poles, the alternative, read the decay far off (docs/benchmarks.md, "The brightness polynomial's poles not held to
+    their start")."""
+    line = _strongest_line(n, y)
+    if line is None:
+        return None
+    found = products.fit(n, y, line, _LINE_DECAY * line, settings.confidence)
+    if not _acceptable(found, line) or found.w_half[0] > _SHARP * found.w[0]:
+        return None
+    poles = _poles_of(found, baseline, settings)
+    return poles if _evidence(series.pinned(poles)) < _evidence(series.fit_baseline()) else None
+
+
+def _poles_of(found: products.ProductFit, fit: _OrderFit, settings: FitSettings) -> _OrderFit:
+    """``fit`` with the polynomial's poles alone (the series refits the offset, drift and amplitudes:
+    :meth:`_Window.pinned`): its mode 1 and, where ``settings`` allow two modes and its frequency is sharp
+    (:data:`_SHARP`), its mode 2."""
     order = 2 if settings.max_modes >= 2 and found.w_half[1] <= _SHARP * found.w[1] else 1
-    # the poles alone: the series refits the offset, drift and amplitudes (:meth:`_Window.pinned`)
     params, half = np.zeros(_BASE + _PER_MODE * order), np.full(_BASE + _PER_MODE * order, np.inf)
     for k in range(order):
         at = _BASE + _PER_MODE * k
         params[at + 2 : at + 4] = found.w[k], found.g[k]
         half[at + 2 : at + 4] = found.w_half[k], found.g_half[k]
-    return replace(modes, order=order, params=params, half_width=half)
+    return replace(fit, order=order, params=params, half_width=half)
 
 
 def _acceptable(found: products.ProductFit | None, w: float) -> bool:
