@@ -179,6 +179,7 @@ def test_bench_analysis_scores_every_method_against_the_truth(recording: Path, t
     figures = json.loads(out.read_text())["methods"]["direct"]["lab"]
     assert figures["recall"] == figures["precision"] == 1.0 and figures["frames_per_s"] > 0
     assert 0 <= figures["offset_mm_coverage"] <= 1  # the share of windows whose interval holds the truth
+    assert 0 <= figures["settled_right"] <= 1  # the share of windows whose settled verdict is the truth's
     assert "| direct | lab |" in out.with_suffix(".md").read_text()
     # the windows behind the figures, kept as analyze writes them: scored again, they give the same figures
     kept = Report.load(reports / "direct" / f"{recording.stem}.json")

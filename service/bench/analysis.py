@@ -28,7 +28,7 @@ from service.errors import MeniscopeError, require_folder_of
 from service.inverse.methods import DATABASE_METHODS, METHODS, database_folder, open_method
 from service.scene import Scene
 from service.simulate import truth_path
-from service.validation.score import QUANTITIES, error_statistics, summary
+from service.validation.score import QUANTITIES, error_statistics, settling_statistics, summary
 from service.validation.truth import read_truth
 from service.verbs import add_scene_option
 
@@ -49,6 +49,8 @@ COLUMNS = (
     ("decay_coverage", "decay CI cov.", ".0%"),
     ("amplitude_coverage", "ampl. CI cov.", ".0%"),
     ("offset_mm_coverage", "offset CI cov.", ".0%"),
+    ("settled_right", "settled verdict right", ".0%"),
+    ("settled_falsely", "unsettled called settled", ".0%"),
     ("centre_rmse_mm", "D(0,t) RMSE (um)", "um"),
     ("centre_correlation", "D(0,t) corr.", ".3f"),
     ("a_mm_rmse", "a RMSE (um)", "um"),
@@ -157,16 +159,17 @@ def run_method_apart(*args: object) -> dict:
 
 
 def aggregate(rows: list[dict]) -> dict:
-    """The errors' medians and 90th percentiles over the set's windows pooled (what a user reads as the set's
-    figures; a mean of each recording's own would weigh a 4-window recording as much as a 40-window one and let
-    one recording's bad tail set the p90), means over recordings of the other summary figures (None where no
-    recording had it); frames/s overall."""
+    """The errors' medians and 90th percentiles and the settled verdicts' shares over the set's windows pooled (what
+    a user reads as the set's figures; a mean of each recording's own would weigh a 4-window recording as much as a
+    40-window one and let one recording's bad tail set the p90), means over recordings of the other summary figures
+    (None where no recording had it); frames/s overall."""
     out = {"recordings": len(rows), "frames_per_s": sum(r["frames"] for r in rows) / sum(r["seconds"] for r in rows)}
     for key, _, _ in COLUMNS[1:-1]:  # peak memory is the method's, not per recording
         values = [r[key] for r in rows if r.get(key) is not None]
         out[key] = float(np.mean(values)) if values else None
     pooled = {key: np.concatenate([np.asarray(r[f"{key}_errors"], np.float64) for r in rows]) for key in QUANTITIES}
-    return out | error_statistics(pooled)
+    settled = [np.array([v for r in rows for v in r.get(f"settled_{k}", [])], np.int64) for k in ("true", "said")]
+    return out | error_statistics(pooled) | settling_statistics(*settled)
 
 
 def _cell(value: float | None, spec: str) -> str:

@@ -1,7 +1,8 @@
 """A report scored against the ground truth of a simulated recording (``REC.truth.json``).
 
-What the engineers act on, per window: the dominant mode's frequency, decay rate and amplitude and
-the offset ``d + p R``; what the segmentation must get right: the ejections (within a tolerance).
+What the engineers act on, per window: the dominant mode's frequency, decay rate and amplitude, the
+offset ``d + p R`` and whether the meniscus settled; what the segmentation must get right: the ejections (within a
+tolerance).
 Relative errors are |estimate - truth| / truth; a window without a dominant mode scores NaN and is
 counted as missed, not dropped.
 """
@@ -12,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from service.analysis.results import Report
+from service.analysis.results import Report, WindowResult
 from service.inverse.base import InverseOutput
 from service.validation.truth import truth_centre, truth_coefficients
 
@@ -51,10 +52,9 @@ def window_pairs(report: Report, truth: dict[str, Any]) -> dict[str, np.ndarray]
             out[f"{key}_lo"][i], out[f"{key}_hi"][i] = interval
 
     for i, tw in enumerate(truth["windows"]):
-        match = [starts[s] for s in range(tw["start_frame"] - 2, tw["start_frame"] + 3) if s in starts]
-        if not match:
+        w, true = _matched(starts, tw), tw["truth"]
+        if w is None:
             continue
-        w, true = match[0], tw["truth"]
         if w.offset_mm is not None:
             put("offset_mm", i, w.offset_mm, tw["offset_mm"], w.offset_ci_mm)
         if w.modes:
@@ -87,6 +87,42 @@ def window_coverage(report: Report, truth: dict[str, Any]) -> dict[str, np.ndarr
     return out
 
 
+def window_settled(report: Report, truth: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
+    """Per true window (W,): whether the meniscus settled by the window's end (Eq. 1's envelope A1 e^(-g1 t) + A2
+    e^(-g2 t) at its last frame within max(``settle_fraction`` (A1 + A2), ``settle_floor_mm``), the report's own
+    tolerance), 1 or 0, and the matched report window's verdict (-1 where unmatched: matched as
+    :func:`window_pairs`)."""
+    settings, fps = report.fit, report.source.fps
+    starts = {w.start_frame: w for w in report.windows}
+    true, said = np.zeros(len(truth["windows"]), np.int64), np.full(len(truth["windows"]), -1, np.int64)
+    for i, tw in enumerate(truth["windows"]):
+        m = tw["truth"]
+        t = (tw["end_frame"] - tw["oscillation_start_frame"]) / fps
+        left = m["A1"] * np.exp(-m["g1"] * t) + m["A2"] * np.exp(-m["g2"] * t)
+        true[i] = left <= max(settings.settle_fraction * (m["A1"] + m["A2"]), settings.settle_floor_mm)
+        w = _matched(starts, tw)
+        if w is not None:
+            said[i] = bool(w.settled)
+    return true, said
+
+
+def _matched(starts: dict[int, WindowResult], window: dict[str, Any]) -> WindowResult | None:
+    """The report window (by start frame) whose start lies within 2 frames of the true ``window``'s, or None."""
+    match = [starts[s] for s in range(window["start_frame"] - 2, window["start_frame"] + 3) if s in starts]
+    return match[0] if match else None
+
+
+def settling_statistics(true: np.ndarray, said: np.ndarray) -> dict[str, float | None]:
+    """The share of windows whose settled verdict is the truth's (``settled_right``; a window the report has not
+    counts as wrong) and the share of unsettled windows reported settled (``settled_falsely``: the error that tells
+    an engineer to go on too soon); None where there is no window to count."""
+    unsettled = true == 0
+    return {
+        "settled_right": float(np.mean(said == true)) if true.size else None,
+        "settled_falsely": float(np.mean(said[unsettled] == 1)) if unsettled.any() else None,
+    }
+
+
 def error_statistics(errors: dict[str, np.ndarray]) -> dict[str, float | None]:
     """``{quantity}_median`` and ``{quantity}_p90`` of each quantity's finite errors (None where there are none)."""
     out: dict[str, float | None] = {}
@@ -116,6 +152,8 @@ def summary(report: Report, truth: dict[str, Any], per_frame: InverseOutput | No
     for key, held in window_coverage(report, truth).items():  # the share of intervals that hold the truth
         finite = held[np.isfinite(held)]
         out[f"{key}_coverage"] = float(np.mean(finite)) if finite.size else None
+    true, said = window_settled(report, truth)
+    out |= settling_statistics(true, said) | {"settled_true": true.tolist(), "settled_said": said.tolist()}
     if per_frame is not None:
         true_coeffs = truth_coefficients(truth)
         true_centre = truth_centre(truth)
