@@ -94,8 +94,9 @@ _SWING_CYCLES = 1.5
 _PRODUCT_SHIFT = 0.15
 #: The brightness' polynomial is also started from the strongest line of its spectrum, at this decay per radian,
 #: where that line lies further than :data:`_PRODUCT_SHIFT` from the damped modes' pole (the fit from the lower-cost
-#: start is kept): a brightness dominated by the ejection's fading light gave its damped fits no pole near the
-#: mode its spectrum shows (docs/benchmarks.md, "The brightness polynomial's poles not held to their start").
+#: start is kept), and from it alone where the damped fits resolve none (:func:`_line_poles`): a brightness dominated
+#: by the ejection's fading light gave its damped fits no pole near the mode its spectrum shows (docs/benchmarks.md,
+#: "The brightness polynomial's poles not held to their start").
 _LINE_DECAY = 0.05
 #: Fewest cycles over the window the spectrum's strongest line is looked for at (below: the drift's and swing's).
 _LINE_CYCLES = 4

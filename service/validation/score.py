@@ -89,7 +89,7 @@ def window_coverage(report: Report, truth: dict[str, Any]) -> dict[str, np.ndarr
 
 def window_settled(report: Report, truth: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
     """Per true window (W,): whether the meniscus settled by the window's end (Eq. 1's envelope A1 e^(-g1 t) + A2
-    e^(-g2 t) at its last frame within max(``settle_fraction`` (A1 + A2), ``settle_floor_mm``), the report's own
+    e^(-g2 t) at its end within max(``settle_fraction`` (A1 + A2), ``settle_floor_mm``), the report's own
     tolerance), 1 or 0, and the matched report window's verdict (-1 where unmatched: matched as
     :func:`window_pairs`)."""
     settings, fps = report.fit, report.source.fps
