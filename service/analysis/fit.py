@@ -23,6 +23,7 @@ all of this against peers and the Cramer-Rao bound (docs/benchmarks.md).
 from __future__ import annotations
 
 import copy
+import functools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
@@ -739,14 +740,23 @@ def _strongest_line(n: np.ndarray, y: np.ndarray) -> float | None:
     window, zero-padded to a power of two at least 4 times its length: a start for a fit, to a few % of it) between
     :data:`_LINE_CYCLES` cycles over the window and 0.9 pi; None where the window is too short to hold that many."""
     grid = np.arange(n[0], n[-1] + 1, dtype=np.float64)
-    filled = _detrended(grid, n, y)
     padded = 1 << int(np.ceil(np.log2(4 * grid.size)))  # a power of two: the FFT's fastest length
-    w = 2 * np.pi * np.fft.rfftfreq(padded)
-    band = (w > 2 * np.pi * _LINE_CYCLES / grid.size) & (w < 0.9 * np.pi)
-    if not band.any():
+    lowest, above = (
+        int(_LINE_CYCLES * padded / grid.size) + 1,
+        int(np.ceil(0.45 * padded)),
+    )  # bins k: w = 2 pi k / padded
+    if lowest >= above:
         return None
-    power = np.abs(np.fft.rfft(filled * np.hanning(grid.size), padded))
-    return float(w[band][np.argmax(power[band])])
+    spectrum = np.fft.rfft(_detrended(grid, n, y) * _hann(grid.size), padded)[lowest:above]
+    return 2 * np.pi * (lowest + int(np.argmax(np.abs(spectrum)))) / padded
+
+
+@functools.lru_cache(maxsize=8)
+def _hann(size: int) -> np.ndarray:
+    """The Hann window of ``size`` samples, read-only (windows come in a few lengths: made once each)."""
+    window = np.hanning(size)
+    window.flags.writeable = False
+    return window
 
 
 def _pencil_modes(n: np.ndarray, y: np.ndarray, length: int, order: int) -> tuple[np.ndarray, np.ndarray]:
