@@ -598,7 +598,7 @@ def _brightness_poles(
     if chosen.order == 0 or chosen.problem is not None:
         if settings.brightness_model == "modes":
             return None
-        poles = _line_poles(n[kept], y[kept], window.fit_baseline(), settings, series)
+        poles = _line_poles(n[kept], y[kept], fits[0], settings, series)  # fits[0]: the brightness' order 0
     elif settings.brightness_model == "modes":
         poles = chosen
     else:
@@ -741,10 +741,8 @@ def _strongest_line(n: np.ndarray, y: np.ndarray) -> float | None:
     :data:`_LINE_CYCLES` cycles over the window and 0.9 pi; None where the window is too short to hold that many."""
     grid = np.arange(n[0], n[-1] + 1, dtype=np.float64)
     padded = 1 << int(np.ceil(np.log2(4 * grid.size)))  # a power of two: the FFT's fastest length
-    lowest, above = (
-        int(_LINE_CYCLES * padded / grid.size) + 1,
-        int(np.ceil(0.45 * padded)),
-    )  # bins k: w = 2 pi k / padded
+    lowest = int(_LINE_CYCLES * padded / grid.size) + 1  # bin k is at w = 2 pi k / padded
+    above = int(np.ceil(0.45 * padded))  # the first bin at 0.9 pi or over
     if lowest >= above:
         return None
     spectrum = np.fft.rfft(_detrended(grid, n, y) * _hann(grid.size), padded)[lowest:above]
