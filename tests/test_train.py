@@ -129,6 +129,21 @@ def test_the_model_input_size_is_a_choice(trained: tuple[Path, Path, Path], scen
         assert NetworkMethod(tmp_path / "m16", scene).infer(np.asarray(rec.read(0, 3))).centre.shape == (3,)
 
 
+def test_the_trunks_channels_are_a_choice(trained: tuple[Path, Path, Path], scene: Scene, tmp_path: Path) -> None:
+    """--channels sets the convolutions' widths (a cheaper graph per frame); a warm start keeps its folder's."""
+    lab, holdout, _ = trained
+    out = tmp_path / "narrow"
+    done = meniscope("train", "--lab-video", str(lab), "--out", str(out), "--quick", "--channels", "4,8,8")
+    assert done.returncode == 0, done.stderr
+    assert load_manifest(out, scene).training.config["net"]["channels"] == [4, 8, 8]
+    with open_recording(holdout) as rec:
+        assert NetworkMethod(out, scene).infer(np.asarray(rec.read(0, 3))).centre.shape == (3,)
+    tuned = tmp_path / "tuned"
+    done = meniscope("train", "--lab-video", str(lab), "--out", str(tuned), "--quick", "--init", str(out))
+    assert done.returncode == 0, done.stderr
+    assert load_manifest(tuned, scene).training.config["net"]["channels"] == [4, 8, 8]
+
+
 def test_training_refuses_bad_input_in_one_line(trained: tuple[Path, Path, Path], tmp_path: Path) -> None:
     lab, _, _ = trained
     done = meniscope("train", "--lab-video", str(tmp_path / "none.cine"), "--out", str(tmp_path / "m"), "--quick")
@@ -138,3 +153,9 @@ def test_training_refuses_bad_input_in_one_line(trained: tuple[Path, Path, Path]
     done = meniscope("train", "--lab-video", str(lab), "--out", str(tmp_path / "m40"), "--quick", "--input-px", "40")
     assert done.returncode == 2 and done.stderr.count("\n") == 1 and "--input-px" in done.stderr
     assert not (tmp_path / "m40").exists()
+    for channels in ("8,x", "8,0", ""):
+        done = meniscope(
+            "train", "--lab-video", str(lab), "--out", str(tmp_path / "mc"), "--quick", "--channels", channels
+        )
+        assert done.returncode == 2 and done.stderr.count("\n") == 1 and "--channels" in done.stderr
+    assert not (tmp_path / "mc").exists()

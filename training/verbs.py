@@ -157,6 +157,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "pooled 3x3; 48 pools 2x2, slower and sees finer highlights); must divide the ROI",
     )
     p.add_argument(
+        "--channels",
+        help="the convolutional trunk's channels, one stride-2 3x3 convolution per entry, comma-separated (default "
+        "16,32,64; fewer channels: a cheaper graph per frame, measured in docs/benchmarks.md)",
+    )
+    p.add_argument(
         "--init",
         type=Path,
         metavar="MODELS",
@@ -205,6 +210,7 @@ def run_train(args: argparse.Namespace) -> int:
     from service.scene import Scene
     from training.normalise import downsample_factor  # torch loads only when the verb runs
     from training.train import TrainConfig, train_models
+    from training.warmstart import net_of
 
     scene = Scene.load(args.scene)
     ranges = _open_ranges(args, scene)
@@ -212,6 +218,8 @@ def run_train(args: argparse.Namespace) -> int:
         config = replace(TrainConfig.quick(), init=None if args.init is None else str(args.init))
     else:
         config = TrainConfig() if args.init is None else TrainConfig.fine_tune(args.init)
+    if args.init is not None:  # its network sizes, which a warm start keeps
+        config = replace(config, net=net_of(args.init))
     if args.samples is not None:
         if args.samples < 64:
             raise MeniscopeError("--samples", f"must be at least 64, got {args.samples}")
@@ -225,6 +233,8 @@ def run_train(args: argparse.Namespace) -> int:
         except MeniscopeError as exc:
             raise MeniscopeError("--input-px", exc.problem) from None
         config = replace(config, net=replace(config.net, input_px=args.input_px))
+    if args.channels is not None:
+        config = replace(config, net=replace(config.net, channels=_channels(args.channels)))
     manifest = train_models(scene, args.lab_video, args.out, config, dataset=args.dataset, holdout_video=args.holdout)
     print(f"{args.out}: {', '.join(sorted(manifest.methods))} exported in {manifest.training.seconds:.0f} s")
     _train_window_model(args, scene, ranges)
@@ -234,6 +244,17 @@ def run_train(args: argparse.Namespace) -> int:
             r = "n/a" if s.centre_correlation is None else f"{s.centre_correlation:.3f}"
             print(f"  {name} on {data} ({s.frames} frames): RMSE {rmse}; D(0, t) correlation {r}")
     return 0
+
+
+def _channels(text: str) -> tuple[int, ...]:
+    """``--channels``' comma-separated counts, each a whole number of at least 1."""
+    try:
+        channels = tuple(int(c) for c in text.split(","))
+    except ValueError:
+        raise MeniscopeError("--channels", f"must be whole numbers separated by commas, got {text!r}") from None
+    if not channels or min(channels) < 1:
+        raise MeniscopeError("--channels", f"each must be at least 1, got {text!r}")
+    return channels
 
 
 def _train_window_model(args: argparse.Namespace, scene: Scene, ranges: dict[str, tuple[float, float]]) -> None:

@@ -66,14 +66,24 @@ def initializers(path: Path, prefix: str = "") -> dict[str, torch.Tensor]:
     }
 
 
+def net_of(folder: Path) -> NetConfig:
+    """The network sizes a model folder's graphs were trained with: a fine-tuning of them keeps them."""
+    return _net_config(read_init_manifest(folder))
+
+
+def _net_config(manifest: Manifest) -> NetConfig:
+    """The :class:`NetConfig` stored in a manifest's training record."""
+    config = manifest.training.config.get("net", {})
+    return NetConfig(**{**config, "channels": tuple(config.get("channels", ()))})
+
+
 def load_warm_start(folder: Path, net: NetConfig, normalise: Normalise, height: int, width: int) -> WarmStart:
     """The torch modules of ``folder``'s graphs, for frames of ``height`` x ``width`` through ``normalise``.
 
     Refused in one line when the folder's networks have another shape (sizes, model input) than ``net``.
     """
     manifest = read_init_manifest(folder)
-    config = manifest.training.config.get("net", {})
-    made = NetConfig(**{**config, "channels": tuple(config.get("channels", ()))})
+    made = _net_config(manifest)
     shape = (manifest.input.height, manifest.input.width, manifest.input.downsample)
     if made != net or shape != (height, width, normalise.factor):
         raise MeniscopeError(

@@ -28,6 +28,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     add_scene_option(p)
     p.add_argument("--repeat", type=int, default=3, help="runs of each (default 3)")
     p.add_argument("--workers", type=int, help="fit processes (default: one per core)")
+    p.add_argument("--models", type=Path, help="model folder (default: the shipped one)")
     p.add_argument("--out", type=Path, required=True, help="PIPELINE.json to write; a Markdown table beside it")
     p.set_defaults(func=run)
 
@@ -141,17 +142,16 @@ def cpu_per_frame(before: tuple[float, float], frames: int) -> dict:
     }
 
 
-def measure_offline(recording: Path, scene, opened, workers: int | None) -> dict:  # type: ignore[no-untyped-def]
-    """One offline analysis: wall seconds, frames/s and CPU us per frame (the method already open)."""
+def measure_offline(recording: Path, scene, opened, workers: int | None, models: Path) -> dict:  # type: ignore[no-untyped-def]
+    """One offline analysis: wall seconds, frames/s and CPU us per frame (the method of ``models`` already open)."""
     import time
 
-    from service import DEFAULT_MODELS
     from service.analysis.offline import analyse_recording
 
     t0, cpu0 = time.perf_counter(), cpu_seconds()
     with ThreadCpu() as threads:
         analysis = analyse_recording(
-            recording, scene, "network", DEFAULT_MODELS, progress=False, opened=opened, workers=workers
+            recording, scene, "network", models, progress=False, opened=opened, workers=workers
         )
     seconds = time.perf_counter() - t0
     frames = analysis.report.source.frames
@@ -165,7 +165,7 @@ def measure_offline(recording: Path, scene, opened, workers: int | None) -> dict
     }
 
 
-def measure_live(recording: Path, scene, method, workers: int | None) -> dict:  # type: ignore[no-untyped-def]
+def measure_live(recording: Path, scene, method, workers: int | None, models: Path) -> dict:  # type: ignore[no-untyped-def]
     """One run of the live pipeline over the recording at full speed with its fit workers: frames/s inferred and
     windows fitted by the time the last fit came back."""
     import os
@@ -181,6 +181,7 @@ def measure_live(recording: Path, scene, method, workers: int | None) -> dict:  
     settings = ServiceSettings(
         source=replay_uri(recording, speed="max"),
         recordings_dir=recording.parent,
+        models=models,
         fit_workers=workers or os.cpu_count() or 1,
         queue_batches=1024,
     )
@@ -252,7 +253,7 @@ def markdown(results: dict) -> str:
         )
     lines.append(
         f"\noffline / live: {results['offline_over_live']:.2f} (medians of {len(results['offline'])} "
-        f"alternating runs on {results['recording']})\n"
+        f"alternating runs on {results['recording']}, models {results['models']})\n"
     )
     lines += ["| thread | pipeline | CPU us/frame (median) | runs |", "|---|---|---:|---|"]
     for name in ("offline", "live"):
@@ -281,13 +282,20 @@ def run(args: argparse.Namespace) -> int:
     scene = Scene.load(args.scene)
     with open_recording(args.recording) as rec:
         camera_fps = rec.fps
-    opened = open_method("network", scene, DEFAULT_MODELS)
+    models = args.models or DEFAULT_MODELS
+    opened = open_method("network", scene, models)
     offline, live = [], []
     for k in range(args.repeat):
         print(f"bench pipeline: run {k + 1} of {args.repeat} ...", flush=True)
-        offline.append(measure_offline(args.recording, scene, opened, args.workers))
-        live.append(measure_live(args.recording, scene, opened[0], args.workers))
-    results = {"recording": str(args.recording), "camera_fps": camera_fps, "offline": offline, "live": live}
+        offline.append(measure_offline(args.recording, scene, opened, args.workers, models))
+        live.append(measure_live(args.recording, scene, opened[0], args.workers, models))
+    results = {
+        "recording": str(args.recording),
+        "models": str(models),
+        "camera_fps": camera_fps,
+        "offline": offline,
+        "live": live,
+    }
     for name, runs in (("offline", offline), ("live", live)):
         results[f"{name}_median_frames_per_s"] = float(np.median([r["frames_per_s"] for r in runs]))
         for key in ("cpu_us_per_frame", "fit_cpu_us_per_frame"):
