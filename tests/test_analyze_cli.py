@@ -73,22 +73,28 @@ def test_analyze_writes_the_report_the_table_and_the_plot(recording: Path, tmp_p
 def test_analyze_takes_the_poles_from_the_frames_unless_told(recording: Path, tmp_path: Path):
     truth = {w["start_frame"]: w["truth"]["f1"] for w in read_truth(recording)["windows"]}
     errors = {}
-    for poles in ("frames", "series"):
-        out = tmp_path / f"{poles}.json"
-        # the steady series as the frames give it (the window model, the default, would correct it)
-        args = ("--poles", poles, "--series", "steady", "--out", out, "--quiet")
+    for poles, series in (("frames", "steady"), ("series", "steady"), ("frames", "window")):
+        out = tmp_path / f"{poles}-{series}.json"
+        # the steady series as the frames give it, and as the window model (the default) corrects it
+        args = ("--poles", poles, "--series", series, "--out", out, "--quiet")
         assert meniscope("analyze", recording, *args).returncode == 0
         data = json.loads(out.read_text())
         assert data["fit"]["poles"] == poles
-        errors[poles] = [
-            abs(w["modes"][0]["frequency_hz"] / truth[w["start_frame"]] - 1)
-            for w in data["windows"]
-            if w["modes"] and w["start_frame"] in truth
-        ]
+        errors[poles, series] = np.array(
+            [
+                abs(w["modes"][0]["frequency_hz"] / truth[w["start_frame"]] - 1)
+                for w in data["windows"]
+                if w["modes"] and w["start_frame"] in truth
+            ]
+        )
         assert {w["poles_from"] for w in data["windows"] if w["modes"]} <= {poles, "series"}
-    # on this recording D(0, t) alone doubles one window's frequency (the network's |a| response); the frames do not
-    assert max(errors["frames"]) < 0.03 and max(errors["series"]) > 0.5
-    assert np.median(errors["frames"]) < np.median(errors["series"])
+    # on this recording D(0, t) alone doubles a window's frequency (the network's |a| response); the frames do not.
+    # (Where the steady series is noisy the halving of the brightness' pole may still misread a window: the window
+    # model's series, the default, holds every one.)
+    doubled = errors["series", "steady"] > 0.5
+    assert doubled.any() and (errors["frames", "steady"][doubled] < 0.03).all()
+    assert np.median(errors["frames", "steady"]) < np.median(errors["series", "steady"])
+    assert errors["frames", "window"].max() < 0.03
 
 
 def test_analyze_fits_the_brightness_as_a_polynomial_of_the_modes_unless_told(recording: Path, tmp_path: Path):

@@ -22,7 +22,9 @@ class NetConfig:
     """Sizes of the networks; ``input_px`` is the model input height after in-graph pooling."""
 
     input_px: int = 32
-    channels: tuple[int, ...] = (16, 32, 64)  # one stride-2 3x3 conv per entry
+    #: one stride-2 3x3 conv per entry; (16, 32, 64) before 2026-11-29: no more accurate through the analysis, a
+    #: dearer graph per frame (docs/benchmarks.md, "A narrower trunk")
+    channels: tuple[int, ...] = (8, 16, 32)
     latent: int = 10  # Price et al. (2022): 10 latent dimensions
     hidden: int = 64  # width of the regression heads
 

@@ -159,7 +159,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--channels",
         help="the convolutional trunk's channels, one stride-2 3x3 convolution per entry, comma-separated (default "
-        "16,32,64; fewer channels: a cheaper graph per frame, measured in docs/benchmarks.md)",
+        "8,16,32; more: a dearer graph per frame, measured in docs/benchmarks.md)",
     )
     p.add_argument(
         "--init",
