@@ -252,7 +252,7 @@ def _channels(text: str) -> tuple[int, ...]:
         channels = tuple(int(c) for c in text.split(","))
     except ValueError:
         raise MeniscopeError("--channels", f"must be whole numbers separated by commas, got {text!r}") from None
-    if not channels or min(channels) < 1:
+    if min(channels) < 1:
         raise MeniscopeError("--channels", f"each must be at least 1, got {text!r}")
     return channels
 
