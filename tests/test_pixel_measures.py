@@ -8,6 +8,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from service.inverse.pooling import STD_FLOOR_DN
 from service.pipeline.measures import GRID, PixelMeasures
 
 
@@ -147,13 +148,16 @@ def test_novelty_is_the_nearest_earlier_frame_summed_cell_by_cell_to_the_last_bi
     frames=st.integers(1, 9),
     batch=st.integers(1, 9),
     seed=st.integers(0, 2**16),
+    standardise=st.booleans(),
 )
 def test_block_means_made_in_the_same_pass_are_the_exact_means_rounded_once_and_change_nothing_else(
-    dtype, fill, factor, blocks, frames, batch, seed
+    dtype, fill, factor, blocks, frames, batch, seed, standardise
 ):
     """A graph's input pooled in the measures' pass, at full scale, zero and random, any block size and batching:
     each block's float64 mean rounded once to float32 (what :func:`service.inverse.pooling.block_means` and the
-    graphs' AveragePool make), and the measures the same as without it."""
+    graphs' AveragePool make), with ``standardise`` those means standardised frame by frame as the graphs'
+    normalisation does (a flat frame all zeros, a frame of one block NaN as torch's unbiased std makes it), and the
+    measures the same as without it."""
     shape = (frames, blocks[0] * factor, blocks[1] * factor)
     top = np.iinfo(dtype).max
     pixels = {
@@ -166,11 +170,21 @@ def test_block_means_made_in_the_same_pass_are_the_exact_means_rounded_once_and_
     for lo in range(0, frames, batch):
         part = slice(lo, lo + batch)
         pooled = np.empty((len(pixels[part]), 1, *blocks), np.float32)
-        with_pooling = pooling.update(pixels[part], indices[part], pooled)
+        with_pooling = pooling.update(pixels[part], indices[part], pooled, standardise)
         for got, want in zip(with_pooling, plain.update(pixels[part], indices[part])):
             np.testing.assert_array_equal(got, want)
         means = pixels[part].reshape(-1, blocks[0], factor, blocks[1], factor).mean(axis=(2, 4), dtype=np.float64)
-        np.testing.assert_array_equal(pooled[:, 0], means.astype(np.float32))
+        means = means.astype(np.float32)
+        if not standardise:
+            np.testing.assert_array_equal(pooled[:, 0], means)
+            continue
+        x = means.reshape(len(means), -1).astype(np.float64)
+        deviation = x - x.mean(axis=1, keepdims=True)
+        with np.errstate(invalid="ignore", divide="ignore"):  # one block: torch's unbiased std is NaN
+            want = deviation / (np.sqrt((deviation**2).sum(axis=1, keepdims=True) / (x.shape[1] - 1)) + STD_FLOOR_DN)
+        np.testing.assert_allclose(pooled.reshape(len(pooled), -1), want, rtol=1e-6, atol=1e-5)
+        if fill != "random" and blocks != (1, 1):
+            assert not pooled.any()
 
 
 def stored_bottom_up(frames: np.ndarray, gap: int) -> np.ndarray:
@@ -197,13 +211,15 @@ def stored_bottom_up(frames: np.ndarray, gap: int) -> np.ndarray:
     viewed=st.lists(st.booleans(), min_size=9, max_size=9),
     batch=st.integers(1, 9),
     seed=st.integers(0, 2**16),
+    standardise=st.booleans(),
 )
 def test_frames_viewed_where_stored_bottom_up_measure_as_their_copies(
-    dtype, factor, blocks, frames, gap, viewed, batch, seed
+    dtype, factor, blocks, frames, gap, viewed, batch, seed, standardise
 ):
     """Frames read in place where a file stores them (bottom row first, at a stride: no copy) give the measures and
     pooled means of the same frames copied top row first, to the last bit, whichever batches come viewed and which
-    copied (the frame before a batch carried across)."""
+    copied (the frame before a batch carried across); the means standardised, to float32's rounding (their squares
+    are summed in the other order)."""
     shape = (frames, blocks[0] * factor, blocks[1] * factor)
     pixels = np.random.default_rng(seed).integers(0, np.iinfo(dtype).max, shape, dtype, endpoint=True)
     stored = stored_bottom_up(pixels, gap)
@@ -212,11 +228,11 @@ def test_frames_viewed_where_stored_bottom_up_measure_as_their_copies(
     for k, lo in enumerate(range(0, frames, batch)):
         part = slice(lo, lo + batch)
         want_pooled, got_pooled = (np.empty((len(pixels[part]), 1, *blocks), np.float32) for _ in range(2))
-        want = copied.update(pixels[part], indices[part], want_pooled)
-        got = mixed.update(stored[part] if viewed[k] else pixels[part], indices[part], got_pooled)
+        want = copied.update(pixels[part], indices[part], want_pooled, standardise)
+        got = mixed.update(stored[part] if viewed[k] else pixels[part], indices[part], got_pooled, standardise)
         for g, w in zip(got, want):
             np.testing.assert_array_equal(g, w)
-        np.testing.assert_array_equal(got_pooled, want_pooled)
+        np.testing.assert_allclose(got_pooled, want_pooled, rtol=1e-6, atol=1e-6 if standardise else 0)
 
 
 def test_a_pooled_output_that_does_not_fit_the_frames_is_refused() -> None:

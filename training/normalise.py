@@ -12,11 +12,8 @@ import torch.nn.functional as F
 from torch import nn
 
 from service.errors import MeniscopeError
+from service.inverse.pooling import STD_FLOOR_DN
 from service.scene import Scene
-
-#: Added to the per-frame standard deviation (in stored DN) so a perfectly flat frame maps to zeros,
-#: not NaN; far below the 1 DN quantisation step, so it never changes a real frame's scale.
-STD_FLOOR_DN = 1e-6
 
 
 def downsample_factor(scene: Scene, input_px: int) -> int:

@@ -36,6 +36,9 @@ class InverseMethod(ABC):
     #: f > 0 where the method's input (:meth:`infer_prepared`'s) is its frames' f x f block means, float32 (N, 1, H/f,
     #: W/f), so that the pass that measures the frames' pixels makes it too; 0 where :meth:`prepare` makes it.
     pooling: int = 0
+    #: Where ``pooling``: whether those block means are then standardised frame by frame
+    #: (:func:`service.inverse.pooling.standardise`), in the same pass.
+    standardised: bool = False
 
     @abstractmethod
     def infer(self, frames: np.ndarray) -> InverseOutput:

@@ -87,7 +87,7 @@ class NetworkMethod(InverseMethod):
         self._outputs = list(OUTPUTS) + self._latent_output(path)
         self._dtype = np.dtype(manifest.input.dtype)
         self._shape = (manifest.input.height, manifest.input.width)
-        self._input, self.pooling = INPUT, 0
+        self._input, self.pooling, self.standardised = INPUT, 0, False
         self._pool_outside(path, manifest.input.downsample, options)
 
     def _latent_output(self, path: Path) -> list[str]:
@@ -100,19 +100,27 @@ class NetworkMethod(InverseMethod):
         return [LATENT]
 
     def _pool_outside(self, path: Path, factor: int, options: ort.SessionOptions) -> None:
-        """Run the graph from its input pooling on, the pooling done by :func:`pooling.block_means`, where the
-        graph starts with it and the split reproduces the whole graph's outputs on test frames
-        (:data:`pooling.PARITY_ABS`); the whole graph otherwise."""
-        split = pooling.after_pooling(path, INPUT, factor)
-        if split is None:
-            return
-        session = ort.InferenceSession(split[0], options, providers=["CPUExecutionProvider"])
+        """Run the graph from its normalisation on, the pooling and standardisation done by :func:`pooling.block_means`
+        and :func:`pooling.standardise`, or else from its pooling on, where the graph starts with them and the split
+        reproduces the whole graph's outputs on test frames (:data:`pooling.PARITY_ABS`); the whole graph otherwise."""
         frames = np.random.default_rng(0).integers(0, 4096, (8, *self._shape), endpoint=True).astype(self._dtype)
         whole = self._session.run(self._outputs, {INPUT: frames})
-        pooled = session.run(self._outputs, {split[1]: pooling.block_means(frames, factor)})
-        if all(np.abs(a - b).max() <= pooling.PARITY_ABS for a, b in zip(whole, pooled)):
-            self._session, self._input, self.pooling = session, split[1], factor
-            pooling.block_means(frames[:1].astype(np.uint8), factor)  # the 8-bit kernel compiled now, not mid-stream
+        for standardised in (True, False):
+            split = pooling.after_pooling(path, INPUT, factor, standardised)
+            if split is None:
+                continue
+            try:
+                session = ort.InferenceSession(split[0], options, providers=["CPUExecutionProvider"])
+                inputs = pooling.block_means(frames, factor)
+                out = session.run(self._outputs, {split[1]: pooling.standardise(inputs) if standardised else inputs})
+            except Exception:  # onnxruntime's own untyped errors: a split it cannot run is not taken
+                continue
+            if all(np.abs(a - b).max() <= pooling.PARITY_ABS for a, b in zip(whole, out)):
+                self._session, self._input, self.pooling, self.standardised = session, split[1], factor, standardised
+                pooling.block_means(
+                    frames[:1].astype(np.uint8), factor
+                )  # the 8-bit kernel compiled now, not mid-stream
+                return
 
     def check(self, frames: np.ndarray) -> None:
         if frames.ndim != 3 or frames.shape[1:] != self._shape:
@@ -129,7 +137,8 @@ class NetworkMethod(InverseMethod):
         frames = np.asarray(frames)
         self.check(frames)
         if self.pooling:
-            return pooling.block_means(frames, self.pooling)
+            inputs = pooling.block_means(frames, self.pooling)
+            return pooling.standardise(inputs) if self.standardised else inputs
         return np.ascontiguousarray(frames, dtype=self._dtype)
 
     def infer_prepared(self, inputs: np.ndarray) -> InverseOutput:

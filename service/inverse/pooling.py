@@ -1,9 +1,12 @@
-"""The learned graphs' input pooling done outside onnxruntime: a compiled block mean, and the graph from after it.
+"""The learned graphs' input layers done outside onnxruntime: compiled block means and their standardisation, and
+the graph from after them.
 
 Every exported graph starts as ``training.normalise.Normalise`` made it: the frames cast to float32, given a
-channel axis and average-pooled by the manifest's ``downsample``. onnxruntime spends half of a 96 x 96 frame's
-inference there (10 of 22 us of CPU); the block means below take 4, and the rest of the graph is run from the
-pooling's output on. A graph that does not start so, or whose split does not reproduce it, runs whole.
+channel axis, average-pooled by the manifest's ``downsample``, then standardised frame by frame. onnxruntime spent
+half of a 96 x 96 frame's inference on the pooling and a sixth of the rest on the standardisation's dozen small
+nodes (docs/benchmarks.md); the measures' pass makes both as it reads the pixels, and the rest of the graph is run
+from the normalisation's output on (or from the pooling's, where a graph's normalisation is not this one). A graph
+that does not start so, or whose split does not reproduce it, runs whole.
 """
 
 from __future__ import annotations
@@ -17,6 +20,11 @@ from numba import njit
 PREFIX = ("Cast", "Cast", "Unsqueeze", "AveragePool")
 #: Largest difference in any output allowed between the split graph and the whole one (float32 rounding).
 PARITY_ABS = 1e-5
+#: Added to each frame's standard deviation (in stored DN) by the graphs' normalisation, so that a flat frame maps to
+#: zeros, not NaN; far below the 1 DN quantisation step, so it never changes a real frame's scale.
+STD_FLOOR_DN = 1e-6
+#: The node the exported normalisation's names start with (``training.normalise.Normalise`` as ``normalise``).
+NORMALISATION = "/normalise/"
 
 
 @njit(cache=True, nogil=True)
@@ -48,9 +56,42 @@ def block_means(frames: np.ndarray, factor: int) -> np.ndarray:
     return out
 
 
-def after_pooling(path: Path, input_name: str, factor: int) -> tuple[bytes, str] | None:
+@njit(cache=True, nogil=True, error_model="numpy")
+def standardise_frame(frame, total, squares):  # type: ignore[no-untyped-def]
+    """``frame`` (M,) float32 in place as ``(x - mean) / (std + STD_FLOOR_DN)``, std the unbiased standard deviation
+    (torch's), from the float64 sum and sum of squares of its values."""
+    size = frame.size
+    mean = total / size
+    scale = 1.0 / (np.sqrt(max(squares - total * mean, 0.0) / (size - 1)) + STD_FLOOR_DN)
+    for k in range(size):
+        frame[k] = (frame[k] - mean) * scale
+
+
+@njit(cache=True, nogil=True)
+def _standardise(pooled):  # type: ignore[no-untyped-def]
+    """Each row of ``pooled`` (N, M) float32 standardised in place (:func:`standardise_frame`)."""
+    for i in range(pooled.shape[0]):
+        row = pooled[i]
+        total, squares = 0.0, 0.0
+        for k in range(row.size):
+            v = np.float64(row[k])
+            total += v
+            squares += v * v
+        standardise_frame(row, total, squares)
+
+
+def standardise(pooled: np.ndarray) -> np.ndarray:
+    """Block means (N, 1, H/f, W/f) float32 standardised frame by frame, in place, as the graphs' normalisation does
+    after their pooling (``training.normalise.Normalise``); returned for convenience."""
+    _standardise(pooled.reshape(len(pooled), -1))
+    return pooled
+
+
+def after_pooling(path: Path, input_name: str, factor: int, standardised: bool = False) -> tuple[bytes, str] | None:
     """The graph at ``path`` from its input pooling on (serialised) and the name of its new input, or None where it
-    does not start with :data:`PREFIX` pooling ``factor`` x ``factor`` blocks without padding."""
+    does not start with :data:`PREFIX` pooling ``factor`` x ``factor`` blocks without padding; with ``standardised``,
+    from its normalisation on (the :data:`NORMALISATION` nodes' one output the rest of the graph reads), or None
+    where it has none."""
     import onnx
     from onnx.utils import Extractor
 
@@ -74,6 +115,15 @@ def after_pooling(path: Path, input_name: str, factor: int) -> tuple[bytes, str]
         or attributes.get("ceil_mode", 0)
     ):
         return None
+    if standardised:
+        inside = [n for n in model.graph.node if n.name.startswith(NORMALISATION)]
+        names = {n.name for n in inside}
+        read = {
+            t for t in (o for n in inside for o in n.output) if any(c.name not in names for c in consumers.get(t, []))
+        }
+        if len(read) != 1:
+            return None
+        (tensor,) = read
     outputs = [o.name for o in model.graph.output]
     split = Extractor(onnx.shape_inference.infer_shapes(model)).extract_model([tensor], outputs)
     return split.SerializeToString(), tensor

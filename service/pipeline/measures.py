@@ -19,13 +19,15 @@ from pathlib import Path
 import numpy as np
 from numba import njit
 
+from service.inverse.pooling import standardise_frame
+
 #: The coarse picture novelty compares: the frame's means over GRID x GRID cells (fewer where the frame is
 #: smaller); 64 numbers keep the comparison with tens of earlier frames at about a microsecond.
 GRID = 8
 
 
 @njit(cache=True, nogil=True)
-def _sums(words, starts, previous, zero, band, edges, flipped, total, peak, change, cells, factor, pooled):  # type: ignore[no-untyped-def]
+def _sums(words, starts, previous, zero, band, edges, flipped, total, peak, change, cells, factor, pooled, standardise):  # type: ignore[no-untyped-def]
     """Per frame ``words[starts[i] : starts[i] + H * W]`` (its rows in memory order: bottom row first where
     ``flipped``): its pixels' sum, maximum and summed absolute difference from the frame before (``previous``
     (H * W,), in the same row order, before frame 0), accumulated from ``zero`` (its type sets the sums'), and its
@@ -33,13 +35,17 @@ def _sums(words, starts, previous, zero, band, edges, flipped, total, peak, chan
     (columns + 1,). A band's rows are summed column by column first (a plain loop over each row, as fast as the
     three sums alone), then cut into its cells. With ``factor`` > 0, also the means of its ``factor`` x ``factor``
     blocks into ``pooled`` (N, 1, H/f, W/f) in display order, summed the same way (exact sums of integer pixels,
-    divided once). Rows are read in memory order, as the hardware prefetches them."""
+    divided once); with ``standardise``, each frame's block means then standardised as the graphs' normalisation
+    does (:func:`service.inverse.pooling.standardise_frame`, their sums gathered by block column as they are made).
+    Rows are read in memory order, as the hardware prefetches them."""
     columns = edges.size - 1
     width = edges[columns]
     height = band.size
     size = height * width
     acc = np.full(width, zero)
     block = np.full(width, zero)
+    means = np.zeros(width // factor if factor else 0)  # the frame's block means summed by block column, and squared
+    squares = np.zeros_like(means)
     for i in range(starts.size):
         row = words[starts[i] : starts[i] + size]
         before = previous if i == 0 else words[starts[i - 1] : starts[i - 1] + size]
@@ -66,12 +72,21 @@ def _sums(words, starts, previous, zero, band, edges, flipped, total, peak, chan
                             for k in range(c * factor, c * factor + factor):
                                 t += block[k]
                             out[c] = np.float64(t) / (factor * factor)
+                    if standardise:
+                        for c in range(width // factor):
+                            v = np.float64(out[c])
+                            means[c] += v
+                            squares[c] += v * v
                     block[:] = zero
             if y + 1 == height or band[y + 1] != band[y]:  # the band's last row: its cells
                 for c in range(columns):
                     cells[i, band[y] * columns + c] = acc[edges[c] : edges[c + 1]].sum()
                 acc[:] = zero
         total[i], peak[i], change[i] = s, m, d
+        if standardise:
+            standardise_frame(pooled[i].reshape(-1), means.sum(), squares.sum())
+            means[:] = 0.0
+            squares[:] = 0.0
 
 
 def _words(pixels: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
@@ -141,13 +156,14 @@ class PixelMeasures:
         self._band, self._edges, self._counts = np.empty(0, np.int64), np.empty(0, np.int64), np.empty(0)
 
     def update(
-        self, pixels: np.ndarray, indices: np.ndarray, pooled: np.ndarray | None = None
+        self, pixels: np.ndarray, indices: np.ndarray, pooled: np.ndarray | None = None, standardise: bool = False
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Of frames ``pixels`` (N, H, W) with frame ``indices`` (N,): each one's change (mean absolute difference
         from the frame before, NaN at the stream's first frame and after a gap), mean, maximum and novelty (NaN
         until ``near`` frames are in since the start or a gap), (N,) float64 each, in pixel units. Where given,
         ``pooled`` (N, 1, H/f, W/f) float32 gets each frame's f x f block means in the same pass (an inverse graph's
-        input, :attr:`service.inverse.base.InverseMethod.pooling`), the exact means rounded once."""
+        input, :attr:`service.inverse.base.InverseMethod.pooling`), the exact means rounded once, and with
+        ``standardise`` those then standardised frame by frame (:func:`service.inverse.pooling.standardise`)."""
         n, h, w = pixels.shape
         if not np.issubdtype(pixels.dtype, np.unsignedinteger):  # an unsigned sum of signed pixels would wrap
             pixels = pixels.astype(np.float64)
@@ -169,7 +185,9 @@ class PixelMeasures:
         previous = self._previous if follows else pixels[0].reshape(-1)  # display order
         if flipped:  # in the order the pass reads the rows
             band, previous = band[::-1].copy(), previous.reshape(h, w)[::-1].ravel()
-        _sums(words, starts, previous, zero, band, edges, flipped, total, peak, change, cells, factor, pooled)
+        _sums(
+            words, starts, previous, zero, band, edges, flipped, total, peak, change, cells, factor, pooled, standardise
+        )
         size = h * w
         steps = change / size
         if not follows:

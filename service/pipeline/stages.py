@@ -52,7 +52,9 @@ class FrameStages:
         if factor:
             self.method.check(batch.pixels)
             inputs = np.empty((n, 1, h // factor, w // factor), np.float32)
-        change, brightness, peak, records["novelty"] = self.pixels.update(batch.pixels, batch.indices, inputs)
+        change, brightness, peak, records["novelty"] = self.pixels.update(
+            batch.pixels, batch.indices, inputs, self.method.standardised
+        )
         records["change"] = change
         records["brightness"] = brightness
         records["highlight"] = (peak - brightness) / self._full_scale
