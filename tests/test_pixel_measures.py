@@ -8,6 +8,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from service.inverse import pooling as inverse_pooling
 from service.inverse.pooling import STD_FLOOR_DN
 from service.pipeline.measures import GRID, PixelMeasures
 
@@ -156,8 +157,8 @@ def test_block_means_made_in_the_same_pass_are_the_exact_means_rounded_once_and_
     """A graph's input pooled in the measures' pass, at full scale, zero and random, any block size and batching:
     each block's float64 mean rounded once to float32 (what :func:`service.inverse.pooling.block_means` and the
     graphs' AveragePool make), with ``standardise`` those means standardised frame by frame as the graphs'
-    normalisation does (a flat frame all zeros, a frame of one block NaN as torch's unbiased std makes it), and the
-    measures the same as without it."""
+    normalisation does (a flat frame all zeros, a frame of one block NaN as torch's unbiased std makes it) and to the
+    bit as :func:`service.inverse.pooling.standardise` makes them, and the measures the same as without it."""
     shape = (frames, blocks[0] * factor, blocks[1] * factor)
     top = np.iinfo(dtype).max
     pixels = {
@@ -183,6 +184,7 @@ def test_block_means_made_in_the_same_pass_are_the_exact_means_rounded_once_and_
         with np.errstate(invalid="ignore", divide="ignore"):  # one block: torch's unbiased std is NaN
             want = deviation / (np.sqrt((deviation**2).sum(axis=1, keepdims=True) / (x.shape[1] - 1)) + STD_FLOOR_DN)
         np.testing.assert_allclose(pooled.reshape(len(pooled), -1), want, rtol=1e-6, atol=1e-5)
+        np.testing.assert_array_equal(pooled, inverse_pooling.standardise(means[:, None].copy()))  # to the bit
         if fill != "random" and blocks != (1, 1):
             assert not pooled.any()
 

@@ -44,8 +44,8 @@ def _sums(words, starts, previous, zero, band, edges, flipped, total, peak, chan
     size = height * width
     acc = np.full(width, zero)
     block = np.full(width, zero)
-    means = np.zeros(width // factor if factor else 0)  # the frame's block means summed by block column, and squared
-    squares = np.zeros_like(means)
+    sums = np.zeros(width // factor if factor else 0)  # the frame's block means summed by block column, and squared
+    squares = np.zeros_like(sums)
     for i in range(starts.size):
         row = words[starts[i] : starts[i] + size]
         before = previous if i == 0 else words[starts[i - 1] : starts[i - 1] + size]
@@ -75,7 +75,7 @@ def _sums(words, starts, previous, zero, band, edges, flipped, total, peak, chan
                     if standardise:
                         for c in range(width // factor):
                             v = np.float64(out[c])
-                            means[c] += v
+                            sums[c] += v
                             squares[c] += v * v
                     block[:] = zero
             if y + 1 == height or band[y + 1] != band[y]:  # the band's last row: its cells
@@ -84,8 +84,8 @@ def _sums(words, starts, previous, zero, band, edges, flipped, total, peak, chan
                 acc[:] = zero
         total[i], peak[i], change[i] = s, m, d
         if standardise:
-            standardise_frame(pooled[i].reshape(-1), means.sum(), squares.sum())
-            means[:] = 0.0
+            standardise_frame(pooled[i].reshape(-1), sums.sum(), squares.sum())
+            sums[:] = 0.0
             squares[:] = 0.0
 
 
