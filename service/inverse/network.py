@@ -117,9 +117,8 @@ class NetworkMethod(InverseMethod):
                 continue
             if all(np.abs(a - b).max() <= pooling.PARITY_ABS for a, b in zip(whole, out)):
                 self._session, self._input, self.pooling, self.standardised = session, split[1], factor, standardised
-                pooling.block_means(
-                    frames[:1].astype(np.uint8), factor
-                )  # the 8-bit kernel compiled now, not mid-stream
+                # the 8-bit kernel compiled now, not mid-stream
+                pooling.block_means(frames[:1].astype(np.uint8), factor)
                 return
 
     def check(self, frames: np.ndarray) -> None:
