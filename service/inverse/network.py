@@ -105,14 +105,15 @@ class NetworkMethod(InverseMethod):
         reproduces the whole graph's outputs on test frames (:data:`pooling.PARITY_ABS`); the whole graph otherwise."""
         frames = np.random.default_rng(0).integers(0, 4096, (8, *self._shape), endpoint=True).astype(self._dtype)
         whole = self._session.run(self._outputs, {INPUT: frames})
+        means = pooling.block_means(frames, factor)
         for standardised in (True, False):
             split = pooling.after_pooling(path, INPUT, factor, standardised)
             if split is None:
                 continue
+            inputs = pooling.standardise(means.copy()) if standardised else means  # standardised in place: a copy
             try:
                 session = ort.InferenceSession(split[0], options, providers=["CPUExecutionProvider"])
-                inputs = pooling.block_means(frames, factor)
-                out = session.run(self._outputs, {split[1]: pooling.standardise(inputs) if standardised else inputs})
+                out = session.run(self._outputs, {split[1]: inputs})
             except Exception:  # onnxruntime's own untyped errors: a split it cannot run is not taken
                 continue
             if all(np.abs(a - b).max() <= pooling.PARITY_ABS for a, b in zip(whole, out)):
